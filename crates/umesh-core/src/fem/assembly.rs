@@ -1,0 +1,347 @@
+//! Assembly of internal forces and the tangent stiffness into a sparse matrix whose
+//! pattern (over the free degrees of freedom) is computed once per grid and boundary
+//! conditions; each iteration only refills the values.
+
+use super::element::{ElementQuadrature, deformation_gradient, linear_cube_stiffness};
+use super::material::Material;
+use crate::grid::ImmersedGrid;
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use nalgebra::{Matrix3, SMatrix, Vector3};
+use rayon::prelude::*;
+
+pub const NONE: u32 = u32::MAX;
+type Ke = SMatrix<f64, 24, 24>;
+
+/// Free-dof numbering: constrained components get `NONE`.
+#[derive(Clone, Debug)]
+pub struct DofMap {
+    pub free_of: Vec<u32>,
+    pub n_free: usize,
+}
+
+impl DofMap {
+    pub fn new(constrained: &[bool]) -> Self {
+        let mut n_free = 0;
+        let free_of = constrained
+            .iter()
+            .map(|&c| {
+                if c {
+                    NONE
+                } else {
+                    n_free += 1;
+                    (n_free - 1) as u32
+                }
+            })
+            .collect();
+        Self { free_of, n_free }
+    }
+}
+
+/// How elements produce forces and stiffness.
+#[derive(Clone, Copy, Debug)]
+pub enum ElementModel {
+    /// Total Lagrangian hyperelasticity (SVK, Neo-Hookean, linear).
+    Hyperelastic(Material),
+    /// Co-rotational linear elasticity: the small-strain stiffness of each cell rotated by
+    /// the rotation of its deformation gradient at the centre.
+    Corotational,
+}
+
+/// Results of one assembly.
+#[derive(Clone, Debug)]
+pub struct Assembled {
+    /// Internal force on every node (N).
+    pub f_int: Vec<Vector3<f64>>,
+    /// Smallest det F over the quadrature points (<= 0 means an inverted element).
+    pub min_det_f: f64,
+}
+
+pub struct Assembler<'g> {
+    pub grid: &'g ImmersedGrid,
+    quad: ElementQuadrature,
+    pub dofs: DofMap,
+    symbolic: SymbolicSparseColMat<usize>,
+    pub values: Vec<f64>,
+    scatter: Vec<u32>,
+    /// Per-cell scale of the stabilising ersatz stiffness (alpha * (1 - volume fraction)).
+    stab_scale: Vec<f64>,
+    k_stab: Ke,
+    /// Per-cell small-strain stiffness, built on first co-rotational use.
+    k_lin: Vec<Ke>,
+    linear_material: Material,
+    ke: Vec<Ke>,
+    fe: Vec<SMatrix<f64, 24, 1>>,
+}
+
+impl std::fmt::Debug for Assembler<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Assembler").field("free_dofs", &self.dofs.n_free).field("nnz", &self.values.len()).finish()
+    }
+}
+
+impl<'g> Assembler<'g> {
+    /// `constrained_dofs[3 n + c]` marks component c of node n as fixed or prescribed.
+    /// `stabilization` is the relative stiffness of the fictitious (outside) part of boundary
+    /// cells, as in the finite cell method; it removes spurious zero-energy modes of cells
+    /// with few inside sub-cells.
+    pub fn new(grid: &'g ImmersedGrid, constrained_dofs: &[bool], linear_material: Material, stabilization: f64) -> Self {
+        let quad = ElementQuadrature::new(grid);
+        let dofs = DofMap::new(constrained_dofs);
+        let n_nodes = grid.node_count();
+        // Node adjacency through shared cells.
+        let mut adj: Vec<Vec<u32>> = vec![Vec::new(); n_nodes];
+        for c in &grid.cells {
+            for &a in &c.nodes {
+                adj[a as usize].extend_from_slice(&c.nodes);
+            }
+        }
+        adj.par_iter_mut().for_each(|v| {
+            v.sort_unstable();
+            v.dedup();
+        });
+        let mut col_ptr = Vec::with_capacity(dofs.n_free + 1);
+        let mut row_idx = Vec::new();
+        col_ptr.push(0usize);
+        for n in 0..n_nodes {
+            for c in 0..3 {
+                if dofs.free_of[3 * n + c] == NONE {
+                    continue;
+                }
+                for &m in &adj[n] {
+                    for d in 0..3 {
+                        let r = dofs.free_of[3 * m as usize + d];
+                        if r != NONE {
+                            row_idx.push(r as usize);
+                        }
+                    }
+                }
+                col_ptr.push(row_idx.len());
+            }
+        }
+        let scatter: Vec<u32> = grid
+            .cells
+            .par_iter()
+            .flat_map_iter(|cell| {
+                let g: [u32; 24] = std::array::from_fn(|r| {
+                    let (a, i) = (r / 3, r % 3);
+                    dofs.free_of[3 * cell.nodes[a] as usize + i]
+                });
+                let (col_ptr, row_idx) = (&col_ptr, &row_idx);
+                (0..576).map(move |rc| {
+                    let (r, c) = (rc / 24, rc % 24);
+                    if g[r] == NONE || g[c] == NONE {
+                        return NONE;
+                    }
+                    let col = g[c] as usize;
+                    let rows = &row_idx[col_ptr[col]..col_ptr[col + 1]];
+                    rows.binary_search(&(g[r] as usize)).map(|p| (col_ptr[col] + p) as u32).unwrap_or(NONE)
+                })
+            })
+            .collect();
+        let nnz = row_idx.len();
+        let symbolic = SymbolicSparseColMat::new_checked(dofs.n_free, dofs.n_free, col_ptr, None, row_idx);
+        let k_stab = linear_cube_stiffness(grid.cell_size_mm, linear_material.lambda, linear_material.mu);
+        let stab_scale = grid.cells.iter().map(|c| stabilization * (1.0 - c.volume_fraction).max(0.0)).collect();
+        let m = grid.cells.len();
+        Self {
+            grid,
+            quad,
+            dofs,
+            symbolic,
+            values: vec![0.0; nnz],
+            scatter,
+            stab_scale,
+            k_stab,
+            k_lin: Vec::new(),
+            linear_material,
+            ke: vec![Ke::zeros(); m],
+            fe: vec![SMatrix::zeros(); m],
+        }
+    }
+
+    pub fn matrix(&self) -> SparseColMatRef<'_, usize, f64> {
+        SparseColMatRef::new(self.symbolic.as_ref(), &self.values)
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.values.len()
+    }
+
+    fn ensure_linear_stiffness(&mut self) {
+        if !self.k_lin.is_empty() {
+            return;
+        }
+        let mat = self.linear_material;
+        let quad = &self.quad;
+        self.k_lin = (0..self.grid.cells.len())
+            .into_par_iter()
+            .map(|c| {
+                let mut k = Ke::zeros();
+                for q in quad.qp_offsets[c]..quad.qp_offsets[c + 1] {
+                    let g = &quad.table[quad.qp_table[q] as usize];
+                    let w = quad.qp_weight_mm3[q];
+                    for a in 0..8 {
+                        for b in 0..8 {
+                            for i in 0..3 {
+                                for j in 0..3 {
+                                    let mut v = mat.lambda * g[a][i] * g[b][j] + mat.mu * g[a][j] * g[b][i];
+                                    if i == j {
+                                        v += mat.mu * g[a].dot(&g[b]);
+                                    }
+                                    k[(3 * a + i, 3 * b + j)] += w * v;
+                                }
+                            }
+                        }
+                    }
+                }
+                k
+            })
+            .collect();
+    }
+
+    /// Assemble internal forces at displacement `u` (mm per node) and, if `tangent`, the
+    /// stiffness of the free dofs into `self.values`.
+    pub fn assemble(&mut self, model: ElementModel, u: &[Vector3<f64>], tangent: bool) -> Assembled {
+        if matches!(model, ElementModel::Corotational) {
+            self.ensure_linear_stiffness();
+        }
+        let grid = self.grid;
+        let quad = &self.quad;
+        let k_stab = &self.k_stab;
+        let stab = &self.stab_scale;
+        let k_lin = &self.k_lin;
+        let min_det = self
+            .ke
+            .par_iter_mut()
+            .zip(self.fe.par_iter_mut())
+            .enumerate()
+            .map(|(c, (ke, fe))| {
+                let cell = &grid.cells[c];
+                let ue: [Vector3<f64>; 8] = cell.nodes.map(|n| u[n as usize]);
+                let ue_flat = SMatrix::<f64, 24, 1>::from_fn(|r, _| ue[r / 3][r % 3]);
+                let mut min_det = f64::INFINITY;
+                match model {
+                    ElementModel::Hyperelastic(mat) => {
+                        *fe = k_stab * ue_flat * stab[c];
+                        if tangent {
+                            *ke = k_stab * stab[c];
+                        }
+                        for q in quad.qp_offsets[c]..quad.qp_offsets[c + 1] {
+                            let g = &quad.table[quad.qp_table[q] as usize];
+                            let w = quad.qp_weight_mm3[q];
+                            let f = deformation_gradient(&ue, g);
+                            min_det = min_det.min(f.determinant());
+                            if tangent {
+                                let (p, a) = mat.pk1_and_tangent(&f);
+                                add_force(fe, &p, g, w);
+                                add_tangent(ke, &a, g, w);
+                            } else {
+                                add_force(fe, &mat.pk1(&f), g, w);
+                            }
+                        }
+                    }
+                    ElementModel::Corotational => {
+                        let g0 = super::element::gradients([0.0; 3], grid.cell_size_mm);
+                        let f = deformation_gradient(&ue, &g0);
+                        min_det = f.determinant();
+                        let r = rotation_of(&f);
+                        let h = grid.cell_size_mm;
+                        let x0: [Vector3<f64>; 8] = crate::grid::HEX_CORNERS.map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64) * h);
+                        let xc = (0..8).map(|a| x0[a] + ue[a]).sum::<Vector3<f64>>() / 8.0;
+                        let xc0 = x0.iter().sum::<Vector3<f64>>() / 8.0;
+                        let mut ul = SMatrix::<f64, 24, 1>::zeros();
+                        for a in 0..8 {
+                            let d = r.transpose() * (x0[a] + ue[a] - xc) - (x0[a] - xc0);
+                            ul.fixed_rows_mut::<3>(3 * a).copy_from(&d);
+                        }
+                        let kc = k_lin[c] + k_stab * stab[c];
+                        let fl = kc * ul;
+                        for a in 0..8 {
+                            let v = r * fl.fixed_rows::<3>(3 * a);
+                            fe.fixed_rows_mut::<3>(3 * a).copy_from(&v);
+                        }
+                        if tangent {
+                            // R_blk K R_blk^T, block by block.
+                            for a in 0..8 {
+                                for b in 0..8 {
+                                    let blk: Matrix3<f64> = kc.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
+                                    ke.fixed_view_mut::<3, 3>(3 * a, 3 * b).copy_from(&(r * blk * r.transpose()));
+                                }
+                            }
+                        }
+                    }
+                }
+                min_det
+            })
+            .reduce(|| f64::INFINITY, f64::min);
+
+        let mut f_int = vec![Vector3::zeros(); grid.node_count()];
+        for (c, cell) in grid.cells.iter().enumerate() {
+            for a in 0..8 {
+                f_int[cell.nodes[a] as usize] += self.fe[c].fixed_rows::<3>(3 * a);
+            }
+        }
+        if tangent {
+            self.values.iter_mut().for_each(|v| *v = 0.0);
+            for (c, ke) in self.ke.iter().enumerate() {
+                let map = &self.scatter[576 * c..576 * (c + 1)];
+                // nalgebra is column-major: element (r, col) sits at col * 24 + r.
+                for (rc, &m) in map.iter().enumerate() {
+                    if m != NONE {
+                        let (r, col) = (rc / 24, rc % 24);
+                        self.values[m as usize] += ke[(r, col)];
+                    }
+                }
+            }
+        }
+        Assembled { f_int, min_det_f: min_det }
+    }
+}
+
+#[inline]
+fn add_force(fe: &mut SMatrix<f64, 24, 1>, p: &Matrix3<f64>, g: &super::element::Gradients, w: f64) {
+    for a in 0..8 {
+        let v = p * g[a] * w;
+        fe[3 * a] += v.x;
+        fe[3 * a + 1] += v.y;
+        fe[3 * a + 2] += v.z;
+    }
+}
+
+#[inline]
+fn add_tangent(ke: &mut Ke, a: &super::material::Tangent, g: &super::element::Gradients, w: f64) {
+    // T_b[(iJ), k] = sum_L A[(iJ), (kL)] g_b[L]; K[(a i), (b k)] += w sum_J g_a[J] T_b[(iJ), k]
+    for b in 0..8 {
+        let gb = g[b];
+        let mut t = [[0.0f64; 3]; 9];
+        for ij in 0..9 {
+            for k in 0..3 {
+                t[ij][k] = a[(ij, 3 * k)] * gb.x + a[(ij, 3 * k + 1)] * gb.y + a[(ij, 3 * k + 2)] * gb.z;
+            }
+        }
+        for aa in 0..8 {
+            let ga = g[aa];
+            for i in 0..3 {
+                for k in 0..3 {
+                    let v = ga.x * t[3 * i][k] + ga.y * t[3 * i + 1][k] + ga.z * t[3 * i + 2][k];
+                    ke[(3 * aa + i, 3 * b + k)] += w * v;
+                }
+            }
+        }
+    }
+}
+
+/// The rotation of the polar decomposition F = R U.
+pub fn rotation_of(f: &Matrix3<f64>) -> Matrix3<f64> {
+    let svd = f.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else { return Matrix3::identity() };
+    let mut r = u * vt;
+    if r.determinant() < 0.0 {
+        let mut u2 = u;
+        // Flip the axis of the smallest singular value.
+        let (imin, _) = svd.singular_values.iter().enumerate().fold((0, f64::MAX), |b, (i, &s)| if s < b.1 { (i, s) } else { b });
+        u2.column_mut(imin).neg_mut();
+        r = u2 * vt;
+    }
+    r
+}

@@ -1,0 +1,229 @@
+//! Hyperelastic materials in terms of the deformation gradient F.
+//!
+//! Each gives the energy density psi(F), the second Piola-Kirchhoff stress S, the first
+//! Piola-Kirchhoff stress P = F S and its derivative dP/dF (the tangent), stored as a 9x9
+//! matrix A[(3i+J), (3k+L)] = dP_iJ / dF_kL.
+
+use nalgebra::{Matrix3, SMatrix};
+
+pub type Tangent = SMatrix<f64, 9, 9>;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaterialKind {
+    /// Saint Venant-Kirchhoff: S = lambda tr(E) I + 2 mu E (the paper's).
+    StVenantKirchhoff,
+    /// Small-strain linear elasticity (P = sigma(sym(F - I))).
+    Linear,
+    /// Compressible Neo-Hookean: psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2.
+    NeoHookean,
+}
+
+impl MaterialKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            MaterialKind::StVenantKirchhoff => "svk",
+            MaterialKind::Linear => "linear",
+            MaterialKind::NeoHookean => "neo-hookean",
+        }
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "svk" | "stvk" | "saint-venant-kirchhoff" | "st-venant-kirchhoff" => Some(Self::StVenantKirchhoff),
+            "linear" => Some(Self::Linear),
+            "neo-hookean" | "neohookean" | "nh" => Some(Self::NeoHookean),
+            _ => None,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MaterialParams {
+    pub kind: MaterialKind,
+    pub young_pa: f64,
+    pub poisson: f64,
+}
+
+impl Default for MaterialParams {
+    fn default() -> Self {
+        // Liver parenchyma: a few kPa; Poisson 0.49 as in the paper.
+        Self { kind: MaterialKind::StVenantKirchhoff, young_pa: 4500.0, poisson: 0.49 }
+    }
+}
+
+impl MaterialParams {
+    /// Lame parameters in N/mm^2 (MPa).
+    pub fn lame_n_per_mm2(&self) -> (f64, f64) {
+        let e = self.young_pa * 1e-6;
+        let nu = self.poisson;
+        (e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu)))
+    }
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.young_pa.is_finite() && self.young_pa > 0.0) {
+            return Err(format!("Young's modulus {} Pa must be positive", self.young_pa));
+        }
+        if !(self.poisson > -1.0 && self.poisson < 0.5) {
+            return Err(format!("Poisson's ratio {} must lie in (-1, 0.5)", self.poisson));
+        }
+        Ok(())
+    }
+    pub fn material(&self) -> Material {
+        let (lambda, mu) = self.lame_n_per_mm2();
+        Material { kind: self.kind, lambda, mu }
+    }
+}
+
+/// A material with its Lame parameters (N/mm^2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Material {
+    pub kind: MaterialKind,
+    pub lambda: f64,
+    pub mu: f64,
+}
+
+#[inline]
+fn idx(i: usize, j: usize) -> usize {
+    3 * i + j
+}
+
+impl Material {
+    pub fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
+        let (l, m) = (self.lambda, self.mu);
+        match self.kind {
+            MaterialKind::StVenantKirchhoff => {
+                let e = green_strain(f);
+                0.5 * l * e.trace().powi(2) + m * e.component_mul(&e).sum()
+            }
+            MaterialKind::Linear => {
+                let eps = small_strain(f);
+                0.5 * l * eps.trace().powi(2) + m * eps.component_mul(&eps).sum()
+            }
+            MaterialKind::NeoHookean => {
+                let j = f.determinant();
+                if j <= 0.0 {
+                    return f64::INFINITY;
+                }
+                let lj = j.ln();
+                0.5 * m * ((f.transpose() * f).trace() - 3.0) - m * lj + 0.5 * l * lj * lj
+            }
+        }
+    }
+
+    /// Second Piola-Kirchhoff stress.
+    pub fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let (l, m) = (self.lambda, self.mu);
+        match self.kind {
+            MaterialKind::StVenantKirchhoff => {
+                let e = green_strain(f);
+                Matrix3::identity() * (l * e.trace()) + e * (2.0 * m)
+            }
+            MaterialKind::Linear => {
+                // Linear elasticity has no finite-strain S; F^-1 P keeps P = F S consistent.
+                let p = self.pk1(f);
+                f.try_inverse().map(|fi| fi * p).unwrap_or(p)
+            }
+            MaterialKind::NeoHookean => {
+                let c_inv = (f.transpose() * f).try_inverse().unwrap_or_else(Matrix3::identity);
+                let lj = f.determinant().max(1e-300).ln();
+                (Matrix3::identity() - c_inv) * m + c_inv * (l * lj)
+            }
+        }
+    }
+
+    /// First Piola-Kirchhoff stress.
+    pub fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let (l, m) = (self.lambda, self.mu);
+        match self.kind {
+            MaterialKind::Linear => {
+                let eps = small_strain(f);
+                Matrix3::identity() * (l * eps.trace()) + eps * (2.0 * m)
+            }
+            MaterialKind::NeoHookean => {
+                let fit = f.try_inverse().unwrap_or_else(Matrix3::identity).transpose();
+                let lj = f.determinant().max(1e-300).ln();
+                (f - fit) * m + fit * (l * lj)
+            }
+            MaterialKind::StVenantKirchhoff => f * self.pk2(f),
+        }
+    }
+
+    /// P and dP/dF together.
+    pub fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+        let (l, m) = (self.lambda, self.mu);
+        let mut a = Tangent::zeros();
+        match self.kind {
+            MaterialKind::StVenantKirchhoff => {
+                // A_iJkL = d_ik S_LJ + lambda F_iJ F_kL + mu (F_iL F_kJ + (F F^T)_ik d_JL)
+                let s = self.pk2(f);
+                let ff = f * f.transpose();
+                for i in 0..3 {
+                    for jj in 0..3 {
+                        for k in 0..3 {
+                            for ll in 0..3 {
+                                let mut v = l * f[(i, jj)] * f[(k, ll)] + m * f[(i, ll)] * f[(k, jj)];
+                                if i == k {
+                                    v += s[(ll, jj)];
+                                }
+                                if jj == ll {
+                                    v += m * ff[(i, k)];
+                                }
+                                a[(idx(i, jj), idx(k, ll))] = v;
+                            }
+                        }
+                    }
+                }
+                (f * s, a)
+            }
+            MaterialKind::Linear => {
+                for i in 0..3 {
+                    for jj in 0..3 {
+                        for k in 0..3 {
+                            for ll in 0..3 {
+                                let mut v = 0.0;
+                                if i == jj && k == ll {
+                                    v += l;
+                                }
+                                if i == k && jj == ll {
+                                    v += m;
+                                }
+                                if i == ll && jj == k {
+                                    v += m;
+                                }
+                                a[(idx(i, jj), idx(k, ll))] = v;
+                            }
+                        }
+                    }
+                }
+                (self.pk1(f), a)
+            }
+            MaterialKind::NeoHookean => {
+                // A_iJkL = mu d_ik d_JL + (mu - lambda ln J) Fi_Li Fi_Jk + lambda Fi_Ji Fi_Lk
+                let fi = f.try_inverse().unwrap_or_else(Matrix3::identity);
+                let lj = f.determinant().max(1e-300).ln();
+                for i in 0..3 {
+                    for jj in 0..3 {
+                        for k in 0..3 {
+                            for ll in 0..3 {
+                                let mut v = (m - l * lj) * fi[(ll, i)] * fi[(jj, k)] + l * fi[(jj, i)] * fi[(ll, k)];
+                                if i == k && jj == ll {
+                                    v += m;
+                                }
+                                a[(idx(i, jj), idx(k, ll))] = v;
+                            }
+                        }
+                    }
+                }
+                (self.pk1(f), a)
+            }
+        }
+    }
+}
+
+pub fn green_strain(f: &Matrix3<f64>) -> Matrix3<f64> {
+    (f.transpose() * f - Matrix3::identity()) * 0.5
+}
+
+pub fn small_strain(f: &Matrix3<f64>) -> Matrix3<f64> {
+    let g = f - Matrix3::identity();
+    (g + g.transpose()) * 0.5
+}

@@ -1,0 +1,484 @@
+//! Static solvers: Newton-Raphson with adaptive load increments and a backtracking line
+//! search (hyperelastic), one linear solve, and co-rotational iterations. Linear systems
+//! use faer's sparse Cholesky, whose symbolic factorisation is computed once per pattern
+//! and reused; LU takes over when the tangent is not positive definite.
+
+use super::assembly::{Assembled, Assembler, ElementModel, NONE};
+use super::bc::BoundaryConditions;
+use super::material::{MaterialKind, MaterialParams};
+use crate::grid::ImmersedGrid;
+use crate::progress::{Cancel, Progress};
+use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Llt, Lu, SymbolicLlt, SymbolicLu};
+use faer::{Mat, Side};
+use nalgebra::Vector3;
+use std::time::Instant;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolveMethod {
+    /// Newton-Raphson on the chosen hyperelastic material.
+    Newton,
+    /// One solve of the small-strain problem.
+    Linear,
+    /// Co-rotational linear elasticity, iterated to equilibrium.
+    Corotational,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SolverSettings {
+    pub max_iterations: usize,
+    /// Converged when |r| <= residual_tol * |reference force| ...
+    pub residual_tol: f64,
+    /// ... and the last correction |du| <= correction_tol * |u|.
+    pub correction_tol: f64,
+    /// Load increments to start with; halved on failure.
+    pub initial_increments: usize,
+    /// How many times an increment may be halved before giving up.
+    pub max_halvings: usize,
+    pub line_search: bool,
+    /// Relative stiffness of the fictitious part of boundary cells (finite cell method).
+    pub stabilization: f64,
+}
+
+impl Default for SolverSettings {
+    fn default() -> Self {
+        Self {
+            max_iterations: 25,
+            residual_tol: 1e-6,
+            correction_tol: 1e-5,
+            initial_increments: 1,
+            max_halvings: 8,
+            line_search: true,
+            stabilization: 1e-4,
+        }
+    }
+}
+
+/// One Newton (or co-rotational) iteration.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct IterationRecord {
+    pub increment: usize,
+    pub load_factor: f64,
+    pub iteration: usize,
+    /// |r| / |reference force| before the step.
+    pub residual: f64,
+    /// |du| / |u| of the step taken.
+    pub correction: f64,
+    pub step_length: f64,
+    pub assembly_ms: f64,
+    pub factorization_ms: f64,
+    pub solve_ms: f64,
+    pub factorization: &'static str,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Timings {
+    pub assembly_ms: f64,
+    pub factorization_ms: f64,
+    pub solve_ms: f64,
+    pub total_ms: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct Solution {
+    pub displacement_mm: Vec<Vector3<f64>>,
+    pub history: Vec<IterationRecord>,
+    pub increments: usize,
+    pub iterations: usize,
+    pub timings: Timings,
+    pub final_residual: f64,
+}
+
+impl Solution {
+    pub fn max_displacement_mm(&self) -> f64 {
+        self.displacement_mm.iter().map(|u| u.norm()).fold(0.0, f64::max)
+    }
+    pub fn mean_displacement_mm(&self) -> f64 {
+        self.displacement_mm.iter().map(|u| u.norm()).sum::<f64>() / self.displacement_mm.len().max(1) as f64
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FemError {
+    #[error("the solve did not converge: {reason} (after {} iterations)", history.len())]
+    NotConverged { reason: String, history: Vec<IterationRecord> },
+    #[error("invalid problem: {0}")]
+    InvalidInput(String),
+    #[error("the linear system could not be factorised: {0}")]
+    Factorization(String),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Cached factorisations for one sparsity pattern.
+#[derive(Default)]
+struct Factorizer {
+    llt_symbolic: Option<SymbolicLlt<usize>>,
+    lu_symbolic: Option<SymbolicLu<usize>>,
+}
+
+enum Factor {
+    Llt(Llt<usize, f64>),
+    Lu(Lu<usize, f64>),
+}
+
+impl Factor {
+    fn name(&self) -> &'static str {
+        match self {
+            Factor::Llt(_) => "cholesky",
+            Factor::Lu(_) => "lu",
+        }
+    }
+    fn solve(&self, rhs: &mut Mat<f64>) {
+        match self {
+            Factor::Llt(f) => f.solve_in_place(rhs.as_mut()),
+            Factor::Lu(f) => f.solve_in_place(rhs.as_mut()),
+        }
+    }
+}
+
+impl Factorizer {
+    fn factorize(&mut self, asm: &Assembler) -> Result<Factor, FemError> {
+        let mat = asm.matrix();
+        if self.llt_symbolic.is_none() {
+            self.llt_symbolic = Some(
+                SymbolicLlt::try_new(mat.symbolic(), Side::Lower).map_err(|e| FemError::Factorization(format!("{e:?}")))?,
+            );
+        }
+        if let Some(sym) = &self.llt_symbolic
+            && let Ok(f) = Llt::try_new_with_symbolic(sym.clone(), mat, Side::Lower)
+        {
+            return Ok(Factor::Llt(f));
+        }
+        if self.lu_symbolic.is_none() {
+            self.lu_symbolic =
+                Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| FemError::Factorization(format!("{e:?}")))?);
+        }
+        let sym = self.lu_symbolic.clone().ok_or_else(|| FemError::Factorization("no symbolic LU".into()))?;
+        Lu::try_new_with_symbolic(sym, mat).map(Factor::Lu).map_err(|e| FemError::Factorization(format!("{e:?}")))
+    }
+}
+
+/// A reusable solver for one grid, material and set of constrained nodes: the sparse
+/// pattern, scatter maps and symbolic factorisation are kept between solves.
+pub struct FeSolver<'g> {
+    pub grid: &'g ImmersedGrid,
+    pub material: MaterialParams,
+    pub settings: SolverSettings,
+    asm: Assembler<'g>,
+    fact: Factorizer,
+    constrained_nodes: Vec<bool>,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl<'g> FeSolver<'g> {
+    /// `constrained[n]`: node n is fixed or has a prescribed displacement.
+    pub fn new(grid: &'g ImmersedGrid, material: MaterialParams, constrained: &[bool], settings: SolverSettings) -> Result<Self, FemError> {
+        material.validate().map_err(FemError::InvalidInput)?;
+        if constrained.len() != grid.node_count() {
+            return Err(FemError::InvalidInput(format!("{} constraint flags for {} nodes", constrained.len(), grid.node_count())));
+        }
+        if !constrained.iter().any(|&c| c) {
+            return Err(FemError::InvalidInput("no node is fixed: the problem has rigid-body modes".into()));
+        }
+        let dofs: Vec<bool> = constrained.iter().flat_map(|&c| [c; 3]).collect();
+        let lin = MaterialParams { kind: MaterialKind::Linear, ..material }.material();
+        let asm = Assembler::new(grid, &dofs, lin, settings.stabilization);
+        Ok(Self { grid, material, settings, asm, fact: Factorizer::default(), constrained_nodes: constrained.to_vec() })
+    }
+
+    pub fn free_dofs(&self) -> usize {
+        self.asm.dofs.n_free
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.asm.nnz()
+    }
+
+    /// Solve the static problem for `bc`, whose constrained nodes must be those given to `new`.
+    pub fn solve(&mut self, bc: &BoundaryConditions, method: SolveMethod, progress: &Progress, cancel: &Cancel) -> Result<Solution, FemError> {
+        let n = self.grid.node_count();
+        if bc.forces_n.len() != n || bc.fixed.len() != n {
+            return Err(FemError::InvalidInput("boundary conditions do not match the grid".into()));
+        }
+        let mut constrained = bc.fixed.clone();
+        for &(node, d) in &bc.prescribed_mm {
+            if node >= n || !d.iter().all(|v| v.is_finite()) {
+                return Err(FemError::InvalidInput(format!("bad prescribed displacement on node {node}")));
+            }
+            constrained[node] = true;
+        }
+        if constrained != self.constrained_nodes {
+            return Err(FemError::InvalidInput("the constrained nodes differ from those the solver was built for".into()));
+        }
+        if bc.forces_n.iter().any(|f| !f.iter().all(|v| v.is_finite())) {
+            return Err(FemError::InvalidInput("a force is not finite".into()));
+        }
+        let start = Instant::now();
+        let mut out = match method {
+            SolveMethod::Linear => self.solve_linear(bc)?,
+            SolveMethod::Newton => {
+                let model = ElementModel::Hyperelastic(self.material.material());
+                self.solve_incremental(bc, model, progress, cancel)?
+            }
+            SolveMethod::Corotational => self.solve_incremental(bc, ElementModel::Corotational, progress, cancel)?,
+        };
+        out.timings.total_ms = ms(start);
+        Ok(out)
+    }
+
+    fn residual(&self, asmd: &Assembled, f_ext: &[Vector3<f64>], load: f64) -> (Vec<f64>, f64) {
+        let free = &self.asm.dofs.free_of;
+        let mut r = vec![0.0; self.asm.dofs.n_free];
+        let mut ref2 = 0.0;
+        let mut all_int2 = 0.0;
+        for (nd, (fi, fe)) in asmd.f_int.iter().zip(f_ext).enumerate() {
+            for c in 0..3 {
+                let k = free[3 * nd + c];
+                all_int2 += fi[c] * fi[c];
+                if k != NONE {
+                    r[k as usize] = load * fe[c] - fi[c];
+                    ref2 += (load * fe[c]).powi(2);
+                }
+            }
+        }
+        (r, ref2.max(all_int2).sqrt().max(1e-30))
+    }
+
+    fn apply_prescribed(&self, u: &mut [Vector3<f64>], bc: &BoundaryConditions, load: f64) {
+        for &(node, d) in &bc.prescribed_mm {
+            u[node] = d * load;
+        }
+        for (nd, fixed) in bc.fixed.iter().enumerate() {
+            if *fixed && !bc.prescribed_mm.iter().any(|p| p.0 == nd) {
+                u[nd] = Vector3::zeros();
+            }
+        }
+    }
+
+    fn add_free(&self, u: &mut [Vector3<f64>], du: &Mat<f64>, alpha: f64) {
+        let free = &self.asm.dofs.free_of;
+        for (nd, v) in u.iter_mut().enumerate() {
+            for c in 0..3 {
+                let k = free[3 * nd + c];
+                if k != NONE {
+                    v[c] += alpha * du[(k as usize, 0)];
+                }
+            }
+        }
+    }
+
+    fn solve_linear(&mut self, bc: &BoundaryConditions) -> Result<Solution, FemError> {
+        let mut u = vec![Vector3::zeros(); self.grid.node_count()];
+        self.apply_prescribed(&mut u, bc, 1.0);
+        let lin = MaterialParams { kind: MaterialKind::Linear, ..self.material }.material();
+        let t = Instant::now();
+        let a = self.asm.assemble(ElementModel::Hyperelastic(lin), &u, true);
+        let assembly_ms = ms(t);
+        let (r, refn) = self.residual(&a, &bc.forces_n, 1.0);
+        let t = Instant::now();
+        let fac = self.fact.factorize(&self.asm)?;
+        let factorization_ms = ms(t);
+        let t = Instant::now();
+        let mut rhs = Mat::from_fn(r.len(), 1, |i, _| r[i]);
+        fac.solve(&mut rhs);
+        let solve_ms = ms(t);
+        if !(0..rhs.nrows()).all(|i| rhs[(i, 0)].is_finite()) {
+            return Err(FemError::Factorization("the solution is not finite (singular stiffness)".into()));
+        }
+        self.add_free(&mut u, &rhs, 1.0);
+        let rec = IterationRecord {
+            increment: 1,
+            load_factor: 1.0,
+            iteration: 1,
+            residual: norm(&r) / refn,
+            correction: 1.0,
+            step_length: 1.0,
+            assembly_ms,
+            factorization_ms,
+            solve_ms,
+            factorization: fac.name(),
+        };
+        Ok(Solution {
+            displacement_mm: u,
+            history: vec![rec],
+            increments: 1,
+            iterations: 1,
+            timings: Timings { assembly_ms, factorization_ms, solve_ms, total_ms: 0.0 },
+            final_residual: 0.0,
+        })
+    }
+
+    fn solve_incremental(&mut self, bc: &BoundaryConditions, model: ElementModel, progress: &Progress, cancel: &Cancel) -> Result<Solution, FemError> {
+        let s = self.settings.clone();
+        let mut u = vec![Vector3::zeros(); self.grid.node_count()];
+        let mut history = Vec::new();
+        let mut timings = Timings::default();
+        let mut done = 0.0f64;
+        let mut step = 1.0 / s.initial_increments.max(1) as f64;
+        let mut halvings = 0;
+        let mut increments = 0;
+        let mut final_residual = 0.0;
+        while done < 1.0 - 1e-12 {
+            if cancel.is_cancelled() {
+                return Err(FemError::Cancelled);
+            }
+            let load = (done + step).min(1.0);
+            let mut trial = u.clone();
+            self.apply_prescribed(&mut trial, bc, load);
+            match self.newton(&mut trial, bc, model, load, increments + 1, &mut history, &mut timings, progress, cancel)? {
+                Ok((iters, res)) => {
+                    u = trial;
+                    done = load;
+                    increments += 1;
+                    final_residual = res;
+                    // Easy increments let the next one grow back.
+                    if iters <= 4 {
+                        step = (step * 2.0).min(1.0);
+                    }
+                }
+                Err(reason) => {
+                    halvings += 1;
+                    if halvings > s.max_halvings {
+                        return Err(FemError::NotConverged {
+                            reason: format!("{reason}; the load increment was halved {} times, down to {:.3e}", s.max_halvings, step),
+                            history,
+                        });
+                    }
+                    step *= 0.5;
+                }
+            }
+        }
+        let iterations = history.len();
+        Ok(Solution { displacement_mm: u, history, increments, iterations, timings, final_residual })
+    }
+
+    /// Newton iterations at one load factor. Outer Err: fatal; inner Err: this increment
+    /// failed (too large), with the reason.
+    #[allow(clippy::too_many_arguments)]
+    fn newton(
+        &mut self,
+        u: &mut [Vector3<f64>],
+        bc: &BoundaryConditions,
+        model: ElementModel,
+        load: f64,
+        increment: usize,
+        history: &mut Vec<IterationRecord>,
+        timings: &mut Timings,
+        progress: &Progress,
+        cancel: &Cancel,
+    ) -> Result<Result<(usize, f64), String>, FemError> {
+        let s = self.settings.clone();
+        let t = Instant::now();
+        let mut current = self.asm.assemble(model, u, true);
+        let mut assembly_ms = ms(t);
+        let mut last_correction = f64::INFINITY;
+        for it in 1..=s.max_iterations {
+            if cancel.is_cancelled() {
+                return Err(FemError::Cancelled);
+            }
+            if !(current.min_det_f > 0.0) {
+                return Ok(Err("an element inverted (det F <= 0)".into()));
+            }
+            let (r, refn) = self.residual(&current, &bc.forces_n, load);
+            let rnorm = norm(&r);
+            if !rnorm.is_finite() {
+                return Ok(Err("the residual is not finite".into()));
+            }
+            let rel = rnorm / refn;
+            if rel <= s.residual_tol && (last_correction <= s.correction_tol || rel <= s.residual_tol * 1e-3) {
+                return Ok(Ok((it - 1, rel)));
+            }
+            let t = Instant::now();
+            let fac = self.fact.factorize(&self.asm)?;
+            let factorization_ms = ms(t);
+            let t = Instant::now();
+            let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
+            fac.solve(&mut du);
+            let solve_ms = ms(t);
+            let du_norm = (0..du.nrows()).map(|i| du[(i, 0)].powi(2)).sum::<f64>().sqrt();
+            if !du_norm.is_finite() {
+                return Ok(Err("the Newton correction is not finite".into()));
+            }
+            // Backtracking on the residual norm (and on inversion).
+            let mut alpha = 1.0;
+            let t = Instant::now();
+            let base: Vec<Vector3<f64>> = u.to_vec();
+            loop {
+                u.copy_from_slice(&base);
+                self.add_free(u, &du, alpha);
+                current = self.asm.assemble(model, u, true);
+                // Accept when the residual norm falls, or when the residual's component along
+                // the step (the energy's slope) has dropped enough: the plain residual-norm
+                // test alone rejects good Newton steps in large rotations.
+                let ok = current.min_det_f > 0.0 && {
+                    let (r2, _) = self.residual(&current, &bc.forces_n, load);
+                    let n2 = norm(&r2);
+                    let slope = |rv: &[f64]| rv.iter().enumerate().map(|(i, v)| v * du[(i, 0)]).sum::<f64>();
+                    n2.is_finite()
+                        && (n2 <= (1.0 - 1e-4 * alpha) * rnorm
+                            || n2 <= refn * s.residual_tol
+                            || slope(&r2).abs() <= 0.5 * slope(&r).abs())
+                };
+                if ok || !s.line_search || alpha < 1.0 / 32.0 {
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            let a_ms = ms(t);
+            let unorm = u.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt().max(1e-30);
+            last_correction = alpha * du_norm / unorm;
+            timings.assembly_ms += assembly_ms;
+            timings.factorization_ms += factorization_ms;
+            timings.solve_ms += solve_ms;
+            history.push(IterationRecord {
+                increment,
+                load_factor: load,
+                iteration: it,
+                residual: rel,
+                correction: last_correction,
+                step_length: alpha,
+                assembly_ms,
+                factorization_ms,
+                solve_ms,
+                factorization: fac.name(),
+            });
+            assembly_ms = a_ms;
+            progress.report(history.len() as u64, 0, &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0));
+        }
+        timings.assembly_ms += assembly_ms;
+        Ok(Err(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations)))
+    }
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+/// One-shot solve: builds a solver for the constraints of `bc` and solves.
+pub fn solve(
+    grid: &ImmersedGrid,
+    material: &MaterialParams,
+    bc: &BoundaryConditions,
+    method: SolveMethod,
+    settings: &SolverSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<Solution, FemError> {
+    let mut constrained = bc.fixed.clone();
+    if constrained.len() != grid.node_count() {
+        return Err(FemError::InvalidInput(format!("{} fixed flags for {} nodes", constrained.len(), grid.node_count())));
+    }
+    for &(n, _) in &bc.prescribed_mm {
+        if n >= constrained.len() {
+            return Err(FemError::InvalidInput(format!("prescribed node {n} does not exist")));
+        }
+        constrained[n] = true;
+    }
+    let mut solver = FeSolver::new(grid, *material, &constrained, settings.clone())?;
+    solver.solve(bc, method, progress, cancel)
+}

@@ -1,0 +1,305 @@
+//! FE verification: patch test, frame indifference, tangent vs finite differences,
+//! linear limit, cantilever vs Euler-Bernoulli, immersed vs conforming, Newton's rate.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use umesh_core::fem::assembly::{Assembler, ElementModel};
+use umesh_core::fem::solver::FeSolver;
+use umesh_core::fem::{BoundaryConditions, FemError, FixedRegion, MaterialKind, MaterialParams, SolveMethod, SolverSettings, solve};
+use umesh_core::grid::{self, GridSettings, ImmersedGrid};
+use umesh_core::{Cancel, Progress};
+
+fn box_grid(lo: Vector3<f64>, hi: Vector3<f64>, h: f64, sub: u32) -> ImmersedGrid {
+    let s = GridSettings { cell_size_mm: h, subdivisions: sub, samples_per_leaf_axis: 2, pooling_steps: 0 };
+    let inside = move |p: &nalgebra::Point3<f64>| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+    // Build over exactly the box so cells conform when the box is a multiple of h.
+    grid::build(lo, hi, inside, &s, &Progress::none(), &Cancel::new()).unwrap()
+}
+
+fn mat(kind: MaterialKind) -> MaterialParams {
+    MaterialParams { kind, young_pa: 1.0e6, poisson: 0.3 }
+}
+
+fn rand_f(seed: u64) -> Matrix3<f64> {
+    let mut r = umesh_core::phantom::SplitMix64(seed);
+    Matrix3::identity() + Matrix3::from_fn(|_, _| 0.2 * (r.next_f64() - 0.5))
+}
+
+#[test]
+fn material_tangents_match_finite_differences_of_pk1() {
+    for kind in [MaterialKind::StVenantKirchhoff, MaterialKind::NeoHookean, MaterialKind::Linear] {
+        let m = mat(kind).material();
+        for seed in 0..5 {
+            let f = rand_f(seed);
+            let (_, a) = m.pk1_and_tangent(&f);
+            let eps = 1e-7;
+            for k in 0..3 {
+                for l in 0..3 {
+                    let mut fp = f;
+                    fp[(k, l)] += eps;
+                    let mut fm = f;
+                    fm[(k, l)] -= eps;
+                    let d = (m.pk1(&fp) - m.pk1(&fm)) / (2.0 * eps);
+                    for i in 0..3 {
+                        for j in 0..3 {
+                            let err = (a[(3 * i + j, 3 * k + l)] - d[(i, j)]).abs();
+                            assert!(err < 1e-6 * (1.0 + d[(i, j)].abs()) * m.lambda.max(1.0), "{kind:?} dP{i}{j}/dF{k}{l}: {err}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn pk1_is_the_derivative_of_the_energy_density() {
+    for kind in [MaterialKind::StVenantKirchhoff, MaterialKind::NeoHookean, MaterialKind::Linear] {
+        let m = mat(kind).material();
+        let f = rand_f(11);
+        let p = m.pk1(&f);
+        let eps = 1e-7;
+        for k in 0..3 {
+            for l in 0..3 {
+                let mut fp = f;
+                fp[(k, l)] += eps;
+                let mut fm = f;
+                fm[(k, l)] -= eps;
+                let d = (m.energy_density(&fp) - m.energy_density(&fm)) / (2.0 * eps);
+                assert!((d - p[(k, l)]).abs() < 1e-6 * m.lambda, "{kind:?} P{k}{l}: {d} vs {}", p[(k, l)]);
+            }
+        }
+        // S is consistent with P = F S.
+        assert!((f * m.pk2(&f) - p).norm() < 1e-9 * m.lambda, "{kind:?}");
+    }
+}
+
+#[test]
+fn svk_and_neo_hookean_give_zero_stress_under_rigid_rotation() {
+    for kind in [MaterialKind::StVenantKirchhoff, MaterialKind::NeoHookean] {
+        let m = mat(kind).material();
+        let r = Rotation3::from_euler_angles(0.7, -1.1, 2.3).into_inner();
+        assert!(m.pk2(&r).norm() < 1e-12, "{kind:?}: S = {}", m.pk2(&r));
+        assert!(m.energy_density(&r).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn assembled_tangent_matches_finite_differences_of_internal_forces() {
+    // A box with a partial boundary layer so both regular and sub-cell quadrature are checked.
+    let g = box_grid(Vector3::zeros(), Vector3::new(10.0, 7.0, 6.5), 2.5, 1);
+    let n = g.node_count();
+    let mut constrained = vec![false; 3 * n];
+    for c in 0..3 {
+        constrained[c] = true;
+    }
+    for kind in [MaterialKind::StVenantKirchhoff, MaterialKind::NeoHookean] {
+        let m = mat(kind).material();
+        let lin = mat(MaterialKind::Linear).material();
+        let mut asm = Assembler::new(&g, &constrained, lin, 1e-4);
+        let mut r = umesh_core::phantom::SplitMix64(3);
+        let u: Vec<Vector3<f64>> = (0..n).map(|_| Vector3::new(r.next_f64() - 0.5, r.next_f64() - 0.5, r.next_f64() - 0.5) * 0.3).collect();
+        asm.assemble(ElementModel::Hyperelastic(m), &u, true);
+        let k = asm.matrix().to_dense();
+        let eps = 1e-6;
+        let mut max_err: f64 = 0.0;
+        let mut max_k: f64 = 0.0;
+        for dof in [3usize, 7, 20, 3 * n - 1] {
+            let (nd, c) = (dof / 3, dof % 3);
+            let mut up = u.clone();
+            up[nd][c] += eps;
+            let mut um = u.clone();
+            um[nd][c] -= eps;
+            let fp = asm.assemble(ElementModel::Hyperelastic(m), &up, false).f_int;
+            let fm = asm.assemble(ElementModel::Hyperelastic(m), &um, false).f_int;
+            let col = asm.dofs.free_of[dof] as usize;
+            for row_dof in 3..3 * n {
+                let row = asm.dofs.free_of[row_dof] as usize;
+                let fd = (fp[row_dof / 3][row_dof % 3] - fm[row_dof / 3][row_dof % 3]) / (2.0 * eps);
+                max_err = max_err.max((k[(row, col)] - fd).abs());
+                max_k = max_k.max(k[(row, col)].abs());
+            }
+        }
+        assert!(max_err < 1e-6 * max_k, "{kind:?}: tangent error {max_err:e} vs scale {max_k:e}");
+    }
+}
+
+/// Nodes on the face x = x0 of a grid.
+fn face_nodes(g: &ImmersedGrid, axis: usize, value: f64) -> Vec<usize> {
+    (0..g.node_count()).filter(|&n| (g.node_position(n)[axis] - value).abs() < 1e-9).collect()
+}
+
+#[test]
+fn patch_test_reproduces_a_linear_displacement_field_exactly() {
+    let g = box_grid(Vector3::zeros(), Vector3::new(10.0, 10.0, 10.0), 2.5, 1);
+    let grad = Matrix3::new(1e-3, 2e-4, -3e-4, 5e-4, -2e-3, 1e-4, 0.0, 3e-4, 1.5e-3);
+    let mut bc = BoundaryConditions::new(g.node_count());
+    // Prescribe the field on the boundary; interior nodes must follow it exactly.
+    for n in 0..g.node_count() {
+        let p = g.node_position(n);
+        if (0..3).any(|a| p[a].abs() < 1e-9 || (p[a] - 10.0).abs() < 1e-9) {
+            bc.prescribed_mm.push((n, grad * p));
+        }
+    }
+    let sol = solve(&g, &mat(MaterialKind::Linear), &bc, SolveMethod::Linear, &SolverSettings::default(), &Progress::none(), &Cancel::new()).unwrap();
+    let err = (0..g.node_count()).map(|n| (sol.displacement_mm[n] - grad * g.node_position(n)).norm()).fold(0.0, f64::max);
+    assert!(err < 1e-10, "patch test error {err:e} mm");
+}
+
+fn cantilever(h: f64, method: SolveMethod, kind: MaterialKind, tip_force_n: f64) -> (f64, ImmersedGrid, Vec<Vector3<f64>>) {
+    let (l, b) = (100.0, 10.0);
+    let g = box_grid(Vector3::zeros(), Vector3::new(l, b, b), h, 1);
+    let mut bc = BoundaryConditions::new(g.node_count());
+    bc.fix_region(&g, &FixedRegion::Nodes { nodes: face_nodes(&g, 0, 0.0) }, None).unwrap();
+    let tip = face_nodes(&g, 0, l);
+    // Consistent nodal loads of a uniform traction on the tip face (bilinear face elements).
+    let per_axis = (b / h).round() as usize;
+    let mut total = 0.0;
+    for &n in &tip {
+        let p = g.node_position(n);
+        let wy = if p.y.abs() < 1e-9 || (p.y - b).abs() < 1e-9 { 0.5 } else { 1.0 };
+        let wz = if p.z.abs() < 1e-9 || (p.z - b).abs() < 1e-9 { 0.5 } else { 1.0 };
+        total += wy * wz;
+        bc.forces_n[n] = Vector3::new(0.0, 0.0, -wy * wz);
+    }
+    assert_eq!(total, (per_axis * per_axis) as f64);
+    for f in &mut bc.forces_n {
+        *f *= tip_force_n / total;
+    }
+    let sol = solve(&g, &mat(kind), &bc, method, &SolverSettings::default(), &Progress::none(), &Cancel::new()).unwrap();
+    let defl = tip.iter().map(|&n| -sol.displacement_mm[n].z).sum::<f64>() / tip.len() as f64;
+    (defl, g, sol.displacement_mm)
+}
+
+#[test]
+fn cantilever_converges_to_euler_bernoulli_under_refinement() {
+    // L = 100 mm, 10 x 10 mm section, E = 1 MPa, nu = 0.3, tip load 0.01 N (linear regime).
+    let p = 0.01;
+    let e = 1.0; // N/mm^2
+    let i = 10.0f64.powi(4) / 12.0;
+    let exact = p * 100.0f64.powi(3) / (3.0 * e * i);
+    let mut errs = Vec::new();
+    for h in [5.0, 2.5, 1.25] {
+        let (d, _, _) = cantilever(h, SolveMethod::Linear, MaterialKind::Linear, p);
+        errs.push((d - exact).abs() / exact);
+    }
+    // Full-integration trilinear hexes lock in bending: the error falls with h.
+    assert!(errs[0] > errs[1] && errs[1] > errs[2], "errors {errs:?}");
+    assert!(errs[2] < 0.05, "relative error at h = 1.25 mm: {:.3} (errors {errs:?})", errs[2]);
+}
+
+#[test]
+fn svk_and_linear_agree_to_first_order_for_a_small_load() {
+    let (dl, _, _) = cantilever(2.5, SolveMethod::Linear, MaterialKind::Linear, 1e-4);
+    let (dn, _, _) = cantilever(2.5, SolveMethod::Newton, MaterialKind::StVenantKirchhoff, 1e-4);
+    assert!((dl - dn).abs() / dl < 1e-3, "linear {dl} vs SVK {dn}");
+    // And the difference shrinks with the load (second order).
+    let (dl2, _, _) = cantilever(2.5, SolveMethod::Linear, MaterialKind::Linear, 1e-3);
+    let (dn2, _, _) = cantilever(2.5, SolveMethod::Newton, MaterialKind::StVenantKirchhoff, 1e-3);
+    let rel_small = (dl - dn).abs() / dl;
+    let rel_big = (dl2 - dn2).abs() / dl2;
+    assert!(rel_big > 5.0 * rel_small, "{rel_small:e} vs {rel_big:e}");
+}
+
+#[test]
+fn newton_converges_quadratically_near_the_solution() {
+    let (l, b, h) = (60.0, 10.0, 2.5);
+    let g = box_grid(Vector3::zeros(), Vector3::new(l, b, b), h, 1);
+    let mut bc = BoundaryConditions::new(g.node_count());
+    bc.fix_region(&g, &FixedRegion::Nodes { nodes: face_nodes(&g, 0, 0.0) }, None).unwrap();
+    let tip = face_nodes(&g, 0, l);
+    for &n in &tip {
+        bc.forces_n[n] = Vector3::new(0.0, 0.0, -0.3 / tip.len() as f64);
+    }
+    let settings = SolverSettings { residual_tol: 1e-12, correction_tol: 1e-12, ..Default::default() };
+    let sol = solve(&g, &mat(MaterialKind::StVenantKirchhoff), &bc, SolveMethod::Newton, &settings, &Progress::none(), &Cancel::new()).unwrap();
+    let last = sol.history.last().unwrap().increment;
+    let res: Vec<f64> = sol.history.iter().filter(|r| r.increment == last).map(|r| r.residual).collect();
+    assert!(sol.max_displacement_mm() > 5.0, "the load should be in the nonlinear regime: {}", sol.max_displacement_mm());
+    // Near the solution r_{k+1} <= C r_k^2: the log-ratio approaches 2.
+    let tail: Vec<f64> = res.iter().copied().filter(|&r| r < 1e-2 && r > 1e-13).collect();
+    assert!(tail.len() >= 2, "residuals {res:?}");
+    let rate = tail[tail.len() - 1].ln() / tail[tail.len() - 2].ln();
+    assert!(rate > 1.7, "observed order {rate:.2}, residuals {res:?}");
+}
+
+#[test]
+fn large_load_is_reached_by_increments_and_impossible_load_is_reported() {
+    let (l, b, h) = (60.0, 10.0, 2.5);
+    let g = box_grid(Vector3::zeros(), Vector3::new(l, b, b), h, 1);
+    let mut bc = BoundaryConditions::new(g.node_count());
+    bc.fix_region(&g, &FixedRegion::Nodes { nodes: face_nodes(&g, 0, 0.0) }, None).unwrap();
+    let tip = face_nodes(&g, 0, l);
+    for &n in &tip {
+        bc.forces_n[n] = Vector3::new(0.0, 0.0, -1.5 / tip.len() as f64);
+    }
+    let settings = SolverSettings { max_iterations: 8, line_search: false, ..Default::default() };
+    let sol = solve(&g, &mat(MaterialKind::StVenantKirchhoff), &bc, SolveMethod::Newton, &settings, &Progress::none(), &Cancel::new()).unwrap();
+    assert!(sol.increments > 1, "expected several increments, got {}", sol.increments);
+    assert!(sol.displacement_mm.iter().all(|u| u.iter().all(|v| v.is_finite())));
+    // Compressing the bar to nothing cannot converge: a clear error, never a result.
+    let mut crush = BoundaryConditions::new(g.node_count());
+    crush.fix_region(&g, &FixedRegion::Nodes { nodes: face_nodes(&g, 0, 0.0) }, None).unwrap();
+    for &n in &tip {
+        crush.prescribed_mm.push((n, Vector3::new(-70.0, 0.0, 0.0)));
+    }
+    let settings = SolverSettings { max_iterations: 6, max_halvings: 3, ..Default::default() };
+    match solve(&g, &mat(MaterialKind::NeoHookean), &crush, SolveMethod::Newton, &settings, &Progress::none(), &Cancel::new()) {
+        Err(FemError::NotConverged { history, reason }) => {
+            assert!(!reason.is_empty());
+            assert!(history.iter().all(|r| r.residual.is_finite()));
+        }
+        other => panic!("expected NotConverged, got {:?}", other.map(|s| s.max_displacement_mm())),
+    }
+}
+
+#[test]
+fn immersed_beam_converges_to_the_conforming_beam() {
+    // A beam that does not conform to the grid (offset and non-multiple sizes) vs the
+    // conforming solution at the same load: the tip deflection error falls as cells shrink.
+    let p = 0.01;
+    let (reference, _, _) = cantilever(1.25, SolveMethod::Linear, MaterialKind::Linear, p);
+    let mut errs = Vec::new();
+    for h in [4.0, 2.0, 1.0] {
+        let (l, b) = (100.0, 10.0);
+        // The lattice spans a slightly larger box, so the beam's faces cut cells.
+        let pad = 0.37 * h;
+        let lo = Vector3::new(-pad, -pad, -pad);
+        let hi = Vector3::new(l + 0.5 * h, b + pad, b + pad);
+        let s = GridSettings { cell_size_mm: h, subdivisions: 2, samples_per_leaf_axis: 2, pooling_steps: 0 };
+        let inside = move |q: &nalgebra::Point3<f64>| q.x >= 0.0 && q.x <= l && q.y >= 0.0 && q.y <= b && q.z >= 0.0 && q.z <= b;
+        let g = grid::build(lo, hi, inside, &s, &Progress::none(), &Cancel::new()).unwrap();
+        let mut bc = BoundaryConditions::new(g.node_count());
+        // Clamp: nodes of cells that touch x <= 0.
+        bc.fix_region(&g, &FixedRegion::Plane { normal: [1.0, 0.0, 0.0], offset_mm: 0.0, thickness_mm: 1e-9 }, None).unwrap();
+        // Tip load at the centre of the end face, spread by the embedding.
+        bc.add_point_force(&g, &Vector3::new(l, b / 2.0, b / 2.0), &Vector3::new(0.0, 0.0, -p)).unwrap();
+        let sol = solve(&g, &mat(MaterialKind::Linear), &bc, SolveMethod::Linear, &SolverSettings::default(), &Progress::none(), &Cancel::new()).unwrap();
+        let e = g.embed(&Vector3::new(l, b / 2.0, b / 2.0)).unwrap();
+        let d: f64 = e.nodes.iter().zip(e.weights).map(|(&n, w)| -sol.displacement_mm[n as usize].z * w).sum();
+        errs.push((d - reference).abs() / reference);
+    }
+    assert!(errs[2] < errs[0], "errors {errs:?}");
+    assert!(errs[2] < 0.1, "errors {errs:?}");
+}
+
+#[test]
+fn fe_solver_reuses_its_pattern_for_new_loads() {
+    let g = box_grid(Vector3::zeros(), Vector3::new(40.0, 10.0, 10.0), 2.5, 1);
+    let fixed: Vec<bool> = (0..g.node_count()).map(|n| g.node_position(n).x < 1e-9).collect();
+    let mut solver = FeSolver::new(&g, mat(MaterialKind::StVenantKirchhoff), &fixed, SolverSettings::default()).unwrap();
+    let mut bc = BoundaryConditions::new(g.node_count());
+    bc.fixed = fixed;
+    let tip = face_nodes(&g, 0, 40.0);
+    let mut last = 0.0;
+    for load in [0.01, 0.02] {
+        for &n in &tip {
+            bc.forces_n[n] = Vector3::new(0.0, -load / tip.len() as f64, 0.0);
+        }
+        let s = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), &Cancel::new()).unwrap();
+        assert!(s.max_displacement_mm() > last);
+        last = s.max_displacement_mm();
+    }
+    // Co-rotational agrees with SVK for a moderate load within a few percent.
+    let cr = solver.solve(&bc, SolveMethod::Corotational, &Progress::none(), &Cancel::new()).unwrap();
+    assert!((cr.max_displacement_mm() - last).abs() / last < 0.05, "corotational {} vs svk {last}", cr.max_displacement_mm());
+}

@@ -332,8 +332,10 @@ impl ImmersedGrid {
     }
 }
 
-/// Number the nodes of the kept cells and index everything.
-fn assemble_grid(
+/// Number the nodes of the kept cells and index everything. `occupied` is (cell lattice
+/// index, kind, volume fraction) per cell; `quadrature` refers to cells by their position
+/// in `occupied` and must be grouped by cell.
+pub fn assemble_grid(
     origin_mm: Vector3<f64>,
     cell_size_mm: f64,
     cell_dims: [usize; 3],
@@ -494,4 +496,35 @@ pub fn build(
         return Err(GridError::EmptyMask);
     }
     Ok(assemble_grid(origin, h, cell_dims, occupied, quadrature, settings.pooling_steps))
+}
+
+/// The grid of a segmentation's organ, with the figures `umesh grid` reports.
+#[derive(Debug)]
+pub struct GridOutput {
+    pub grid: ImmersedGrid,
+    pub stats: GridStats,
+    /// Organ voxels x voxel volume.
+    pub segmentation_volume_mm3: f64,
+}
+
+pub fn run_grid(seg: &crate::segmentation::Segmentation, settings: &GridSettings, progress: &Progress, cancel: &Cancel) -> Result<GridOutput, GridError> {
+    let mask = seg.organ_mask();
+    let segmentation_volume_mm3 = mask.volume_mm3();
+    let grid = ImmersedGrid::from_mask(&mask, settings, progress, cancel)?;
+    let stats = grid.stats();
+    Ok(GridOutput { grid, stats, segmentation_volume_mm3 })
+}
+
+/// The grid as a VTK unstructured grid (hexahedra with kind and volume fraction).
+pub fn grid_vtu(grid: &ImmersedGrid) -> crate::vtk::Vtu {
+    use crate::vtk::{VTK_HEXAHEDRON, VtkData, Vtu};
+    Vtu {
+        points: grid.node_positions(),
+        cells: grid.cells.iter().map(|c| (c.nodes.iter().map(|&n| n as usize).collect(), VTK_HEXAHEDRON)).collect(),
+        point_data: vec![],
+        cell_data: vec![
+            VtkData::Scalars("volume_fraction".into(), grid.cells.iter().map(|c| c.volume_fraction).collect()),
+            VtkData::Scalars("boundary".into(), grid.cells.iter().map(|c| (c.kind == CellKind::Boundary) as u8 as f64).collect()),
+        ],
+    }
 }

@@ -6,12 +6,16 @@
 
 pub mod fem;
 pub mod grid;
+pub mod loads;
 pub mod mesh;
 pub mod mesh_io;
 pub mod nifti_io;
 pub mod npz;
 pub mod phantom;
 pub mod progress;
+pub mod segmentation;
+pub mod simulate;
+pub mod visible;
 pub mod surface;
 pub mod volume;
 pub mod vtk;

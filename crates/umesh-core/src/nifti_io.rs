@@ -356,9 +356,22 @@ pub fn read_volume(path: &Path, options: &ReadOptions) -> Result<Volume, NiftiEr
     } else {
         path.to_path_buf()
     };
-    let path = hdr_path.as_path();
+    let r = open_maybe_gz(&hdr_path)?;
+    read_from(r, &hdr_path, options)
+}
+
+/// Read a single-file NIfTI (`.nii` or `.nii.gz`) held in memory; `name` is used in errors.
+pub fn read_volume_bytes(name: &Path, bytes: &[u8], options: &ReadOptions) -> Result<Volume, NiftiError> {
+    let r: Box<dyn Read + '_> = if bytes.starts_with(&[0x1f, 0x8b]) {
+        Box::new(flate2::read::MultiGzDecoder::new(bytes))
+    } else {
+        Box::new(bytes)
+    };
+    read_from(r, name, options)
+}
+
+fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> Result<Volume, NiftiError> {
     let io = |source| NiftiError::Io { path: path.into(), source };
-    let mut r = open_maybe_gz(path)?;
     let mut head = vec![0u8; 540];
     let got = read_up_to(&mut r, &mut head[..4]).map_err(io)?;
     if got < 4 {
@@ -418,7 +431,7 @@ pub fn read_volume(path: &Path, options: &ReadOptions) -> Result<Volume, NiftiEr
 
     // Extensions (label names), then the voxel data.
     let label_names;
-    let (mut data_reader, data_path): (Box<dyn Read>, PathBuf) = if h.single_file {
+    let (mut data_reader, data_path): (Box<dyn Read + '_>, PathBuf) = if h.single_file {
         if h.vox_offset < size as u64 {
             return Err(bad(format!("vox_offset {} lies inside the header", h.vox_offset)));
         }

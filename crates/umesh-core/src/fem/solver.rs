@@ -9,7 +9,11 @@ use super::material::{MaterialKind, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::progress::{Cancel, Progress};
 use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, Lu, SymbolicLlt, SymbolicLu};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
+use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::{Mat, Side};
 use nalgebra::Vector3;
 use std::time::Instant;
@@ -37,6 +41,8 @@ pub struct SolverSettings {
     /// How many times an increment may be halved before giving up.
     pub max_halvings: usize,
     pub line_search: bool,
+    /// Reuse factorisations as CG preconditioners between Newton iterations.
+    pub reuse_factorization: bool,
     /// Relative stiffness of the fictitious part of boundary cells (finite cell method).
     pub stabilization: f64,
 }
@@ -50,7 +56,8 @@ impl Default for SolverSettings {
             initial_increments: 1,
             max_halvings: 8,
             line_search: true,
-            stabilization: 1e-4,
+            reuse_factorization: true,
+            stabilization: 1e-2,
         }
     }
 }
@@ -111,52 +118,156 @@ pub enum FemError {
     Cancelled,
 }
 
-/// Cached factorisations for one sparsity pattern.
-#[derive(Default)]
+/// Cached factorisations for one sparsity pattern: Cholesky with a nested-dissection
+/// ordering of the grid (symbolic part computed once), LU when the tangent is not
+/// positive definite.
 struct Factorizer {
-    llt_symbolic: Option<SymbolicLlt<usize>>,
+    perm_fwd: Vec<usize>,
+    perm_inv: Vec<usize>,
+    llt_symbolic: Option<SymbolicCholesky<usize>>,
+    l_values: Vec<f64>,
+    mem: Option<MemBuffer>,
     lu_symbolic: Option<SymbolicLu<usize>>,
+    current: Option<Factor>,
+    /// Cholesky values of the stiffness at rest (u = 0), the same for every load on this
+    /// grid, material and constraints: the first iteration of each solve reuses it.
+    rest_values: Option<Vec<f64>>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum FactorKind {
+    Llt,
+    Lu,
 }
 
 enum Factor {
-    Llt(Llt<usize, f64>),
-    Lu(Lu<usize, f64>),
+    Llt,
+    Rest,
+    Lu(Box<Lu<usize, f64>>),
 }
 
-impl Factor {
-    fn name(&self) -> &'static str {
-        match self {
-            Factor::Llt(_) => "cholesky",
-            Factor::Lu(_) => "lu",
+/// Geometric nested dissection of the node lattice: split the longest axis at a plane of
+/// nodes (a separator for the 27-point stencil), order both halves, then the separator.
+/// On these grids it leaves about a quarter less fill than AMD and factorises ~2x faster.
+pub fn nested_dissection(node_ijk: &[[usize; 3]]) -> Vec<usize> {
+    fn rec(nodes: Vec<usize>, ijk: &[[usize; 3]], out: &mut Vec<usize>) {
+        if nodes.len() <= 48 {
+            out.extend(nodes);
+            return;
         }
-    }
-    fn solve(&self, rhs: &mut Mat<f64>) {
-        match self {
-            Factor::Llt(f) => f.solve_in_place(rhs.as_mut()),
-            Factor::Lu(f) => f.solve_in_place(rhs.as_mut()),
+        let mut lo = [usize::MAX; 3];
+        let mut hi = [0; 3];
+        for &n in &nodes {
+            for a in 0..3 {
+                lo[a] = lo[a].min(ijk[n][a]);
+                hi[a] = hi[a].max(ijk[n][a]);
+            }
         }
+        let ax = (0..3).max_by_key(|&a| hi[a] - lo[a]).unwrap_or(0);
+        if hi[ax] - lo[ax] < 2 {
+            out.extend(nodes);
+            return;
+        }
+        let mid = (lo[ax] + hi[ax]) / 2;
+        let (mut l, mut r, mut sep) = (Vec::new(), Vec::new(), Vec::new());
+        for n in nodes {
+            match ijk[n][ax].cmp(&mid) {
+                std::cmp::Ordering::Less => l.push(n),
+                std::cmp::Ordering::Greater => r.push(n),
+                std::cmp::Ordering::Equal => sep.push(n),
+            }
+        }
+        rec(l, ijk, out);
+        rec(r, ijk, out);
+        out.extend(sep);
     }
+    let mut out = Vec::with_capacity(node_ijk.len());
+    rec((0..node_ijk.len()).collect(), node_ijk, &mut out);
+    out
 }
 
 impl Factorizer {
-    fn factorize(&mut self, asm: &Assembler) -> Result<Factor, FemError> {
-        let mat = asm.matrix();
-        if self.llt_symbolic.is_none() {
-            self.llt_symbolic = Some(
-                SymbolicLlt::try_new(mat.symbolic(), Side::Lower).map_err(|e| FemError::Factorization(format!("{e:?}")))?,
-            );
+    fn new(node_ijk: &[[usize; 3]], free_of: &[u32]) -> Self {
+        let mut perm_fwd = Vec::new();
+        for n in nested_dissection(node_ijk) {
+            for c in 0..3 {
+                let f = free_of[3 * n + c];
+                if f != NONE {
+                    perm_fwd.push(f as usize);
+                }
+            }
         }
-        if let Some(sym) = &self.llt_symbolic
-            && let Ok(f) = Llt::try_new_with_symbolic(sym.clone(), mat, Side::Lower)
-        {
-            return Ok(Factor::Llt(f));
+        let mut perm_inv = vec![0; perm_fwd.len()];
+        for (i, &f) in perm_fwd.iter().enumerate() {
+            perm_inv[f] = i;
+        }
+        Self { perm_fwd, perm_inv, llt_symbolic: None, l_values: Vec::new(), mem: None, lu_symbolic: None, current: None, rest_values: None }
+    }
+
+    /// Factorise the assembled matrix; `at_rest` says it is the stiffness at u = 0.
+    fn factorize(&mut self, asm: &Assembler, at_rest: bool) -> Result<FactorKind, FemError> {
+        if at_rest && self.rest_values.is_some() {
+            self.current = Some(Factor::Rest);
+            return Ok(FactorKind::Llt);
+        }
+        let mat = asm.matrix();
+        let par = faer::get_global_parallelism();
+        let err = |e: &dyn std::fmt::Debug| FemError::Factorization(format!("{e:?}"));
+        if self.llt_symbolic.is_none() {
+            let perm = PermRef::new_checked(&self.perm_fwd, &self.perm_inv, self.perm_fwd.len());
+            let sym = factorize_symbolic_cholesky(mat.symbolic(), Side::Lower, SymmetricOrdering::Custom(perm), Default::default()).map_err(|e| err(&e))?;
+            let req = sym.factorize_numeric_llt_scratch::<f64>(par, Default::default()).or(sym.solve_in_place_scratch::<f64>(1, par));
+            self.mem = Some(MemBuffer::try_new(req).map_err(|e| err(&e))?);
+            self.l_values = vec![0.0; sym.len_val()];
+            self.llt_symbolic = Some(sym);
+        }
+        if let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem) {
+            let ok = sym
+                .factorize_numeric_llt(&mut self.l_values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default())
+                .is_ok();
+            if ok {
+                if at_rest {
+                    self.rest_values = Some(self.l_values.clone());
+                    self.current = Some(Factor::Rest);
+                } else {
+                    self.current = Some(Factor::Llt);
+                }
+                return Ok(FactorKind::Llt);
+            }
         }
         if self.lu_symbolic.is_none() {
-            self.lu_symbolic =
-                Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| FemError::Factorization(format!("{e:?}")))?);
+            self.lu_symbolic = Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| err(&e))?);
         }
         let sym = self.lu_symbolic.clone().ok_or_else(|| FemError::Factorization("no symbolic LU".into()))?;
-        Lu::try_new_with_symbolic(sym, mat).map(Factor::Lu).map_err(|e| FemError::Factorization(format!("{e:?}")))
+        let lu = Lu::try_new_with_symbolic(sym, mat).map_err(|e| err(&e))?;
+        self.current = Some(Factor::Lu(Box::new(lu)));
+        Ok(FactorKind::Lu)
+    }
+
+    /// Solve with the last factorisation, in place.
+    fn solve(&mut self, rhs: &mut Mat<f64>) {
+        let par = faer::get_global_parallelism();
+        match (&self.current, &self.llt_symbolic, &mut self.mem) {
+            (Some(Factor::Llt), Some(sym), Some(mem)) => {
+                LltRef::new(sym, &self.l_values).solve_in_place_with_conj(faer::Conj::No, rhs.as_mut(), par, MemStack::new(mem));
+            }
+            (Some(Factor::Rest), Some(sym), Some(mem)) => {
+                if let Some(v) = &self.rest_values {
+                    LltRef::new(sym, v).solve_in_place_with_conj(faer::Conj::No, rhs.as_mut(), par, MemStack::new(mem));
+                }
+            }
+            (Some(Factor::Lu(lu)), _, _) => lu.solve_in_place(rhs.as_mut()),
+            _ => {}
+        }
+    }
+}
+
+impl FactorKind {
+    fn name(self) -> &'static str {
+        match self {
+            FactorKind::Llt => "cholesky",
+            FactorKind::Lu => "lu",
+        }
     }
 }
 
@@ -188,7 +299,8 @@ impl<'g> FeSolver<'g> {
         let dofs: Vec<bool> = constrained.iter().flat_map(|&c| [c; 3]).collect();
         let lin = MaterialParams { kind: MaterialKind::Linear, ..material }.material();
         let asm = Assembler::new(grid, &dofs, lin, settings.stabilization);
-        Ok(Self { grid, material, settings, asm, fact: Factorizer::default(), constrained_nodes: constrained.to_vec() })
+        let fact = Factorizer::new(&grid.node_ijk, &asm.dofs.free_of);
+        Ok(Self { grid, material, settings, asm, fact, constrained_nodes: constrained.to_vec() })
     }
 
     pub fn free_dofs(&self) -> usize {
@@ -281,11 +393,12 @@ impl<'g> FeSolver<'g> {
         let assembly_ms = ms(t);
         let (r, refn) = self.residual(&a, &bc.forces_n, 1.0);
         let t = Instant::now();
-        let fac = self.fact.factorize(&self.asm)?;
+        // The small-strain stiffness equals the stiffness at rest, whatever u.
+        let fac = self.fact.factorize(&self.asm, true)?;
         let factorization_ms = ms(t);
         let t = Instant::now();
         let mut rhs = Mat::from_fn(r.len(), 1, |i, _| r[i]);
-        fac.solve(&mut rhs);
+        self.fact.solve(&mut rhs);
         let solve_ms = ms(t);
         if !(0..rhs.nrows()).all(|i| rhs[(i, 0)].is_finite()) {
             return Err(FemError::Factorization("the solution is not finite (singular stiffness)".into()));
@@ -313,6 +426,85 @@ impl<'g> FeSolver<'g> {
         })
     }
 
+    /// Solve K du = r for the Newton step. The stiffness at rest is factorised once and
+    /// reused; later iterations first try conjugate gradients preconditioned by the last
+    /// factorisation (an inexact Newton step with forcing term min(0.1, |r|/|r0|), which keeps
+    /// the quadratic rate), and refactorise when that converges slowly.
+    fn linear_step(&mut self, r: &[f64], rel: f64, at_rest: bool, stale: &mut bool) -> Result<(Mat<f64>, &'static str, f64, f64), FemError> {
+        if !at_rest && !*stale && self.settings.reuse_factorization && self.fact.current.is_some() {
+            let t = Instant::now();
+            let tol = rel.min(0.1) * 0.5;
+            if let Some((x, iters)) = self.pcg(r, tol, 12) {
+                if iters > 6 {
+                    *stale = true;
+                }
+                return Ok((x, "pcg", 0.0, ms(t)));
+            }
+        }
+        *stale = false;
+        let t = Instant::now();
+        let kind = self.fact.factorize(&self.asm, at_rest)?;
+        let factorization_ms = ms(t);
+        let t = Instant::now();
+        let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
+        self.fact.solve(&mut du);
+        Ok((du, kind.name(), factorization_ms, ms(t)))
+    }
+
+    /// Preconditioned conjugate gradients on the assembled matrix; None when it does not
+    /// reach |r_k| <= tol |r| in `max_iter` iterations or meets negative curvature.
+    fn pcg(&mut self, b: &[f64], tol: f64, max_iter: usize) -> Option<(Mat<f64>, usize)> {
+        let n = b.len();
+        let bnorm = norm(b);
+        let mut x = vec![0.0; n];
+        let mut r = b.to_vec();
+        let mut z = Mat::from_fn(n, 1, |i, _| r[i]);
+        self.fact.solve(&mut z);
+        let mut p: Vec<f64> = (0..n).map(|i| z[(i, 0)]).collect();
+        let mut rz: f64 = (0..n).map(|i| r[i] * z[(i, 0)]).sum();
+        let mut ap = vec![0.0; n];
+        for k in 1..=max_iter {
+            self.matvec(&p, &mut ap);
+            let pap: f64 = p.iter().zip(&ap).map(|(a, b)| a * b).sum();
+            if !(pap > 0.0) {
+                return None;
+            }
+            let alpha = rz / pap;
+            for i in 0..n {
+                x[i] += alpha * p[i];
+                r[i] -= alpha * ap[i];
+            }
+            if norm(&r) <= tol * bnorm {
+                return Some((Mat::from_fn(n, 1, |i, _| x[i]), k));
+            }
+            for i in 0..n {
+                z[(i, 0)] = r[i];
+            }
+            self.fact.solve(&mut z);
+            let rz_new: f64 = (0..n).map(|i| r[i] * z[(i, 0)]).sum();
+            let beta = rz_new / rz;
+            rz = rz_new;
+            for i in 0..n {
+                p[i] = z[(i, 0)] + beta * p[i];
+            }
+        }
+        None
+    }
+
+    fn matvec(&self, x: &[f64], y: &mut [f64]) {
+        let m = self.asm.matrix();
+        let (sym, val) = m.parts();
+        let col_ptr = sym.col_ptr();
+        let row_idx = sym.row_idx();
+        y.iter_mut().for_each(|v| *v = 0.0);
+        for j in 0..x.len() {
+            let xj = x[j];
+            for p in col_ptr[j]..col_ptr[j + 1] {
+                y[row_idx[p]] += val[p] * xj;
+            }
+        }
+    }
+
     fn solve_incremental(&mut self, bc: &BoundaryConditions, model: ElementModel, progress: &Progress, cancel: &Cancel) -> Result<Solution, FemError> {
         let s = self.settings.clone();
         let mut u = vec![Vector3::zeros(); self.grid.node_count()];
@@ -336,6 +528,7 @@ impl<'g> FeSolver<'g> {
                     done = load;
                     increments += 1;
                     final_residual = res;
+                    halvings = 0;
                     // Easy increments let the next one grow back.
                     if iters <= 4 {
                         step = (step * 2.0).min(1.0);
@@ -345,7 +538,10 @@ impl<'g> FeSolver<'g> {
                     halvings += 1;
                     if halvings > s.max_halvings {
                         return Err(FemError::NotConverged {
-                            reason: format!("{reason}; the load increment was halved {} times, down to {:.3e}", s.max_halvings, step),
+                            reason: format!(
+                                "{reason}; reached load factor {done:.4}, the increment was halved {} times in a row down to {step:.3e}",
+                                s.max_halvings
+                            ),
                             history,
                         });
                     }
@@ -377,6 +573,7 @@ impl<'g> FeSolver<'g> {
         let mut current = self.asm.assemble(model, u, true);
         let mut assembly_ms = ms(t);
         let mut last_correction = f64::INFINITY;
+        let mut stale = false;
         for it in 1..=s.max_iterations {
             if cancel.is_cancelled() {
                 return Err(FemError::Cancelled);
@@ -393,13 +590,8 @@ impl<'g> FeSolver<'g> {
             if rel <= s.residual_tol && (last_correction <= s.correction_tol || rel <= s.residual_tol * 1e-3) {
                 return Ok(Ok((it - 1, rel)));
             }
-            let t = Instant::now();
-            let fac = self.fact.factorize(&self.asm)?;
-            let factorization_ms = ms(t);
-            let t = Instant::now();
-            let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
-            fac.solve(&mut du);
-            let solve_ms = ms(t);
+            let at_rest = it == 1 && u.iter().all(|v| *v == Vector3::zeros());
+            let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
             let du_norm = (0..du.nrows()).map(|i| du[(i, 0)].powi(2)).sum::<f64>().sqrt();
             if !du_norm.is_finite() {
                 return Ok(Err("the Newton correction is not finite".into()));
@@ -445,7 +637,7 @@ impl<'g> FeSolver<'g> {
                 assembly_ms,
                 factorization_ms,
                 solve_ms,
-                factorization: fac.name(),
+                factorization: fac_name,
             });
             assembly_ms = a_ms;
             progress.report(history.len() as u64, 0, &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0));

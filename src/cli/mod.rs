@@ -1,0 +1,88 @@
+//! Command-line interface: one file per command; all of them call umesh-core's `run_*`.
+
+mod bench;
+mod demo;
+mod grid;
+mod input;
+mod phantom;
+mod simulate;
+mod surface;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser, Debug)]
+#[command(name = "umesh", version, about = "Physics-based deep network for augmented reality in liver surgery (U-Mesh).\n\nWith no command: run the demo pipeline on the bundled phantom.")]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the pipeline on the bundled phantom: grid, surfaces, one SVK simulation.
+    Demo(demo::Args),
+    /// Write the procedural liver phantom (NIfTI label volume).
+    Phantom(phantom::Args),
+    /// Build the immersed-boundary hexahedral grid of a segmentation.
+    Grid(grid::Args),
+    /// Extract label surfaces as triangle meshes (OBJ, PLY, STL).
+    Surface(surface::Args),
+    /// Solve a static FE problem (SVK Newton, linear or co-rotational).
+    Simulate(simulate::Args),
+    /// Benchmarks: grid construction, FE solves.
+    Bench(bench::Args),
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command.unwrap_or(Command::Demo(demo::Args::default())) {
+        Command::Demo(a) => demo::run(a),
+        Command::Phantom(a) => phantom::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Surface(a) => surface::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Bench(a) => bench::run(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// A progress bar on stderr fed by core's progress callback; hidden when stderr is not a
+/// terminal-like sink (indicatif handles that).
+pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progress) {
+    let pb = indicatif::ProgressBar::new(0);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} [{bar:30}] {pos}/{len} ({elapsed}, eta {eta})")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_message(message.to_string());
+    let p = pb.clone();
+    let progress = umesh_core::Progress::new(move |done, total, msg| {
+        if total > 0 {
+            p.set_length(total);
+        }
+        p.set_position(done);
+        if !msg.is_empty() {
+            p.set_message(msg.to_string());
+        }
+    });
+    (pb, progress)
+}
+
+/// Cancellation on Ctrl-C is left to the OS default (the process ends; outputs are written
+/// atomically, so nothing half-written is left).
+pub fn cancel() -> umesh_core::Cancel {
+    umesh_core::Cancel::new()
+}
+
+/// Print a summary object as one JSON line.
+pub fn print_json(value: &serde_json::Value) {
+    println!("{}", serde_json::to_string(value).unwrap_or_else(|_| "{}".into()));
+}

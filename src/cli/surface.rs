@@ -1,0 +1,60 @@
+use super::input::InputArgs;
+use anyhow::Result;
+use std::path::PathBuf;
+use umesh_core::mesh_io::write_mesh;
+use umesh_core::surface::{SurfaceSettings, extract_surface};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(flatten)]
+    pub input: InputArgs,
+    /// Labels to extract (default: the organ labels together, then each structure label).
+    #[arg(long, value_delimiter = ',')]
+    pub label: Vec<i64>,
+    /// Output folder; files are named after the labels.
+    #[arg(long, default_value = "out/surfaces")]
+    pub out: PathBuf,
+    /// Mesh format: obj, ply or stl.
+    #[arg(long, default_value = "obj")]
+    pub format: String,
+    /// Use every n-th voxel (lighter meshes).
+    #[arg(long, default_value_t = 1)]
+    pub step: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    anyhow::ensure!(matches!(a.format.as_str(), "obj" | "ply" | "stl"), "--format must be obj, ply or stl");
+    let seg = a.input.load()?;
+    let mut jobs: Vec<(String, Vec<i64>)> = Vec::new();
+    if a.label.is_empty() {
+        jobs.push(("organ".into(), seg.organ_labels.clone()));
+        for &l in &seg.structure_labels {
+            jobs.push((seg.label_name(l), vec![l]));
+        }
+    } else {
+        for &l in &a.label {
+            jobs.push((seg.label_name(l), vec![l]));
+        }
+    }
+    let settings = SurfaceSettings { step: a.step.max(1), ..Default::default() };
+    let mut out = Vec::new();
+    for (name, labels) in jobs {
+        let mask = seg.volume.mask(&labels);
+        anyhow::ensure!(mask.count() > 0, "{}: labels {labels:?} have no voxel", seg.source.display());
+        let mesh = extract_surface(&mask, &settings);
+        let file = a.out.join(format!("{}.{}", name.replace([' ', '/'], "_"), a.format));
+        write_mesh(&file, &mesh)?;
+        let t = mesh.topology();
+        out.push(serde_json::json!({"name": name, "labels": labels, "file": file, "vertices": mesh.positions.len(),
+            "triangles": mesh.triangles.len(), "area_mm2": mesh.area_mm2(), "volume_mm3": mesh.signed_volume_mm3(), "watertight": t.is_watertight()}));
+        if !a.json {
+            println!("{:24} {:>8} triangles  {:>10.0} mm^3  watertight: {}  -> {}", name, mesh.triangles.len(), mesh.signed_volume_mm3(), t.is_watertight(), file.display());
+        }
+    }
+    if a.json {
+        super::print_json(&serde_json::json!({"surfaces": out}));
+    }
+    Ok(())
+}

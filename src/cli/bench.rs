@@ -104,7 +104,8 @@ pub fn fe_scenario(seed: u64) -> Result<FeScenario> {
     let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new())?.grid;
     let material = MaterialParams::default();
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::default(), &Default::default(), seed).map_err(anyhow::Error::msg)?;
+    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::default(), &Default::default(), seed)
+        .map_err(anyhow::Error::msg)?;
     let fixed = vec![loads::default_fixed_region(&grid, Some(umesh_core::phantom::VENA_CAVA), 6.0)];
     let settings = SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
     Ok(FeScenario { seg, grid, settings })

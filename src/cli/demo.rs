@@ -30,8 +30,15 @@ pub fn run(a: Args) -> Result<()> {
     eprintln!("umesh demo on the bundled phantom -> {}", a.out.display());
     let sc = fe_scenario(a.seed)?;
     let s = sc.grid.stats();
-    println!("grid: {} cells ({} boundary), {} nodes, padded {:?}, volume {:.0} mm^3 vs segmentation {:.0} mm^3",
-        s.cells, s.boundary_cells, s.nodes, s.padded_shape, s.grid_volume_mm3, sc.seg.organ_mask().volume_mm3());
+    println!(
+        "grid: {} cells ({} boundary), {} nodes, padded {:?}, volume {:.0} mm^3 vs segmentation {:.0} mm^3",
+        s.cells,
+        s.boundary_cells,
+        s.nodes,
+        s.padded_shape,
+        s.grid_volume_mm3,
+        sc.seg.organ_mask().volume_mm3()
+    );
     npz::write_npz(&a.out.join("grid.npz"), &sc.grid.to_npz_arrays())?;
     let organ = extract_surface(&sc.seg.organ_mask(), &SurfaceSettings::default());
     write_mesh(&a.out.join("organ.obj"), &organ)?;
@@ -40,8 +47,16 @@ pub fn run(a: Args) -> Result<()> {
     let sol = solve_bc(&sc.grid, &bc, &sc.settings, &progress, &Cancel::new());
     pb.finish_and_clear();
     let sol = sol?;
-    println!("SVK solve: {} forces, {} fixed nodes, {} increments, {} Newton iterations, {:.0} ms; displacement max {:.1} mm, mean {:.1} mm",
-        sc.settings.forces.len(), bc.fixed_count(), sol.increments, sol.iterations, sol.timings.total_ms, sol.max_displacement_mm(), sol.mean_displacement_mm());
+    println!(
+        "SVK solve: {} forces, {} fixed nodes, {} increments, {} Newton iterations, {:.0} ms; displacement max {:.1} mm, mean {:.1} mm",
+        sc.settings.forces.len(),
+        bc.fixed_count(),
+        sol.increments,
+        sol.iterations,
+        sol.timings.total_ms,
+        sol.max_displacement_mm(),
+        sol.mean_displacement_mm()
+    );
     let u = &sol.displacement_mm;
     let mut vtu = grid_vtu(&sc.grid);
     vtu.point_data.push(VtkData::Vectors("displacement_mm".into(), u.clone()));

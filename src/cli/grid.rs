@@ -18,7 +18,12 @@ pub struct GridArgs {
 
 impl GridArgs {
     pub fn settings(&self) -> GridSettings {
-        GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, pooling_steps: self.pooling_steps, ..GridSettings::default() }
+        GridSettings {
+            cell_size_mm: self.cell_size_mm,
+            subdivisions: self.subdivisions,
+            pooling_steps: self.pooling_steps,
+            ..GridSettings::default()
+        }
     }
 }
 
@@ -39,7 +44,8 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let seg = a.input.load()?;
     let (pb, progress) = super::progress_bar("building grid");
-    let out = run_grid(&seg, &a.grid.settings(), &progress, &super::cancel()).with_context(|| format!("building the grid of {}", seg.source.display()))?;
+    let out = run_grid(&seg, &a.grid.settings(), &progress, &super::cancel())
+        .with_context(|| format!("building the grid of {}", seg.source.display()))?;
     pb.finish_and_clear();
     let s = &out.stats;
     if let Some(path) = &a.out {

@@ -12,7 +12,11 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
-#[command(name = "umesh", version, about = "Physics-based deep network for augmented reality in liver surgery (U-Mesh).\n\nWith no command: run the demo pipeline on the bundled phantom.")]
+#[command(
+    name = "umesh",
+    version,
+    about = "Physics-based deep network for augmented reality in liver surgery (U-Mesh).\n\nWith no command: run the demo pipeline on the bundled phantom."
+)]
 pub struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -29,7 +33,7 @@ enum Command {
     /// Extract label surfaces as triangle meshes (OBJ, PLY, STL).
     Surface(surface::Args),
     /// Solve a static FE problem (SVK Newton, linear or co-rotational).
-    Simulate(simulate::Args),
+    Simulate(Box<simulate::Args>),
     /// Benchmarks: grid construction, FE solves.
     Bench(bench::Args),
 }
@@ -41,7 +45,7 @@ pub fn main() -> ExitCode {
         Command::Phantom(a) => phantom::run(a),
         Command::Grid(a) => grid::run(a),
         Command::Surface(a) => surface::run(a),
-        Command::Simulate(a) => simulate::run(a),
+        Command::Simulate(a) => simulate::run(*a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

@@ -27,7 +27,12 @@ pub fn run(a: Args) -> Result<()> {
     let vv = vol.voxel_volume_mm3();
     let labels: serde_json::Map<String, serde_json::Value> = counts
         .iter()
-        .map(|(l, c)| (vol.label_names.get(l).cloned().unwrap_or_else(|| l.to_string()), serde_json::json!({"label": l, "volume_mm3": *c as f64 * vv})))
+        .map(|(l, c)| {
+            (
+                vol.label_names.get(l).cloned().unwrap_or_else(|| l.to_string()),
+                serde_json::json!({"label": l, "volume_mm3": *c as f64 * vv}),
+            )
+        })
         .collect();
     if a.json {
         super::print_json(&serde_json::json!({"out": a.out, "dims": vol.dims, "spacing_mm": a.spacing_mm, "labels": labels}));

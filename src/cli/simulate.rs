@@ -36,7 +36,8 @@ pub struct FeArgs {
 
 impl FeArgs {
     pub fn material(&self) -> Result<MaterialParams> {
-        let kind = MaterialKind::parse(&self.material).with_context(|| format!("unknown material {:?} (svk, linear, neo-hookean)", self.material))?;
+        let kind = MaterialKind::parse(&self.material)
+            .with_context(|| format!("unknown material {:?} (svk, linear, neo-hookean)", self.material))?;
         let m = MaterialParams { kind, young_pa: self.young_pa, poisson: self.poisson };
         m.validate().map_err(anyhow::Error::msg)?;
         Ok(m)
@@ -107,8 +108,13 @@ fn read_forces(path: &Path) -> Result<Vec<PointForce>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
     let list = v.get("forces").cloned().unwrap_or(v);
-    let forces: Vec<PointForce> = serde_json::from_value(list).with_context(|| format!("{}: expected a list of {{\"point_mm\": [x,y,z], \"force_n\": [fx,fy,fz]}}", path.display()))?;
-    anyhow::ensure!(forces.iter().all(|f| f.point_mm.iter().chain(&f.force_n).all(|x| x.is_finite())), "{}: a force has a non-finite value", path.display());
+    let forces: Vec<PointForce> = serde_json::from_value(list)
+        .with_context(|| format!("{}: expected a list of {{\"point_mm\": [x,y,z], \"force_n\": [fx,fy,fz]}}", path.display()))?;
+    anyhow::ensure!(
+        forces.iter().all(|f| f.point_mm.iter().chain(&f.force_n).all(|x| x.is_finite())),
+        "{}: a force has a non-finite value",
+        path.display()
+    );
     Ok(forces)
 }
 
@@ -118,7 +124,10 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation, grid: &ImmersedGrid) -> Vec<F
         regions.push(FixedRegion::Label { label: l, distance_mm: a.fix_distance_mm });
     }
     if a.fix_box.len() == 6 {
-        regions.push(FixedRegion::Box { min_mm: [a.fix_box[0], a.fix_box[1], a.fix_box[2]], max_mm: [a.fix_box[3], a.fix_box[4], a.fix_box[5]] });
+        regions.push(FixedRegion::Box {
+            min_mm: [a.fix_box[0], a.fix_box[1], a.fix_box[2]],
+            max_mm: [a.fix_box[3], a.fix_box[4], a.fix_box[5]],
+        });
     }
     if a.fix_plane.len() == 5 {
         let p = &a.fix_plane;
@@ -128,8 +137,8 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation, grid: &ImmersedGrid) -> Vec<F
         regions.push(FixedRegion::Nodes { nodes: a.fix_nodes.clone() });
     }
     if regions.is_empty() {
-        let phantom_ivc = seg.volume.label_counts().contains_key(&umesh_core::phantom::VENA_CAVA)
-            && seg.source.to_string_lossy().contains("phantom");
+        let phantom_ivc =
+            seg.volume.label_counts().contains_key(&umesh_core::phantom::VENA_CAVA) && seg.source.to_string_lossy().contains("phantom");
         regions.push(loads::default_fixed_region(grid, phantom_ivc.then_some(umesh_core::phantom::VENA_CAVA), a.fix_distance_mm));
     }
     regions
@@ -150,8 +159,15 @@ pub fn run(a: Args) -> Result<()> {
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
     let forces = match &a.forces {
         Some(f) => read_forces(f)?,
-        None => loads::visible_random_forces(&organ, &grid, &material, &ForceSettings { probes: a.random_forces, target_displacement_mm: a.target_displacement_mm, ..Default::default() }, &Default::default(), a.seed)
-            .map_err(anyhow::Error::msg)?,
+        None => loads::visible_random_forces(
+            &organ,
+            &grid,
+            &material,
+            &ForceSettings { probes: a.random_forces, target_displacement_mm: a.target_displacement_mm, ..Default::default() },
+            &Default::default(),
+            a.seed,
+        )
+        .map_err(anyhow::Error::msg)?,
     };
     let settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg, &grid), forces };
     let bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
@@ -164,12 +180,15 @@ pub fn run(a: Args) -> Result<()> {
     let sol = sol?;
     // Outputs.
     let u = &sol.displacement_mm;
-    write_npz(&a.out.join("displacement.npz"), &[
-        ("nodes", Array::f64(vec![u.len(), 3], grid.node_positions().iter().flat_map(|p| [p.x, p.y, p.z]).collect())),
-        ("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
-        ("forces_n", Array::f64(vec![u.len(), 3], bc.forces_n.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
-        ("fixed", Array::i64(vec![bc.fixed_count()], bc.fixed.iter().enumerate().filter(|x| *x.1).map(|x| x.0 as i64).collect())),
-    ])?;
+    write_npz(
+        &a.out.join("displacement.npz"),
+        &[
+            ("nodes", Array::f64(vec![u.len(), 3], grid.node_positions().iter().flat_map(|p| [p.x, p.y, p.z]).collect())),
+            ("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
+            ("forces_n", Array::f64(vec![u.len(), 3], bc.forces_n.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
+            ("fixed", Array::i64(vec![bc.fixed_count()], bc.fixed.iter().enumerate().filter(|x| *x.1).map(|x| x.0 as i64).collect())),
+        ],
+    )?;
     let mut vtu = grid_vtu(&grid);
     vtu.point_data.push(VtkData::Vectors("displacement_mm".into(), u.clone()));
     vtu.point_data.push(VtkData::Vectors("force_n".into(), bc.forces_n.clone()));
@@ -197,12 +216,26 @@ fn report(out: &Path, json: bool, sol: &umesh_core::fem::Solution, nodes: usize,
         }));
         return;
     }
-    println!("{:>4} {:>4} {:>6} {:>11} {:>11} {:>6} {:>9} {:>9} {:>8}", "inc", "it", "load", "residual", "correction", "step", "asm ms", "fact ms", "solve ms");
+    println!(
+        "{:>4} {:>4} {:>6} {:>11} {:>11} {:>6} {:>9} {:>9} {:>8}",
+        "inc", "it", "load", "residual", "correction", "step", "asm ms", "fact ms", "solve ms"
+    );
     for r in &sol.history {
-        println!("{:>4} {:>4} {:>6.3} {:>11.3e} {:>11.3e} {:>6.3} {:>9.1} {:>9.1} {:>8.1}", r.increment, r.iteration, r.load_factor, r.residual, r.correction, r.step_length, r.assembly_ms, r.factorization_ms, r.solve_ms);
+        println!(
+            "{:>4} {:>4} {:>6.3} {:>11.3e} {:>11.3e} {:>6.3} {:>9.1} {:>9.1} {:>8.1}",
+            r.increment, r.iteration, r.load_factor, r.residual, r.correction, r.step_length, r.assembly_ms, r.factorization_ms, r.solve_ms
+        );
     }
-    println!("converged: {} increments, {} iterations, {:.0} ms; {} nodes, {} cells, {} fixed", sol.increments, sol.iterations, sol.timings.total_ms, nodes, cells, fixed);
-    println!("displacement: max {:.2} mm, mean {:.2} mm; results in {}", sol.max_displacement_mm(), sol.mean_displacement_mm(), out.display());
+    println!(
+        "converged: {} increments, {} iterations, {:.0} ms; {} nodes, {} cells, {} fixed",
+        sol.increments, sol.iterations, sol.timings.total_ms, nodes, cells, fixed
+    );
+    println!(
+        "displacement: max {:.2} mm, mean {:.2} mm; results in {}",
+        sol.max_displacement_mm(),
+        sol.mean_displacement_mm(),
+        out.display()
+    );
 }
 
 fn run_problem(a: &Args, path: &Path, method: SolveMethod) -> Result<()> {
@@ -214,7 +247,10 @@ fn run_problem(a: &Args, path: &Path, method: SolveMethod) -> Result<()> {
     let sol = sol?;
     // Displacements in the file's node order.
     let u: Vec<Vector3<f64>> = p.node_map.iter().map(|&g| sol.displacement_mm[g]).collect();
-    write_npz(&a.out.join("displacement.npz"), &[("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect()))])?;
+    write_npz(
+        &a.out.join("displacement.npz"),
+        &[("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect()))],
+    )?;
     report(&a.out, a.json, &sol, p.grid.node_count(), p.grid.cells.len(), p.bc.fixed_count());
     Ok(())
 }

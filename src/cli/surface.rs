@@ -50,7 +50,14 @@ pub fn run(a: Args) -> Result<()> {
         out.push(serde_json::json!({"name": name, "labels": labels, "file": file, "vertices": mesh.positions.len(),
             "triangles": mesh.triangles.len(), "area_mm2": mesh.area_mm2(), "volume_mm3": mesh.signed_volume_mm3(), "watertight": t.is_watertight()}));
         if !a.json {
-            println!("{:24} {:>8} triangles  {:>10.0} mm^3  watertight: {}  -> {}", name, mesh.triangles.len(), mesh.signed_volume_mm3(), t.is_watertight(), file.display());
+            println!(
+                "{:24} {:>8} triangles  {:>10.0} mm^3  watertight: {}  -> {}",
+                name,
+                mesh.triangles.len(),
+                mesh.signed_volume_mm3(),
+                t.is_watertight(),
+                file.display()
+            );
         }
     }
     if a.json {

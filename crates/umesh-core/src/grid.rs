@@ -13,16 +13,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 /// Corner offsets of a hexahedron in VTK order.
-pub const HEX_CORNERS: [[usize; 3]; 8] = [
-    [0, 0, 0],
-    [1, 0, 0],
-    [1, 1, 0],
-    [0, 1, 0],
-    [0, 0, 1],
-    [1, 0, 1],
-    [1, 1, 1],
-    [0, 1, 1],
-];
+pub const HEX_CORNERS: [[usize; 3]; 8] = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]];
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GridSettings {
@@ -127,9 +118,7 @@ pub struct GridStats {
 pub fn shape_functions(xi: [f64; 3]) -> [f64; 8] {
     std::array::from_fn(|a| {
         let c = HEX_CORNERS[a];
-        (0..3)
-            .map(|d| 0.5 * (1.0 + if c[d] == 1 { xi[d] } else { -xi[d] }))
-            .product()
+        (0..3).map(|d| 0.5 * (1.0 + if c[d] == 1 { xi[d] } else { -xi[d] })).product()
     })
 }
 
@@ -229,11 +218,7 @@ impl ImmersedGrid {
                             let ijk = ijk.map(|v| v as usize);
                             if let Some(cell) = self.cell_at(ijk) {
                                 let lo = Vector3::new(ijk[0] as f64, ijk[1] as f64, ijk[2] as f64);
-                                let q = Vector3::new(
-                                    c.x.clamp(lo.x, lo.x + 1.0),
-                                    c.y.clamp(lo.y, lo.y + 1.0),
-                                    c.z.clamp(lo.z, lo.z + 1.0),
-                                );
+                                let q = Vector3::new(c.x.clamp(lo.x, lo.x + 1.0), c.y.clamp(lo.y, lo.y + 1.0), c.z.clamp(lo.z, lo.z + 1.0));
                                 let d = (q - c).norm_squared();
                                 if best.is_none_or(|(bd, _)| d < bd) {
                                     best = Some((d, cell));
@@ -507,7 +492,12 @@ pub struct GridOutput {
     pub segmentation_volume_mm3: f64,
 }
 
-pub fn run_grid(seg: &crate::segmentation::Segmentation, settings: &GridSettings, progress: &Progress, cancel: &Cancel) -> Result<GridOutput, GridError> {
+pub fn run_grid(
+    seg: &crate::segmentation::Segmentation,
+    settings: &GridSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<GridOutput, GridError> {
     let mask = seg.organ_mask();
     let segmentation_volume_mm3 = mask.volume_mm3();
     let grid = ImmersedGrid::from_mask(&mask, settings, progress, cancel)?;

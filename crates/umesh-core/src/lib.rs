@@ -15,8 +15,8 @@ pub mod phantom;
 pub mod progress;
 pub mod segmentation;
 pub mod simulate;
-pub mod visible;
 pub mod surface;
+pub mod visible;
 pub mod volume;
 pub mod vtk;
 
@@ -25,10 +25,7 @@ pub use progress::{Cancel, Progress};
 /// Write `bytes` to `path` atomically: a temporary file beside it, then a rename,
 /// so a crash never leaves a half-written output.
 pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
+    let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
     let tmp = path.with_file_name(format!(".{file_name}.{}.tmp", std::process::id()));
     if let Some(dir) = path.parent()
         && !dir.as_os_str().is_empty()

@@ -20,7 +20,7 @@ pub struct ForceSettings {
 
 impl Default for ForceSettings {
     fn default() -> Self {
-        Self { probes: 100, target_displacement_mm: 5.0, direction_spread: 0.8 }
+        Self { probes: 100, target_displacement_mm: 2.5, direction_spread: 0.8 }
     }
 }
 
@@ -31,7 +31,13 @@ pub struct PointForce {
 }
 
 /// Draw forces at the given surface points (with outward normals).
-pub fn random_forces(points: &[(Vector3<f64>, Vector3<f64>)], organ_size_mm: f64, material: &MaterialParams, settings: &ForceSettings, rng: &mut SplitMix64) -> Vec<PointForce> {
+pub fn random_forces(
+    points: &[(Vector3<f64>, Vector3<f64>)],
+    organ_size_mm: f64,
+    material: &MaterialParams,
+    settings: &ForceSettings,
+    rng: &mut SplitMix64,
+) -> Vec<PointForce> {
     let e = material.young_pa * 1e-6;
     let total = e * organ_size_mm * settings.target_displacement_mm;
     let mean = total / points.len().max(1) as f64;

@@ -13,7 +13,9 @@ pub enum MeshIoError {
     UnknownFormat { path: PathBuf },
     #[error("{path}: {reason}")]
     Parse { path: PathBuf, reason: String },
-    #[error("{path}: the mesh is not closed: {boundary} boundary edges, {non_manifold} non-manifold edges, {inconsistent} inconsistently oriented edges")]
+    #[error(
+        "{path}: the mesh is not closed: {boundary} boundary edges, {non_manifold} non-manifold edges, {inconsistent} inconsistently oriented edges"
+    )]
     Open { path: PathBuf, boundary: usize, non_manifold: usize, inconsistent: usize },
 }
 
@@ -70,7 +72,10 @@ fn parse_obj(text: &str) -> Result<TriMesh, String> {
         let mut it = line.split_whitespace();
         match it.next() {
             Some("v") => {
-                let v: Vec<f64> = it.take(3).map(|s| s.parse::<f64>()).collect::<Result<_, _>>()
+                let v: Vec<f64> = it
+                    .take(3)
+                    .map(|s| s.parse::<f64>())
+                    .collect::<Result<_, _>>()
                     .map_err(|e| format!("line {}: bad vertex: {e}", ln + 1))?;
                 if v.len() < 3 {
                     return Err(format!("line {}: a vertex needs 3 coordinates", ln + 1));
@@ -81,7 +86,8 @@ fn parse_obj(text: &str) -> Result<TriMesh, String> {
                 let n = m.positions.len() as i64;
                 let idx: Vec<u32> = it
                     .map(|s| {
-                        let i: i64 = s.split('/').next().unwrap_or("").parse().map_err(|_| format!("line {}: bad face index {s:?}", ln + 1))?;
+                        let i: i64 =
+                            s.split('/').next().unwrap_or("").parse().map_err(|_| format!("line {}: bad face index {s:?}", ln + 1))?;
                         let i = if i < 0 { n + i } else { i - 1 };
                         if i < 0 || i >= n {
                             return Err(format!("line {}: face index {s} out of range", ln + 1));
@@ -169,10 +175,22 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
     for line in header.lines() {
         let w: Vec<&str> = line.split_whitespace().collect();
         match w.as_slice() {
-            ["format", f, ..] => format = if f.starts_with("ascii") { "ascii" } else if f.contains("big") { "be" } else { "le" },
+            ["format", f, ..] => {
+                format = if f.starts_with("ascii") {
+                    "ascii"
+                } else if f.contains("big") {
+                    "be"
+                } else {
+                    "le"
+                }
+            }
             ["element", name, n] => elements.push((name.to_string(), n.parse().map_err(|_| "bad element count")?, Vec::new())),
-            ["property", "list", ct, it, name] => elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), it.to_string(), Some(ct.to_string()))),
-            ["property", ty, name] => elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), ty.to_string(), None)),
+            ["property", "list", ct, it, name] => {
+                elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), it.to_string(), Some(ct.to_string())))
+            }
+            ["property", ty, name] => {
+                elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), ty.to_string(), None))
+            }
             _ => {}
         }
     }
@@ -289,7 +307,8 @@ pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshIoError> {
         }
         "stl" => {
             let mut b = vec![0u8; 80];
-            b[..24].copy_from_slice(b"umesh surface, RAS mm  ");
+            let title = b"umesh surface, world RAS millimetres";
+            b[..title.len()].copy_from_slice(title);
             b.extend_from_slice(&(mesh.triangles.len() as u32).to_le_bytes());
             for t in 0..mesh.triangles.len() {
                 let (n, _) = mesh.triangle_normal_area(t);

@@ -135,8 +135,7 @@ impl Array {
             }
             v => return Err(format!("unsupported NPY version {v}")),
         };
-        let header = std::str::from_utf8(bytes.get(hstart..hstart + hlen).ok_or("truncated header")?)
-            .map_err(|_| "header is not text")?;
+        let header = std::str::from_utf8(bytes.get(hstart..hstart + hlen).ok_or("truncated header")?).map_err(|_| "header is not text")?;
         let field = |key: &str| -> Result<&str, String> {
             let i = header.find(&format!("'{key}'")).ok_or(format!("header lacks '{key}'"))?;
             Ok(header[i + key.len() + 2..].trim_start().trim_start_matches(':').trim_start())
@@ -283,8 +282,7 @@ impl Npz {
             }
             let mut buf = Vec::with_capacity(f.size() as usize);
             f.read_to_end(&mut buf).map_err(|e| fmt(format!("entry {name}: {e}")))?;
-            let arr = Array::from_npy(&buf)
-                .map_err(|reason| NpzError::BadArray { path: path.into(), name: name.clone(), reason })?;
+            let arr = Array::from_npy(&buf).map_err(|reason| NpzError::BadArray { path: path.into(), name: name.clone(), reason })?;
             arrays.insert(name, arr);
         }
         Ok(Self { path: path.into(), arrays })

@@ -83,13 +83,7 @@ impl Segment {
 
 fn portal_tree(rng: &mut SplitMix64) -> Vec<Segment> {
     let mut segs = Vec::new();
-    let mut stack = vec![(
-        Vector3::new(5.0, -35.0, -55.0),
-        Vector3::new(0.25, 0.35, 1.0).normalize(),
-        38.0,
-        6.0,
-        0u32,
-    )];
+    let mut stack = vec![(Vector3::new(5.0, -35.0, -55.0), Vector3::new(0.25, 0.35, 1.0).normalize(), 38.0, 6.0, 0u32)];
     while let Some((start, dir, len, r, depth)) = stack.pop() {
         let end = start + dir * len;
         segs.push(Segment { a: start, b: end, radius_mm: r });
@@ -117,11 +111,7 @@ pub fn generate(settings: &PhantomSettings) -> Volume {
     let h = settings.spacing_mm;
     let extent = Vector3::new(250.0, 190.0, 160.0);
     let origin = Vector3::new(-125.0, -95.0, -80.0);
-    let dims = [
-        (extent.x / h).ceil() as usize,
-        (extent.y / h).ceil() as usize,
-        (extent.z / h).ceil() as usize,
-    ];
+    let dims = [(extent.x / h).ceil() as usize, (extent.y / h).ceil() as usize, (extent.z / h).ceil() as usize];
     let mut world_from_voxel = Matrix4::new_scaling(h);
     world_from_voxel[(3, 3)] = 1.0;
     for i in 0..3 {
@@ -129,11 +119,8 @@ pub fn generate(settings: &PhantomSettings) -> Volume {
     }
     let mut rng = SplitMix64(settings.seed);
     let tree = portal_tree(&mut rng);
-    let tumours = [
-        (Vector3::new(55.0, 10.0, 12.0), 14.0),
-        (Vector3::new(-48.0, 18.0, 16.0), 10.0),
-        (Vector3::new(20.0, 28.0, -22.0), 12.0),
-    ];
+    let tumours =
+        [(Vector3::new(55.0, 10.0, 12.0), 14.0), (Vector3::new(-48.0, 18.0, 16.0), 10.0), (Vector3::new(20.0, 28.0, -22.0), 12.0)];
     let ivc = Segment { a: Vector3::new(12.0, -58.0, -90.0), b: Vector3::new(12.0, -58.0, 90.0), radius_mm: 11.0 };
     let [nx, ny, _] = dims;
     let mut vol = Volume::new(dims, world_from_voxel);

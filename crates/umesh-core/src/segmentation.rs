@@ -63,9 +63,15 @@ impl Segmentation {
 }
 
 /// Load a NIfTI label volume and choose labels.
-pub fn load_nifti(path: &Path, organ_labels: &[i64], structure_labels: &[i64], options: &ReadOptions) -> Result<Segmentation, SegmentationError> {
+pub fn load_nifti(
+    path: &Path,
+    organ_labels: &[i64],
+    structure_labels: &[i64],
+    options: &ReadOptions,
+) -> Result<Segmentation, SegmentationError> {
     let volume = read_volume(path, options)?;
-    let seg = Segmentation { source: path.into(), volume, organ_labels: organ_labels.to_vec(), structure_labels: structure_labels.to_vec() };
+    let seg =
+        Segmentation { source: path.into(), volume, organ_labels: organ_labels.to_vec(), structure_labels: structure_labels.to_vec() };
     seg.validate()?;
     Ok(seg)
 }
@@ -96,9 +102,7 @@ pub fn load_meshes(organ: &Path, structures: &[PathBuf], spacing_mm: f64, scale_
     };
     let organ_mesh = read(organ)?;
     let invalid = |reason: String| SegmentationError::Invalid { path: organ.into(), reason };
-    let mask = organ_mesh
-        .voxelize(spacing_mm)
-        .ok_or_else(|| invalid(format!("the mesh is too large to voxelise at {spacing_mm} mm")))?;
+    let mask = organ_mesh.voxelize(spacing_mm).ok_or_else(|| invalid(format!("the mesh is too large to voxelise at {spacing_mm} mm")))?;
     if mask.count() == 0 {
         return Err(SegmentationError::EmptyMask { path: organ.into() });
     }
@@ -112,11 +116,17 @@ pub fn load_meshes(organ: &Path, structures: &[PathBuf], spacing_mm: f64, scale_
         let label = 2 + i as i64;
         let m = read(sp)?;
         // Voxelise on the organ's lattice by ray parity, through a mesh-local mask resampled.
-        let sm = m.voxelize(spacing_mm).ok_or_else(|| SegmentationError::Invalid { path: sp.clone(), reason: "too large to voxelise".into() })?;
+        let sm = m
+            .voxelize(spacing_mm)
+            .ok_or_else(|| SegmentationError::Invalid { path: sp.clone(), reason: "too large to voxelise".into() })?;
         let sampler = sm.world_sampler();
         for (idx, v) in volume.data.iter_mut().enumerate() {
             let [nx, ny, _] = volume.dims;
-            let p = volume.world_from_voxel.transform_point(&nalgebra::Point3::new((idx % nx) as f64, ((idx / nx) % ny) as f64, (idx / (nx * ny)) as f64));
+            let p = volume.world_from_voxel.transform_point(&nalgebra::Point3::new(
+                (idx % nx) as f64,
+                ((idx / nx) % ny) as f64,
+                (idx / (nx * ny)) as f64,
+            ));
             if sampler.inside(&p) {
                 *v = label as f32;
             }

@@ -31,7 +31,11 @@ pub struct SimulationOutput {
 }
 
 /// Build the boundary conditions of `settings` on `grid` (labels are looked up in `labels`).
-pub fn boundary_conditions(grid: &ImmersedGrid, labels: Option<&Volume>, settings: &SimulationSettings) -> Result<BoundaryConditions, SimulateError> {
+pub fn boundary_conditions(
+    grid: &ImmersedGrid,
+    labels: Option<&Volume>,
+    settings: &SimulationSettings,
+) -> Result<BoundaryConditions, SimulateError> {
     let mut bc = BoundaryConditions::new(grid.node_count());
     for region in &settings.fixed {
         let mask = match region {
@@ -52,13 +56,25 @@ pub fn boundary_conditions(grid: &ImmersedGrid, labels: Option<&Volume>, setting
     Ok(bc)
 }
 
-pub fn run_simulate(grid: &ImmersedGrid, labels: Option<&Volume>, settings: &SimulationSettings, progress: &Progress, cancel: &Cancel) -> Result<SimulationOutput, SimulateError> {
+pub fn run_simulate(
+    grid: &ImmersedGrid,
+    labels: Option<&Volume>,
+    settings: &SimulationSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<SimulationOutput, SimulateError> {
     let bc = boundary_conditions(grid, labels, settings)?;
     let solution = solve_bc(grid, &bc, settings, progress, cancel)?;
     Ok(SimulationOutput { bc, solution })
 }
 
-pub fn solve_bc(grid: &ImmersedGrid, bc: &BoundaryConditions, settings: &SimulationSettings, progress: &Progress, cancel: &Cancel) -> Result<Solution, SimulateError> {
+pub fn solve_bc(
+    grid: &ImmersedGrid,
+    bc: &BoundaryConditions,
+    settings: &SimulationSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<Solution, SimulateError> {
     let mut constrained = bc.fixed.clone();
     for &(n, _) in &bc.prescribed_mm {
         if n < constrained.len() {

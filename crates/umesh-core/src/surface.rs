@@ -66,14 +66,7 @@ fn blurred_field(mask: &Mask, sigma: f64, margin: usize) -> Option<(Vec<f32>, [u
 }
 
 /// The six tetrahedra of a cube sharing the diagonal 0-7 (corner bits: x=1, y=2, z=4).
-const KUHN: [[usize; 4]; 6] = [
-    [0, 1, 3, 7],
-    [0, 1, 5, 7],
-    [0, 2, 3, 7],
-    [0, 2, 6, 7],
-    [0, 4, 5, 7],
-    [0, 4, 6, 7],
-];
+const KUHN: [[usize; 4]; 6] = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]];
 
 /// Extract the boundary surface of a mask in world millimetres.
 pub fn extract_surface(mask: &Mask, settings: &SurfaceSettings) -> TriMesh {
@@ -91,9 +84,7 @@ pub fn extract_surface(mask: &Mask, settings: &SurfaceSettings) -> TriMesh {
     let key = |i: usize, j: usize, k: usize| (i + sx * (j + sy * k)) as u64;
     let mut mesh = TriMesh::default();
     let mut edge_vertex: HashMap<(u64, u64), u32> = HashMap::new();
-    let pos = |i: usize, j: usize, k: usize| {
-        Vector3::new((i * step) as f64, (j * step) as f64, (k * step) as f64)
-    };
+    let pos = |i: usize, j: usize, k: usize| Vector3::new((i * step) as f64, (j * step) as f64, (k * step) as f64);
     for k in 0..sz.saturating_sub(1) {
         for j in 0..sy.saturating_sub(1) {
             for i in 0..sx.saturating_sub(1) {
@@ -125,7 +116,13 @@ pub fn extract_surface(mask: &Mask, settings: &SurfaceSettings) -> TriMesh {
                     };
                     // Direction from inside to outside, to orient triangles.
                     let centroid = |cs: &[usize]| {
-                        cs.iter().map(|&c| { let (a, b, d) = corner(c); pos(a, b, d) }).sum::<Vector3<f64>>() / cs.len() as f64
+                        cs.iter()
+                            .map(|&c| {
+                                let (a, b, d) = corner(c);
+                                pos(a, b, d)
+                            })
+                            .sum::<Vector3<f64>>()
+                            / cs.len() as f64
                     };
                     let outward = centroid(&outside) - centroid(&inside);
                     let mut tris: Vec<[u32; 3]> = Vec::new();

@@ -16,12 +16,7 @@ pub struct Volume {
 
 impl Volume {
     pub fn new(dims: [usize; 3], world_from_voxel: Matrix4<f64>) -> Self {
-        Self {
-            dims,
-            data: vec![0.0; dims[0] * dims[1] * dims[2]],
-            world_from_voxel,
-            label_names: Default::default(),
-        }
+        Self { dims, data: vec![0.0; dims[0] * dims[1] * dims[2]], world_from_voxel, label_names: Default::default() }
     }
 
     #[inline]
@@ -60,16 +55,8 @@ impl Volume {
 
     /// Binary mask of the voxels whose rounded value is one of `labels`.
     pub fn mask(&self, labels: &[i64]) -> Mask {
-        let data = self
-            .data
-            .iter()
-            .map(|&v| labels.contains(&(v.round() as i64)))
-            .collect();
-        Mask {
-            dims: self.dims,
-            data,
-            world_from_voxel: self.world_from_voxel,
-        }
+        let data = self.data.iter().map(|&v| labels.contains(&(v.round() as i64))).collect();
+        Mask { dims: self.dims, data, world_from_voxel: self.world_from_voxel }
     }
 }
 
@@ -145,13 +132,7 @@ impl Mask {
 
     /// An inside test in world coordinates (nearest voxel).
     pub fn world_sampler(&self) -> MaskSampler<'_> {
-        MaskSampler {
-            mask: self,
-            voxel_from_world: self
-                .world_from_voxel
-                .try_inverse()
-                .unwrap_or_else(Matrix4::identity),
-        }
+        MaskSampler { mask: self, voxel_from_world: self.world_from_voxel.try_inverse().unwrap_or_else(Matrix4::identity) }
     }
 }
 
@@ -166,7 +147,6 @@ impl MaskSampler<'_> {
     #[inline]
     pub fn inside(&self, p: &Point3<f64>) -> bool {
         let v = self.voxel_from_world.transform_point(p);
-        self.mask
-            .get(v.x.round() as i64, v.y.round() as i64, v.z.round() as i64)
+        self.mask.get(v.x.round() as i64, v.y.round() as i64, v.z.round() as i64)
     }
 }

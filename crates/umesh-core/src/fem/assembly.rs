@@ -246,7 +246,8 @@ impl<'g> Assembler<'g> {
                         min_det = f.determinant();
                         let r = rotation_of(&f);
                         let h = grid.cell_size_mm;
-                        let x0: [Vector3<f64>; 8] = crate::grid::HEX_CORNERS.map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64) * h);
+                        let x0: [Vector3<f64>; 8] =
+                            crate::grid::HEX_CORNERS.map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64) * h);
                         let xc = (0..8).map(|a| x0[a] + ue[a]).sum::<Vector3<f64>>() / 8.0;
                         let xc0 = x0.iter().sum::<Vector3<f64>>() / 8.0;
                         let mut ul = SMatrix::<f64, 24, 1>::zeros();

@@ -14,4 +14,4 @@ pub mod solver;
 
 pub use bc::{BoundaryConditions, FixedRegion};
 pub use material::{Material, MaterialKind, MaterialParams};
-pub use solver::{FemError, IterationRecord, SolverSettings, Solution, SolveMethod, solve};
+pub use solver::{FemError, IterationRecord, Solution, SolveMethod, SolverSettings, solve};

@@ -20,11 +20,8 @@ pub enum ProblemError {
 }
 
 pub fn problem_arrays(grid: &ImmersedGrid, material: &MaterialParams, bc: &BoundaryConditions) -> Vec<(&'static str, Array)> {
-    let mut arrays: Vec<(&'static str, Array)> = grid
-        .to_npz_arrays()
-        .into_iter()
-        .filter(|(n, _)| matches!(*n, "nodes" | "hexes" | "qp_cell" | "qp_xi" | "qp_w"))
-        .collect();
+    let mut arrays: Vec<(&'static str, Array)> =
+        grid.to_npz_arrays().into_iter().filter(|(n, _)| matches!(*n, "nodes" | "hexes" | "qp_cell" | "qp_xi" | "qp_w")).collect();
     let fixed: Vec<i64> = bc.fixed.iter().enumerate().filter(|(_, f)| **f).map(|(i, _)| i as i64).collect();
     arrays.push(("fixed", Array::i64(vec![fixed.len()], fixed)));
     arrays.push(("forces", Array::f64(vec![bc.forces_n.len(), 3], bc.forces_n.iter().flat_map(|f| [f.x, f.y, f.z]).collect())));
@@ -145,7 +142,11 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
     }
     let occ_sorted: Vec<_> = order.iter().map(|&c| occupied[c]).collect();
     let mut quadrature: Vec<QuadPoint> = (0..q)
-        .map(|i| QuadPoint { cell: new_of[qp_cell[i] as usize] as u32, xi: [qp_xi[3 * i], qp_xi[3 * i + 1], qp_xi[3 * i + 2]], weight_mm3: qp_w[i] })
+        .map(|i| QuadPoint {
+            cell: new_of[qp_cell[i] as usize] as u32,
+            xi: [qp_xi[3 * i], qp_xi[3 * i + 1], qp_xi[3 * i + 2]],
+            weight_mm3: qp_w[i],
+        })
         .collect();
     quadrature.sort_by_key(|p| p.cell);
     let grid = assemble_grid(origin, h, cell_dims, occ_sorted, quadrature, 0);

@@ -8,9 +8,9 @@ use super::bc::BoundaryConditions;
 use super::material::{MaterialKind, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::progress::{Cancel, Progress};
-use faer::linalg::solvers::Solve;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::linalg::solvers::Solve;
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
 use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
@@ -201,7 +201,16 @@ impl Factorizer {
         for (i, &f) in perm_fwd.iter().enumerate() {
             perm_inv[f] = i;
         }
-        Self { perm_fwd, perm_inv, llt_symbolic: None, l_values: Vec::new(), mem: None, lu_symbolic: None, current: None, rest_values: None }
+        Self {
+            perm_fwd,
+            perm_inv,
+            llt_symbolic: None,
+            l_values: Vec::new(),
+            mem: None,
+            lu_symbolic: None,
+            current: None,
+            rest_values: None,
+        }
     }
 
     /// Factorise the assembled matrix; `at_rest` says it is the stiffness at u = 0.
@@ -215,7 +224,8 @@ impl Factorizer {
         let err = |e: &dyn std::fmt::Debug| FemError::Factorization(format!("{e:?}"));
         if self.llt_symbolic.is_none() {
             let perm = PermRef::new_checked(&self.perm_fwd, &self.perm_inv, self.perm_fwd.len());
-            let sym = factorize_symbolic_cholesky(mat.symbolic(), Side::Lower, SymmetricOrdering::Custom(perm), Default::default()).map_err(|e| err(&e))?;
+            let sym = factorize_symbolic_cholesky(mat.symbolic(), Side::Lower, SymmetricOrdering::Custom(perm), Default::default())
+                .map_err(|e| err(&e))?;
             let req = sym.factorize_numeric_llt_scratch::<f64>(par, Default::default()).or(sym.solve_in_place_scratch::<f64>(1, par));
             self.mem = Some(MemBuffer::try_new(req).map_err(|e| err(&e))?);
             self.l_values = vec![0.0; sym.len_val()];
@@ -223,7 +233,15 @@ impl Factorizer {
         }
         if let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem) {
             let ok = sym
-                .factorize_numeric_llt(&mut self.l_values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default())
+                .factorize_numeric_llt(
+                    &mut self.l_values,
+                    mat,
+                    Side::Lower,
+                    LltRegularization::default(),
+                    par,
+                    MemStack::new(mem),
+                    Default::default(),
+                )
                 .is_ok();
             if ok {
                 if at_rest {
@@ -312,7 +330,13 @@ impl<'g> FeSolver<'g> {
     }
 
     /// Solve the static problem for `bc`, whose constrained nodes must be those given to `new`.
-    pub fn solve(&mut self, bc: &BoundaryConditions, method: SolveMethod, progress: &Progress, cancel: &Cancel) -> Result<Solution, FemError> {
+    pub fn solve(
+        &mut self,
+        bc: &BoundaryConditions,
+        method: SolveMethod,
+        progress: &Progress,
+        cancel: &Cancel,
+    ) -> Result<Solution, FemError> {
         let n = self.grid.node_count();
         if bc.forces_n.len() != n || bc.fixed.len() != n {
             return Err(FemError::InvalidInput("boundary conditions do not match the grid".into()));
@@ -430,7 +454,13 @@ impl<'g> FeSolver<'g> {
     /// reused; later iterations first try conjugate gradients preconditioned by the last
     /// factorisation (an inexact Newton step with forcing term min(0.1, |r|/|r0|), which keeps
     /// the quadratic rate), and refactorise when that converges slowly.
-    fn linear_step(&mut self, r: &[f64], rel: f64, at_rest: bool, stale: &mut bool) -> Result<(Mat<f64>, &'static str, f64, f64), FemError> {
+    fn linear_step(
+        &mut self,
+        r: &[f64],
+        rel: f64,
+        at_rest: bool,
+        stale: &mut bool,
+    ) -> Result<(Mat<f64>, &'static str, f64, f64), FemError> {
         if !at_rest && !*stale && self.settings.reuse_factorization && self.fact.current.is_some() {
             let t = Instant::now();
             let tol = rel.min(0.1) * 0.5;
@@ -505,7 +535,13 @@ impl<'g> FeSolver<'g> {
         }
     }
 
-    fn solve_incremental(&mut self, bc: &BoundaryConditions, model: ElementModel, progress: &Progress, cancel: &Cancel) -> Result<Solution, FemError> {
+    fn solve_incremental(
+        &mut self,
+        bc: &BoundaryConditions,
+        model: ElementModel,
+        progress: &Progress,
+        cancel: &Cancel,
+    ) -> Result<Solution, FemError> {
         let s = self.settings.clone();
         let mut u = vec![Vector3::zeros(); self.grid.node_count()];
         let mut history = Vec::new();
@@ -612,9 +648,7 @@ impl<'g> FeSolver<'g> {
                     let n2 = norm(&r2);
                     let slope = |rv: &[f64]| rv.iter().enumerate().map(|(i, v)| v * du[(i, 0)]).sum::<f64>();
                     n2.is_finite()
-                        && (n2 <= (1.0 - 1e-4 * alpha) * rnorm
-                            || n2 <= refn * s.residual_tol
-                            || slope(&r2).abs() <= 0.5 * slope(&r).abs())
+                        && (n2 <= (1.0 - 1e-4 * alpha) * rnorm || n2 <= refn * s.residual_tol || slope(&r2).abs() <= 0.5 * slope(&r).abs())
                 };
                 if ok || !s.line_search || alpha < 1.0 / 32.0 {
                     break;
@@ -640,7 +674,11 @@ impl<'g> FeSolver<'g> {
                 factorization: fac_name,
             });
             assembly_ms = a_ms;
-            progress.report(history.len() as u64, 0, &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0));
+            progress.report(
+                history.len() as u64,
+                0,
+                &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0),
+            );
         }
         timings.assembly_ms += assembly_ms;
         Ok(Err(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations)))

@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Installs what a fresh Debian machine with Rust 1.95 lacks for umesh. Idempotent.
+# The core and CLI need no system package today; this script is where the GUI's
+# packages (EGL/Mesa for headless screenshots) will be installed.
+set -euo pipefail
+need=()
+for p in ca-certificates pkg-config; do
+  dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
+done
+if [ ${#need[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need[@]}"
+fi
+if ! command -v cargo >/dev/null; then
+  echo "error: cargo (Rust 1.95) is required: https://rustup.rs" >&2
+  exit 1
+fi

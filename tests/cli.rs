@@ -1,0 +1,168 @@
+//! The command line as a user drives it: JSON summaries, exit codes, errors naming files.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn umesh(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_umesh")).args(args).output().expect("run umesh");
+    (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+fn json(stdout: &str) -> serde_json::Value {
+    serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("not one JSON object ({e}): {stdout}"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("umesh-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d.join(name)
+}
+
+#[test]
+fn every_command_has_help() {
+    for cmd in [
+        vec!["--help"],
+        vec!["demo", "--help"],
+        vec!["phantom", "--help"],
+        vec!["grid", "--help"],
+        vec!["surface", "--help"],
+        vec!["simulate", "--help"],
+        vec!["bench", "--help"],
+    ] {
+        let (ok, out, _) = umesh(&cmd);
+        assert!(ok && out.contains("Usage"), "{cmd:?}");
+    }
+}
+
+#[test]
+fn grid_json_reports_the_documented_keys() {
+    let out_file = tmp("grid.npz");
+    let (ok, out, err) = umesh(&["grid", "--json", "--out", out_file.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let v = json(&out);
+    for key in ["cells", "nodes", "boundary_cells", "grid_volume_mm3", "segmentation_volume_mm3", "padded_shape"] {
+        assert!(v.get(key).is_some(), "missing {key}: {v}");
+    }
+    let seg = v["segmentation_volume_mm3"].as_f64().unwrap();
+    let grid = v["grid_volume_mm3"].as_f64().unwrap();
+    assert!((grid - seg).abs() / seg < 0.01);
+    let p: Vec<u64> = serde_json::from_value(v["padded_shape"].clone()).unwrap();
+    assert!(p.iter().all(|d| d % 8 == 0));
+    assert!(out_file.exists() && out_file.with_extension("vtu").exists());
+    let vtu = std::fs::read_to_string(out_file.with_extension("vtu")).unwrap();
+    assert!(vtu.contains("UnstructuredGrid") && vtu.contains("volume_fraction"));
+}
+
+#[test]
+fn bad_inputs_fail_with_one_clear_error_and_a_nonzero_exit() {
+    let (ok, _, err) = umesh(&["grid", "/nonexistent/seg.nii.gz"]);
+    assert!(!ok && err.contains("/nonexistent/seg.nii.gz"), "{err}");
+    let corrupt = tmp("corrupt.nii.gz");
+    std::fs::write(&corrupt, b"\x1f\x8b\x08\x00garbage").unwrap();
+    let (ok, _, err) = umesh(&["grid", corrupt.to_str().unwrap()]);
+    assert!(!ok && err.contains("corrupt.nii.gz"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let (ok, _, err) = umesh(&["grid", "--organ-label", "99"]);
+    assert!(!ok && err.contains("label 99"), "{err}");
+    let (ok, _, err) = umesh(&["grid", "--cell-size-mm", "0"]);
+    assert!(!ok && err.contains("cell size"), "{err}");
+    let open = tmp("open.obj");
+    std::fs::write(&open, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+    let (ok, _, err) = umesh(&["grid", open.to_str().unwrap()]);
+    assert!(!ok && err.contains("open.obj") && err.contains("not closed"), "{err}");
+    let forces = tmp("forces.json");
+    std::fs::write(&forces, "{not json").unwrap();
+    let (ok, _, err) = umesh(&["simulate", "--forces", forces.to_str().unwrap()]);
+    assert!(!ok && err.contains("forces.json"), "{err}");
+    let (ok, _, err) = umesh(&["simulate", "--material", "rubber"]);
+    assert!(!ok && err.contains("rubber"), "{err}");
+}
+
+#[test]
+fn simulate_writes_results_and_an_exported_problem_solves_to_the_same_answer() {
+    let dir = tmp("sim");
+    let problem = tmp("problem.npz");
+    let forces = tmp("f.json");
+    std::fs::write(
+        &forces,
+        r#"[{"point_mm": [30, 60, 10], "force_n": [0, -0.05, 0]}, {"point_mm": [-40, 50, 20], "force_n": [0.01, -0.03, 0]}]"#,
+    )
+    .unwrap();
+    let (ok, out, err) = umesh(&[
+        "simulate",
+        "--json",
+        "--forces",
+        forces.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+        "--export-problem",
+        problem.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v = json(&out);
+    for key in ["converged", "newton_iterations", "max_displacement_mm", "solve_ms"] {
+        assert!(v.get(key).is_some(), "missing {key}: {v}");
+    }
+    assert_eq!(v["converged"], true);
+    let max = v["max_displacement_mm"].as_f64().unwrap();
+    assert!(max > 0.1 && max < 100.0, "{max}");
+    for f in ["displacement.npz", "result.vtu", "organ_deformed.obj", "history.json", "tumour_1_deformed.obj"] {
+        assert!(dir.join(f).exists(), "{f}");
+    }
+    let dir2 = tmp("sim2");
+    let (ok, out2, err) = umesh(&["simulate", "--json", "--problem", problem.to_str().unwrap(), "--out", dir2.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let v2 = json(&out2);
+    let max2 = v2["max_displacement_mm"].as_f64().unwrap();
+    assert!((max - max2).abs() < 1e-6 * max, "{max} vs {max2}");
+    let a = umesh_npz(&dir.join("displacement.npz"));
+    let b = umesh_npz(&dir2.join("displacement.npz"));
+    assert_eq!(a.len(), b.len());
+    let diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+    assert!(diff < 1e-6, "{diff}");
+}
+
+/// The displacement array of an NPZ, read by hand (a zip of one .npy) to stay independent.
+fn umesh_npz(path: &std::path::Path) -> Vec<f64> {
+    let bytes = std::fs::read(path).unwrap();
+    let key = b"displacement_mm.npy";
+    let start = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len();
+    let npy = &bytes[start..];
+    let hlen = u16::from_le_bytes([npy[8], npy[9]]) as usize;
+    let header = std::str::from_utf8(&npy[10..10 + hlen]).unwrap();
+    assert!(header.contains("'<f8'"));
+    let shape = &header[header.find("'shape': (").unwrap() + 10..];
+    let n: usize = shape.split(',').next().unwrap().trim().parse().unwrap();
+    npy[10 + hlen..10 + hlen + n * 24].chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect()
+}
+
+#[test]
+fn linear_and_corotational_methods_run_and_phantom_and_surfaces_are_written() {
+    for m in ["linear", "corotational"] {
+        let (ok, out, err) = umesh(&["simulate", "--json", "--method", m, "--out", tmp(m).to_str().unwrap()]);
+        assert!(ok, "{m}: {err}");
+        assert_eq!(json(&out)["converged"], true);
+    }
+    let p = tmp("ph.nii.gz");
+    let (ok, out, err) = umesh(&["phantom", "--json", "--spacing-mm", "4", "--out", p.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(json(&out)["labels"]["liver"]["volume_mm3"].as_f64().unwrap() > 1e6);
+    let (ok, out, err) = umesh(&[
+        "surface",
+        "--json",
+        p.to_str().unwrap(),
+        "--organ-label",
+        "1,3,4,5,6",
+        "--structure-label",
+        "4",
+        "--format",
+        "stl",
+        "--out",
+        tmp("surf").to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v = json(&out);
+    for s in v["surfaces"].as_array().unwrap() {
+        assert_eq!(s["watertight"], true, "{s}");
+    }
+}

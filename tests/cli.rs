@@ -166,3 +166,70 @@ fn linear_and_corotational_methods_run_and_phantom_and_surfaces_are_written() {
         assert_eq!(s["watertight"], true, "{s}");
     }
 }
+
+fn dataset_args<'a>(out: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut v = vec![
+        "dataset",
+        "generate",
+        "--samples",
+        "6",
+        "--seed",
+        "5",
+        "--shard-size",
+        "1",
+        "--cell-size-mm",
+        "14",
+        "--probes",
+        "20",
+        "--out",
+        out,
+    ];
+    v.extend_from_slice(extra);
+    v
+}
+
+#[test]
+fn dataset_killed_midway_and_resumed_equals_an_uninterrupted_run() {
+    let full = tmp("ds-full");
+    let _ = std::fs::remove_dir_all(&full);
+    let (ok, out, err) = umesh(&dataset_args(full.to_str().unwrap(), &["--json"]));
+    assert!(ok, "{err}");
+    let v = json(&out);
+    assert_eq!(v["complete"], true);
+
+    let killed = tmp("ds-killed");
+    let _ = std::fs::remove_dir_all(&killed);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_umesh"))
+        .args(dataset_args(killed.to_str().unwrap(), &[]))
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Kill as soon as the first shard is on disk (or after a time limit).
+    let start = std::time::Instant::now();
+    while !killed.join("shard_000000.npz").exists() && !killed.join("shard_000001.npz").exists() && start.elapsed().as_secs() < 120 {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    let _ = child.wait();
+    let shards_before =
+        std::fs::read_dir(&killed).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with("shard_")).count();
+    assert!(shards_before < 6, "the run finished before it could be killed");
+    let (ok, out, err) = umesh(&dataset_args(killed.to_str().unwrap(), &["--json"]));
+    assert!(ok, "{err}");
+    let v = json(&out);
+    assert_eq!(v["complete"], true);
+    assert!(v["samples_reused"].as_u64().unwrap() >= shards_before as u64 - 0, "{v}");
+    for k in 0..6 {
+        let name = format!("shard_{k:06}.npz");
+        assert_eq!(std::fs::read(full.join(&name)).unwrap(), std::fs::read(killed.join(&name)).unwrap(), "{name}");
+    }
+    // No temporary files are left behind.
+    assert!(std::fs::read_dir(&killed).unwrap().all(|e| !e.unwrap().file_name().to_string_lossy().ends_with(".tmp")));
+    // Stats read the result.
+    let (ok, out, err) = umesh(&["dataset", "stats", "--json", killed.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let s = json(&out);
+    assert_eq!(s["samples"], 6);
+    assert!(s["max_displacement_mm"]["median"].as_f64().unwrap() > 0.0);
+}

@@ -1,6 +1,7 @@
 //! Command-line interface: one file per command; all of them call umesh-core's `run_*`.
 
 mod bench;
+mod dataset;
 mod demo;
 mod grid;
 mod input;
@@ -34,7 +35,9 @@ enum Command {
     Surface(surface::Args),
     /// Solve a static FE problem (SVK Newton, linear or co-rotational).
     Simulate(Box<simulate::Args>),
-    /// Benchmarks: grid construction, FE solves.
+    /// Training data: generate, merge, stats.
+    Dataset(dataset::Args),
+    /// Benchmarks: grid construction, FE solves, dataset generation.
     Bench(bench::Args),
 }
 
@@ -46,6 +49,7 @@ pub fn main() -> ExitCode {
         Command::Grid(a) => grid::run(a),
         Command::Surface(a) => surface::run(a),
         Command::Simulate(a) => simulate::run(*a),
+        Command::Dataset(a) => dataset::run(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

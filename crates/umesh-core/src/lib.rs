@@ -4,6 +4,7 @@
 //! pascals for stresses and moduli (`_pa`). The world frame is RAS (x: right,
 //! y: anterior, z: superior), as NIfTI's scanner frame.
 
+pub mod dataset;
 pub mod fem;
 pub mod grid;
 pub mod loads;

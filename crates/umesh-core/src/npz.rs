@@ -237,11 +237,16 @@ fn fortran_to_c(data: ArrayData, shape: &[usize]) -> ArrayData {
 /// Serialise named arrays as an uncompressed `.npz` with fixed timestamps, so equal
 /// arrays give byte-identical files.
 pub fn encode_npz(arrays: &[(&str, Array)]) -> std::io::Result<Vec<u8>> {
+    encode_npz_with(arrays, false)
+}
+
+/// Like [`encode_npz`]; `compressed` deflates each array (as `numpy.savez_compressed`),
+/// still deterministic for a given zlib implementation.
+pub fn encode_npz_with(arrays: &[(&str, Array)], compressed: bool) -> std::io::Result<Vec<u8>> {
     let mut zw = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
-    let opts = zip::write::SimpleFileOptions::default()
-        .compression_method(zip::CompressionMethod::Stored)
-        .last_modified_time(zip::DateTime::default())
-        .large_file(false);
+    let method = if compressed { zip::CompressionMethod::Deflated } else { zip::CompressionMethod::Stored };
+    let opts =
+        zip::write::SimpleFileOptions::default().compression_method(method).last_modified_time(zip::DateTime::default()).large_file(false);
     for (name, arr) in arrays {
         let npy = arr.to_npy();
         let opts = if npy.len() as u64 >= u32::MAX as u64 { opts.large_file(true) } else { opts };

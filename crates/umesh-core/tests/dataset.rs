@@ -1,0 +1,197 @@
+//! Training data: visibility, probe sampling, force distribution, deterministic shards,
+//! merge, resume, corruption detection.
+
+use nalgebra::Vector3;
+use std::path::{Path, PathBuf};
+use umesh_core::dataset::{Dataset, DatasetConfig, ShardSelection, run_generate, run_merge, shard_file_name};
+use umesh_core::fem::{BoundaryConditions, FixedRegion};
+use umesh_core::grid::GridSettings;
+use umesh_core::mesh::TriMesh;
+use umesh_core::phantom::SplitMix64;
+use umesh_core::segmentation::{Segmentation, bundled_phantom};
+use umesh_core::surface::{SurfaceSettings, extract_surface};
+use umesh_core::visible::{Camera, VisibilitySettings, sample_points, visible_surface};
+use umesh_core::{Cancel, Progress};
+
+fn phantom() -> Segmentation {
+    let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/phantom.nii.gz")).unwrap();
+    bundled_phantom(&bytes).unwrap()
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("umesh-ds-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+#[test]
+fn visible_area_is_capped_and_front_facing() {
+    let seg = phantom();
+    let mesh = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
+    for fraction in [0.5, 0.3, 1.0] {
+        let vis = visible_surface(&mesh, &VisibilitySettings { max_fraction: fraction, ..Default::default() }).unwrap();
+        assert!(vis.fraction() <= fraction + 1e-12, "{} > {fraction}", vis.fraction());
+        assert!(vis.fraction() > 0.1, "too little visible: {}", vis.fraction());
+        let eye = Vector3::from(vis.camera.position_mm);
+        for (t, tri) in mesh.triangles.iter().enumerate() {
+            if vis.visible[t] {
+                let c = tri.iter().map(|&i| mesh.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
+                assert!(mesh.triangle_normal_area(t).0.dot(&(eye - c)) > 0.0, "back-facing triangle {t} marked visible");
+            }
+        }
+    }
+    // Without a cap, a camera sees less than the whole closed surface (occlusion + back faces).
+    let vis = visible_surface(&mesh, &VisibilitySettings { max_fraction: 1.0, ..Default::default() }).unwrap();
+    assert!(vis.fraction() < 0.7, "{}", vis.fraction());
+    // A camera behind the organ sees its posterior face instead.
+    let (lo, hi) = mesh.bounds().unwrap();
+    let c = (lo + hi) / 2.0;
+    let back = Camera { position_mm: [c.x, c.y - 500.0, c.z], direction: [0.0, 1.0, 0.0], fov_deg: 50.0 };
+    let vb = visible_surface(&mesh, &VisibilitySettings { camera: Some(back), max_fraction: 1.0, ..Default::default() }).unwrap();
+    let both = (0..mesh.triangles.len()).filter(|&t| vb.visible[t] && vis.visible[t]).count();
+    assert!(both * 50 < vb.visible.iter().filter(|&&v| v).count(), "front and back views overlap too much");
+}
+
+#[test]
+fn probe_sampling_is_uniform_by_area() {
+    // Two triangles with areas 1 : 3.
+    let mesh = TriMesh {
+        positions: vec![
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(1.0, 0.0, 0.0),
+            Vector3::new(0.0, 2.0, 0.0),
+            Vector3::new(10.0, 0.0, 0.0),
+            Vector3::new(13.0, 0.0, 0.0),
+            Vector3::new(10.0, 2.0, 0.0),
+        ],
+        triangles: vec![[0, 1, 2], [3, 4, 5]],
+    };
+    let n = 20000;
+    let pts = sample_points(&mesh, &[true, true], n, &mut SplitMix64(42));
+    let first = pts.iter().filter(|(p, _)| p.x < 5.0).count() as f64;
+    // Binomial(n, 1/4): expected 5000, standard deviation ~61; allow 4 sigma.
+    assert!((first - n as f64 / 4.0).abs() < 4.0 * (n as f64 * 0.25 * 0.75).sqrt(), "{first}");
+    // Within a triangle: uniform, so the mean is the centroid.
+    let tri2: Vec<Vector3<f64>> = pts.iter().filter(|(p, _)| p.x >= 5.0).map(|(p, _)| *p).collect();
+    let mean = tri2.iter().sum::<Vector3<f64>>() / tri2.len() as f64;
+    assert!((mean - Vector3::new(11.0, 2.0 / 3.0, 0.0)).norm() < 0.03, "{mean:?}");
+    // Invisible triangles get no sample.
+    let pts = sample_points(&mesh, &[false, true], 1000, &mut SplitMix64(1));
+    assert!(pts.iter().all(|(p, _)| p.x >= 10.0));
+}
+
+#[test]
+fn barycentric_force_distribution_conserves_force_and_moment() {
+    let seg = phantom();
+    let grid = umesh_core::grid::run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new()).unwrap().grid;
+    let mut rng = SplitMix64(9);
+    let mut bc = BoundaryConditions::new(grid.node_count());
+    let (mut total, mut moment) = (Vector3::zeros(), Vector3::zeros());
+    let mesh = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
+    for (p, _) in sample_points(&mesh, &vec![true; mesh.triangles.len()], 200, &mut rng) {
+        let f = Vector3::new(rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5);
+        bc.add_point_force(&grid, &p, &f).unwrap();
+        total += f;
+        moment += p.cross(&f);
+    }
+    let nodal: Vector3<f64> = bc.forces_n.iter().sum();
+    let nodal_moment: Vector3<f64> = (0..grid.node_count()).map(|n| grid.node_position(n).cross(&bc.forces_n[n])).sum();
+    assert!((nodal - total).norm() < 1e-12 * total.norm().max(1.0));
+    // Exact for points inside their cells; surface points slightly outside any cell are clamped,
+    // which moves their lever arm by at most a fraction of a cell.
+    assert!((nodal_moment - moment).norm() < 1e-3 * moment.norm(), "{nodal_moment:?} vs {moment:?}");
+}
+
+fn small_config(samples: usize) -> DatasetConfig {
+    let mut c = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::VENA_CAVA, distance_mm: 8.0 });
+    c.samples = samples;
+    c.seed = 3;
+    c.shard_size = 2;
+    c.grid.cell_size_mm = 14.0;
+    c.forces.probes = 20;
+    c.surface_step = 3;
+    c
+}
+
+fn file_bytes(dir: &Path, name: &str) -> Vec<u8> {
+    std::fs::read(dir.join(name)).unwrap_or_else(|e| panic!("{}: {e}", dir.join(name).display()))
+}
+
+#[test]
+fn shards_merge_into_exactly_the_single_run_dataset_and_resume_completes_it() {
+    let seg = phantom();
+    let config = small_config(5);
+    let single = tmp("single");
+    let r = run_generate(&seg, &single, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert!(r.complete && r.samples_computed == 5, "{r:?}");
+    assert!(r.accepted >= 4, "{r:?}");
+    let a = tmp("a");
+    let b = tmp("b");
+    let ra = run_generate(&seg, &a, &config, ShardSelection::parse("0/2").unwrap(), &Progress::none(), &Cancel::new()).unwrap();
+    let rb = run_generate(&seg, &b, &config, ShardSelection::parse("1/2").unwrap(), &Progress::none(), &Cancel::new()).unwrap();
+    assert!(!ra.complete && !rb.complete);
+    let merged = tmp("merged");
+    let m = run_merge(&[a.clone(), b.clone()], &merged).unwrap();
+    assert!(m.complete);
+    for shard in 0..config.shard_count() {
+        let name = shard_file_name(shard);
+        assert_eq!(file_bytes(&single, &name), file_bytes(&merged, &name), "{name} differs");
+    }
+    assert_eq!(file_bytes(&single, "grid.npz"), file_bytes(&merged, "grid.npz"));
+    let ds = Dataset::open(&merged).unwrap();
+    assert_eq!(ds.manifest.samples.len(), 5);
+    let (idx, u_s, u_v) = ds.load_shard(&ds.manifest.shards[0]).unwrap();
+    let [x, y, z] = ds.manifest.padded_shape;
+    assert_eq!(u_v.len(), idx.len() * 3 * x * y * z);
+    // u_s is u_v on the visible nodes and zero elsewhere.
+    let nonzero_s = u_s.iter().filter(|v| **v != 0.0).count();
+    let nonzero_v = u_v.iter().filter(|v| **v != 0.0).count();
+    assert!(nonzero_s > 0 && nonzero_s < nonzero_v, "{nonzero_s} vs {nonzero_v}");
+    for (s, v) in u_s.iter().zip(&u_v) {
+        assert!(*s == 0.0 || s == v);
+    }
+
+    // Resume: lose a shard and the manifest, run again, get the same files.
+    let resumed = tmp("resumed");
+    run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    std::fs::remove_file(resumed.join(shard_file_name(1))).unwrap();
+    std::fs::remove_file(resumed.join("manifest.json")).unwrap();
+    let r2 = run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert_eq!(r2.samples_computed, 2, "{r2:?}");
+    assert_eq!(r2.samples_reused, 3);
+    for shard in 0..config.shard_count() {
+        let name = shard_file_name(shard);
+        assert_eq!(file_bytes(&single, &name), file_bytes(&resumed, &name), "{name} differs after resume");
+    }
+
+    // A different configuration in the same folder is refused.
+    let mut other = config.clone();
+    other.seed = 99;
+    let e = run_generate(&seg, &resumed, &other, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    assert!(e.contains("another configuration"), "{e}");
+}
+
+#[test]
+fn corrupted_or_truncated_shards_are_detected_on_load() {
+    let seg = phantom();
+    let config = small_config(2);
+    let dir = tmp("corrupt");
+    run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert!(Dataset::open(&dir).is_ok());
+    let shard = dir.join(shard_file_name(0));
+    let mut bytes = std::fs::read(&shard).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0xff;
+    std::fs::write(&shard, &bytes).unwrap();
+    let e = Dataset::open(&dir).unwrap_err().to_string();
+    assert!(e.contains("shard_000000.npz") && e.contains("corrupted"), "{e}");
+    std::fs::write(&shard, &bytes[..mid]).unwrap();
+    let e = Dataset::open(&dir).unwrap_err().to_string();
+    assert!(e.contains("truncated"), "{e}");
+    // Regenerating replaces the damaged shard (it fails validation and is recomputed).
+    let r = run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert_eq!(r.samples_computed, 2);
+    assert!(Dataset::open(&dir).is_ok());
+    std::fs::write(dir.join("manifest.json"), "{").unwrap();
+    assert!(Dataset::open(&dir).unwrap_err().to_string().contains("manifest.json"));
+}

@@ -553,26 +553,26 @@ pub fn run_generate(
     let mut reused = 0;
     for shard in 0..config.shard_count() {
         let path = out.join(shard_file_name(shard));
-        if path.exists() {
-            if let Ok((records, accepted)) = read_shard_records(&path, config, shard, padded) {
-                let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
-                let range = config.shard_range(shard);
-                manifest.shards.push(ShardRecord {
-                    file: shard_file_name(shard),
-                    first: range.start,
-                    count: range.len(),
-                    accepted,
-                    hash: fnv_hex(&bytes),
-                });
-                for r in records {
-                    let kept = known.get(&r.index).filter(|k| k.shard == r.shard).cloned();
-                    manifest.samples.push(kept.unwrap_or(r));
-                }
-                if selection.includes(shard) {
-                    reused += range.len();
-                }
-                continue;
+        if path.exists()
+            && let Ok((records, accepted)) = read_shard_records(&path, config, shard, padded)
+        {
+            let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
+            let range = config.shard_range(shard);
+            manifest.shards.push(ShardRecord {
+                file: shard_file_name(shard),
+                first: range.start,
+                count: range.len(),
+                accepted,
+                hash: fnv_hex(&bytes),
+            });
+            for r in records {
+                let kept = known.get(&r.index).filter(|k| k.shard == r.shard).cloned();
+                manifest.samples.push(kept.unwrap_or(r));
             }
+            if selection.includes(shard) {
+                reused += range.len();
+            }
+            continue;
         }
         if selection.includes(shard) {
             todo.push(shard);

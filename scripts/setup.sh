@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs what a fresh Debian machine with Rust 1.95 lacks for umesh. Idempotent.
-# The core and CLI need no system package today; this script is where the GUI's
-# packages (EGL/Mesa for headless screenshots) will be installed.
+# Today: numpy for the NPZ interop test. The GUI's packages (EGL/Mesa for headless
+# screenshots) will be installed here too.
 set -euo pipefail
 need=()
 for p in ca-certificates pkg-config; do
@@ -11,6 +11,13 @@ if [ ${#need[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need[@]}"
+fi
+# numpy, to check that the NPZ files load with numpy.load (the interop test).
+if command -v python3 >/dev/null && ! python3 -c "import numpy" 2>/dev/null; then
+  python3 -m pip install --quiet numpy 2>/dev/null || {
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-numpy
+  }
 fi
 if ! command -v cargo >/dev/null; then
   echo "error: cargo (Rust 1.95) is required: https://rustup.rs" >&2

@@ -233,3 +233,48 @@ fn dataset_killed_midway_and_resumed_equals_an_uninterrupted_run() {
     assert_eq!(s["samples"], 6);
     assert!(s["max_displacement_mm"]["median"].as_f64().unwrap() > 0.0);
 }
+
+#[test]
+fn numpy_loads_the_grid_and_dataset_files() {
+    let has_numpy = Command::new("python3").args(["-c", "import numpy"]).status().map(|s| s.success()).unwrap_or(false);
+    if !has_numpy {
+        assert!(std::env::var_os("CI").is_none(), "numpy is missing in CI: scripts/setup.sh should have installed it");
+        eprintln!("SKIPPED: python3 with numpy not found; the NPZ interop check did not run");
+        return;
+    }
+    let dir = tmp("ds-numpy");
+    let _ = std::fs::remove_dir_all(&dir);
+    let (ok, _, err) = umesh(&[
+        "dataset",
+        "generate",
+        "--samples",
+        "2",
+        "--shard-size",
+        "2",
+        "--cell-size-mm",
+        "14",
+        "--probes",
+        "10",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let script = r#"
+import json, sys, numpy as np
+d = sys.argv[1]
+m = json.load(open(d + "/manifest.json"))
+g = np.load(d + "/grid.npz")
+s = np.load(d + "/shard_000000.npz")
+X, Y, Z = m["padded_shape"]
+a = int(s["accepted"].sum())
+assert s["u_v"].shape == (a, 3, X, Y, Z) and s["u_v"].dtype == np.float32, s["u_v"].shape
+assert s["u_s"].shape == (a, 3, X, Y, Z)
+assert g["nodes"].shape == (m["nodes"], 3) and g["hexes"].shape[1] == 8
+assert g["visible_mask"].shape == (X, Y, Z) and g["visible_mask"].sum() == m["visible_nodes"]
+assert np.all(s["u_s"][:, :, g["visible_mask"] == 0] == 0)
+print("ok", a)
+"#;
+    let out = Command::new("python3").args(["-c", script, dir.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).starts_with("ok"));
+}

@@ -18,11 +18,14 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
 }
 
 impl Default for Args {
     fn default() -> Self {
-        Self { out: "out/demo".into(), seed: 1 }
+        Self { out: "out/demo".into(), seed: 1, json: false }
     }
 }
 
@@ -30,7 +33,12 @@ pub fn run(a: Args) -> Result<()> {
     eprintln!("umesh demo on the bundled phantom -> {}", a.out.display());
     let sc = fe_scenario(a.seed)?;
     let s = sc.grid.stats();
-    println!(
+    let say = |line: String| {
+        if !a.json {
+            println!("{line}");
+        }
+    };
+    say(format!(
         "grid: {} cells ({} boundary), {} nodes, padded {:?}, volume {:.0} mm^3 vs segmentation {:.0} mm^3",
         s.cells,
         s.boundary_cells,
@@ -38,7 +46,7 @@ pub fn run(a: Args) -> Result<()> {
         s.padded_shape,
         s.grid_volume_mm3,
         sc.seg.organ_mask().volume_mm3()
-    );
+    ));
     npz::write_npz(&a.out.join("grid.npz"), &sc.grid.to_npz_arrays())?;
     let organ = extract_surface(&sc.seg.organ_mask(), &SurfaceSettings::default());
     write_mesh(&a.out.join("organ.obj"), &organ)?;
@@ -47,7 +55,7 @@ pub fn run(a: Args) -> Result<()> {
     let sol = solve_bc(&sc.grid, &bc, &sc.settings, &progress, &Cancel::new());
     pb.finish_and_clear();
     let sol = sol?;
-    println!(
+    say(format!(
         "SVK solve: {} forces, {} fixed nodes, {} increments, {} Newton iterations, {:.0} ms; displacement max {:.1} mm, mean {:.1} mm",
         sc.settings.forces.len(),
         bc.fixed_count(),
@@ -56,7 +64,7 @@ pub fn run(a: Args) -> Result<()> {
         sol.timings.total_ms,
         sol.max_displacement_mm(),
         sol.mean_displacement_mm()
-    );
+    ));
     let u = &sol.displacement_mm;
     let mut vtu = grid_vtu(&sc.grid);
     vtu.point_data.push(VtkData::Vectors("displacement_mm".into(), u.clone()));
@@ -68,6 +76,14 @@ pub fn run(a: Args) -> Result<()> {
         write_mesh(&a.out.join(format!("{name}.obj")), &m)?;
         write_mesh(&a.out.join(format!("{name}_deformed.obj")), &loads::deform_mesh(&sc.grid, &m, u))?;
     }
-    println!("wrote grid.npz, result.vtu (open in ParaView) and rest/deformed surfaces (OBJ) to {}", a.out.display());
+    say(format!("wrote grid.npz, result.vtu (open in ParaView) and rest/deformed surfaces (OBJ) to {}", a.out.display()));
+    if a.json {
+        super::print_json(&serde_json::json!({
+            "cells": s.cells, "nodes": s.nodes, "boundary_cells": s.boundary_cells, "padded_shape": s.padded_shape,
+            "grid_volume_mm3": s.grid_volume_mm3, "forces": sc.settings.forces.len(), "fixed_nodes": bc.fixed_count(),
+            "converged": true, "newton_iterations": sol.iterations, "solve_ms": sol.timings.total_ms,
+            "max_displacement_mm": sol.max_displacement_mm(), "mean_displacement_mm": sol.mean_displacement_mm(), "out": a.out,
+        }));
+    }
     Ok(())
 }

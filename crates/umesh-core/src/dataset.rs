@@ -52,7 +52,8 @@ impl DatasetConfig {
             shard_size: 50,
             grid: GridSettings::default(),
             material: MaterialParams::default(),
-            solver: SolverSettings::default(),
+            // A sample that needs many load cuts is rejected early rather than ground through.
+            solver: SolverSettings { max_iterations: 20, max_halvings: 3, ..SolverSettings::default() },
             forces: ForceSettings::default(),
             visibility: VisibilitySettings::default(),
             fixed,

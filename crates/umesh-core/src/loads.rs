@@ -20,7 +20,7 @@ pub struct ForceSettings {
 
 impl Default for ForceSettings {
     fn default() -> Self {
-        Self { probes: 100, target_displacement_mm: 2.5, direction_spread: 0.8 }
+        Self { probes: 100, target_displacement_mm: 3.0, direction_spread: 0.8 }
     }
 }
 

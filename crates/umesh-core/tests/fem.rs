@@ -4,7 +4,9 @@
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use umesh_core::fem::assembly::{Assembler, ElementModel};
 use umesh_core::fem::solver::FeSolver;
-use umesh_core::fem::{BoundaryConditions, FemError, FixedRegion, MaterialKind, MaterialParams, SolveMethod, SolverSettings, solve};
+use umesh_core::fem::{
+    BoundaryConditions, FemError, FixedRegion, HyperelasticMaterial, MaterialKind, MaterialParams, SolveMethod, SolverSettings, solve,
+};
 use umesh_core::grid::{self, GridSettings, ImmersedGrid};
 use umesh_core::{Cancel, Progress};
 

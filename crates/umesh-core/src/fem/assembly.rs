@@ -3,7 +3,7 @@
 //! conditions; each iteration only refills the values.
 
 use super::element::{ElementQuadrature, deformation_gradient, linear_cube_stiffness};
-use super::material::Material;
+use super::material::{HyperelasticMaterial, Material};
 use crate::grid::ImmersedGrid;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use nalgebra::{Matrix3, SMatrix, Vector3};

@@ -73,12 +73,16 @@ impl MaterialParams {
     }
 }
 
-/// A material with its Lame parameters (N/mm^2).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Material {
-    pub kind: MaterialKind,
-    pub lambda: f64,
-    pub mu: f64,
+/// A hyperelastic material: energy density psi(F), second Piola-Kirchhoff stress S, first
+/// Piola-Kirchhoff stress P = F S and the tangent dP/dF. Lame parameters are in N/mm^2.
+pub trait HyperelasticMaterial: Send + Sync {
+    fn energy_density(&self, f: &Matrix3<f64>) -> f64;
+    fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64>;
+    fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        f * self.pk2(f)
+    }
+    /// P and dP/dF together (they share intermediate results).
+    fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent);
 }
 
 #[inline]
@@ -86,136 +90,174 @@ fn idx(i: usize, j: usize) -> usize {
     3 * i + j
 }
 
-impl Material {
-    pub fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
-        let (l, m) = (self.lambda, self.mu);
-        match self.kind {
-            MaterialKind::StVenantKirchhoff => {
-                let e = green_strain(f);
-                0.5 * l * e.trace().powi(2) + m * e.component_mul(&e).sum()
-            }
-            MaterialKind::Linear => {
-                let eps = small_strain(f);
-                0.5 * l * eps.trace().powi(2) + m * eps.component_mul(&eps).sum()
-            }
-            MaterialKind::NeoHookean => {
-                let j = f.determinant();
-                if j <= 0.0 {
-                    return f64::INFINITY;
-                }
-                let lj = j.ln();
-                0.5 * m * ((f.transpose() * f).trace() - 3.0) - m * lj + 0.5 * l * lj * lj
-            }
-        }
-    }
+/// Saint Venant-Kirchhoff: S = lambda tr(E) I + 2 mu E.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StVenantKirchhoff {
+    pub lambda: f64,
+    pub mu: f64,
+}
 
-    /// Second Piola-Kirchhoff stress.
-    pub fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
-        let (l, m) = (self.lambda, self.mu);
-        match self.kind {
-            MaterialKind::StVenantKirchhoff => {
-                let e = green_strain(f);
-                Matrix3::identity() * (l * e.trace()) + e * (2.0 * m)
-            }
-            MaterialKind::Linear => {
-                // Linear elasticity has no finite-strain S; F^-1 P keeps P = F S consistent.
-                let p = self.pk1(f);
-                f.try_inverse().map(|fi| fi * p).unwrap_or(p)
-            }
-            MaterialKind::NeoHookean => {
-                let c_inv = (f.transpose() * f).try_inverse().unwrap_or_else(Matrix3::identity);
-                let lj = f.determinant().max(1e-300).ln();
-                (Matrix3::identity() - c_inv) * m + c_inv * (l * lj)
-            }
-        }
+impl HyperelasticMaterial for StVenantKirchhoff {
+    fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
+        let e = green_strain(f);
+        0.5 * self.lambda * e.trace().powi(2) + self.mu * e.component_mul(&e).sum()
     }
-
-    /// First Piola-Kirchhoff stress.
-    pub fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
-        let (l, m) = (self.lambda, self.mu);
-        match self.kind {
-            MaterialKind::Linear => {
-                let eps = small_strain(f);
-                Matrix3::identity() * (l * eps.trace()) + eps * (2.0 * m)
-            }
-            MaterialKind::NeoHookean => {
-                let fit = f.try_inverse().unwrap_or_else(Matrix3::identity).transpose();
-                let lj = f.determinant().max(1e-300).ln();
-                (f - fit) * m + fit * (l * lj)
-            }
-            MaterialKind::StVenantKirchhoff => f * self.pk2(f),
-        }
+    fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let e = green_strain(f);
+        Matrix3::identity() * (self.lambda * e.trace()) + e * (2.0 * self.mu)
     }
-
-    /// P and dP/dF together.
-    pub fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+    fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+        // A_iJkL = d_ik S_LJ + lambda F_iJ F_kL + mu (F_iL F_kJ + (F F^T)_ik d_JL)
         let (l, m) = (self.lambda, self.mu);
+        let s = self.pk2(f);
+        let ff = f * f.transpose();
         let mut a = Tangent::zeros();
-        match self.kind {
-            MaterialKind::StVenantKirchhoff => {
-                // A_iJkL = d_ik S_LJ + lambda F_iJ F_kL + mu (F_iL F_kJ + (F F^T)_ik d_JL)
-                let s = self.pk2(f);
-                let ff = f * f.transpose();
-                for i in 0..3 {
-                    for jj in 0..3 {
-                        for k in 0..3 {
-                            for ll in 0..3 {
-                                let mut v = l * f[(i, jj)] * f[(k, ll)] + m * f[(i, ll)] * f[(k, jj)];
-                                if i == k {
-                                    v += s[(ll, jj)];
-                                }
-                                if jj == ll {
-                                    v += m * ff[(i, k)];
-                                }
-                                a[(idx(i, jj), idx(k, ll))] = v;
-                            }
+        for i in 0..3 {
+            for jj in 0..3 {
+                for k in 0..3 {
+                    for ll in 0..3 {
+                        let mut v = l * f[(i, jj)] * f[(k, ll)] + m * f[(i, ll)] * f[(k, jj)];
+                        if i == k {
+                            v += s[(ll, jj)];
                         }
+                        if jj == ll {
+                            v += m * ff[(i, k)];
+                        }
+                        a[(idx(i, jj), idx(k, ll))] = v;
                     }
                 }
-                (f * s, a)
-            }
-            MaterialKind::Linear => {
-                for i in 0..3 {
-                    for jj in 0..3 {
-                        for k in 0..3 {
-                            for ll in 0..3 {
-                                let mut v = 0.0;
-                                if i == jj && k == ll {
-                                    v += l;
-                                }
-                                if i == k && jj == ll {
-                                    v += m;
-                                }
-                                if i == ll && jj == k {
-                                    v += m;
-                                }
-                                a[(idx(i, jj), idx(k, ll))] = v;
-                            }
-                        }
-                    }
-                }
-                (self.pk1(f), a)
-            }
-            MaterialKind::NeoHookean => {
-                // A_iJkL = mu d_ik d_JL + (mu - lambda ln J) Fi_Li Fi_Jk + lambda Fi_Ji Fi_Lk
-                let fi = f.try_inverse().unwrap_or_else(Matrix3::identity);
-                let lj = f.determinant().max(1e-300).ln();
-                for i in 0..3 {
-                    for jj in 0..3 {
-                        for k in 0..3 {
-                            for ll in 0..3 {
-                                let mut v = (m - l * lj) * fi[(ll, i)] * fi[(jj, k)] + l * fi[(jj, i)] * fi[(ll, k)];
-                                if i == k && jj == ll {
-                                    v += m;
-                                }
-                                a[(idx(i, jj), idx(k, ll))] = v;
-                            }
-                        }
-                    }
-                }
-                (self.pk1(f), a)
             }
         }
+        (f * s, a)
+    }
+}
+
+/// Small-strain linear elasticity: P = sigma(eps), eps = sym(F - I).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LinearElastic {
+    pub lambda: f64,
+    pub mu: f64,
+}
+
+impl HyperelasticMaterial for LinearElastic {
+    fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
+        let eps = small_strain(f);
+        0.5 * self.lambda * eps.trace().powi(2) + self.mu * eps.component_mul(&eps).sum()
+    }
+    fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        // No finite-strain S exists; F^-1 P keeps P = F S consistent.
+        let p = self.pk1(f);
+        f.try_inverse().map(|fi| fi * p).unwrap_or(p)
+    }
+    fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let eps = small_strain(f);
+        Matrix3::identity() * (self.lambda * eps.trace()) + eps * (2.0 * self.mu)
+    }
+    fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+        let mut a = Tangent::zeros();
+        for i in 0..3 {
+            for jj in 0..3 {
+                for k in 0..3 {
+                    for ll in 0..3 {
+                        let mut v = 0.0;
+                        if i == jj && k == ll {
+                            v += self.lambda;
+                        }
+                        if i == k && jj == ll {
+                            v += self.mu;
+                        }
+                        if i == ll && jj == k {
+                            v += self.mu;
+                        }
+                        a[(idx(i, jj), idx(k, ll))] = v;
+                    }
+                }
+            }
+        }
+        (self.pk1(f), a)
+    }
+}
+
+/// Compressible Neo-Hookean: psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NeoHookean {
+    pub lambda: f64,
+    pub mu: f64,
+}
+
+impl HyperelasticMaterial for NeoHookean {
+    fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
+        let j = f.determinant();
+        if j <= 0.0 {
+            return f64::INFINITY;
+        }
+        let lj = j.ln();
+        0.5 * self.mu * ((f.transpose() * f).trace() - 3.0) - self.mu * lj + 0.5 * self.lambda * lj * lj
+    }
+    fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let c_inv = (f.transpose() * f).try_inverse().unwrap_or_else(Matrix3::identity);
+        let lj = f.determinant().max(1e-300).ln();
+        (Matrix3::identity() - c_inv) * self.mu + c_inv * (self.lambda * lj)
+    }
+    fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        let fit = f.try_inverse().unwrap_or_else(Matrix3::identity).transpose();
+        let lj = f.determinant().max(1e-300).ln();
+        (f - fit) * self.mu + fit * (self.lambda * lj)
+    }
+    fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+        // A_iJkL = mu d_ik d_JL + (mu - lambda ln J) Fi_Li Fi_Jk + lambda Fi_Ji Fi_Lk
+        let (l, m) = (self.lambda, self.mu);
+        let fi = f.try_inverse().unwrap_or_else(Matrix3::identity);
+        let lj = f.determinant().max(1e-300).ln();
+        let mut a = Tangent::zeros();
+        for i in 0..3 {
+            for jj in 0..3 {
+                for k in 0..3 {
+                    for ll in 0..3 {
+                        let mut v = (m - l * lj) * fi[(ll, i)] * fi[(jj, k)] + l * fi[(jj, i)] * fi[(ll, k)];
+                        if i == k && jj == ll {
+                            v += m;
+                        }
+                        a[(idx(i, jj), idx(k, ll))] = v;
+                    }
+                }
+            }
+        }
+        (self.pk1(f), a)
+    }
+}
+
+/// A material chosen at run time (a copyable value that dispatches to the trait's impls).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Material {
+    pub kind: MaterialKind,
+    pub lambda: f64,
+    pub mu: f64,
+}
+
+impl Material {
+    fn with<R>(&self, f: impl FnOnce(&dyn HyperelasticMaterial) -> R) -> R {
+        let (lambda, mu) = (self.lambda, self.mu);
+        match self.kind {
+            MaterialKind::StVenantKirchhoff => f(&StVenantKirchhoff { lambda, mu }),
+            MaterialKind::Linear => f(&LinearElastic { lambda, mu }),
+            MaterialKind::NeoHookean => f(&NeoHookean { lambda, mu }),
+        }
+    }
+}
+
+impl HyperelasticMaterial for Material {
+    fn energy_density(&self, f: &Matrix3<f64>) -> f64 {
+        self.with(|m| m.energy_density(f))
+    }
+    fn pk2(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        self.with(|m| m.pk2(f))
+    }
+    fn pk1(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
+        self.with(|m| m.pk1(f))
+    }
+    fn pk1_and_tangent(&self, f: &Matrix3<f64>) -> (Matrix3<f64>, Tangent) {
+        self.with(|m| m.pk1_and_tangent(f))
     }
 }
 

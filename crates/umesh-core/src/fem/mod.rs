@@ -13,5 +13,5 @@ pub mod problem_io;
 pub mod solver;
 
 pub use bc::{BoundaryConditions, FixedRegion};
-pub use material::{Material, MaterialKind, MaterialParams};
+pub use material::{HyperelasticMaterial, Material, MaterialKind, MaterialParams};
 pub use solver::{FemError, IterationRecord, Solution, SolveMethod, SolverSettings, solve};

@@ -54,6 +54,8 @@ pub struct Assembled {
     pub f_int: Vec<Vector3<f64>>,
     /// Smallest det F over the quadrature points (<= 0 means an inverted element).
     pub min_det_f: f64,
+    /// Stored elastic energy (N mm), for the line search.
+    pub energy: f64,
 }
 
 pub struct Assembler<'g> {
@@ -210,7 +212,7 @@ impl<'g> Assembler<'g> {
         let k_stab = &self.k_stab;
         let stab = &self.stab_scale;
         let k_lin = &self.k_lin;
-        let min_det = self
+        let per_cell = self
             .ke
             .par_iter_mut()
             .zip(self.fe.par_iter_mut())
@@ -220,9 +222,11 @@ impl<'g> Assembler<'g> {
                 let ue: [Vector3<f64>; 8] = cell.nodes.map(|n| u[n as usize]);
                 let ue_flat = SMatrix::<f64, 24, 1>::from_fn(|r, _| ue[r / 3][r % 3]);
                 let mut min_det = f64::INFINITY;
+                let mut energy = 0.0;
                 match model {
                     ElementModel::Hyperelastic(mat) => {
                         *fe = k_stab * ue_flat * stab[c];
+                        energy += 0.5 * ue_flat.dot(fe);
                         if tangent {
                             *ke = k_stab * stab[c];
                         }
@@ -231,6 +235,7 @@ impl<'g> Assembler<'g> {
                             let w = quad.qp_weight_mm3[q];
                             let f = deformation_gradient(&ue, g);
                             min_det = min_det.min(f.determinant());
+                            energy += w * mat.energy_density(&f);
                             if tangent {
                                 let (p, a) = mat.pk1_and_tangent(&f);
                                 add_force(fe, &p, g, w);
@@ -257,6 +262,7 @@ impl<'g> Assembler<'g> {
                         }
                         let kc = k_lin[c] + k_stab * stab[c];
                         let fl = kc * ul;
+                        energy += 0.5 * ul.dot(&fl);
                         for a in 0..8 {
                             let v = r * fl.fixed_rows::<3>(3 * a);
                             fe.fixed_rows_mut::<3>(3 * a).copy_from(&v);
@@ -272,9 +278,12 @@ impl<'g> Assembler<'g> {
                         }
                     }
                 }
-                min_det
+                (min_det, energy)
             })
-            .reduce(|| f64::INFINITY, f64::min);
+            .collect::<Vec<(f64, f64)>>();
+        // Summed in cell order, so the energy does not depend on thread scheduling.
+        let min_det = per_cell.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
+        let energy: f64 = per_cell.iter().map(|x| x.1).sum();
 
         let mut f_int = vec![Vector3::zeros(); grid.node_count()];
         for (c, cell) in grid.cells.iter().enumerate() {
@@ -295,7 +304,7 @@ impl<'g> Assembler<'g> {
                 }
             }
         }
-        Assembled { f_int, min_det_f: min_det }
+        Assembled { f_int, min_det_f: min_det, energy }
     }
 }
 

@@ -47,7 +47,8 @@ pub fn run(a: Args) -> Result<()> {
         "grid" => bench_grid(repeat)?,
         "fe" => bench_fe(repeat)?,
         "dataset" => bench_dataset(a.samples)?,
-        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset)"),
+        "net" => bench_net(repeat.max(20))?,
+        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net)"),
     };
     if a.json {
         super::print_json(&value);
@@ -192,4 +193,54 @@ fn bench_dataset(samples: usize) -> Result<serde_json::Value> {
         "newton_iterations_median": stats.newton_iterations.map(|d| d.median),
         "threads": rayon::current_num_threads(), "peak_memory_mb": peak_memory_mb(),
     }))
+}
+
+/// Single-sample inference latency of the CPU and paper settings on the phantom's padded grid,
+/// and training throughput of the CPU setting (random weights and inputs: timing only).
+fn bench_net(repeat: usize) -> Result<serde_json::Value> {
+    use umesh_net::burn::prelude::*;
+    let seg = bundled_phantom(PHANTOM_BYTES)?;
+    let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new())?.grid;
+    let [x, y, z] = grid.padded_shape();
+    let device = Device::flex();
+    device.seed(0);
+    let mut out = serde_json::Map::new();
+    out.insert("padded_shape".into(), serde_json::json!([x, y, z]));
+    for (name, cfg, reps) in [("cpu", umesh_net::UNetConfig::cpu(), repeat), ("paper", umesh_net::UNetConfig::paper(), 3)] {
+        let model = cfg.init(&device);
+        let mut times = Vec::new();
+        for i in 0..reps + 1 {
+            let input = Tensor::<5>::random([1, 3, x, y, z], umesh_net::burn::tensor::Distribution::Default, &device);
+            let t = Instant::now();
+            let v = model.forward(input).into_data();
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            std::hint::black_box(v);
+            if i > 0 {
+                times.push(ms); // the first call warms caches and allocators
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        out.insert(format!("inference_ms_median_{name}"), serde_json::json!(times[times.len() / 2]));
+        out.insert(format!("inference_ms_p95_{name}"), serde_json::json!(times[((times.len() - 1) as f64 * 0.95).round() as usize]));
+    }
+    out.insert("inference_ms_median".into(), out["inference_ms_median_cpu"].clone());
+    out.insert("inference_ms_p95".into(), out["inference_ms_p95_cpu"].clone());
+    // Training throughput: forward + backward + Adam step on batches of 4.
+    use umesh_net::burn::optim::{AdamConfig, GradientsParams};
+    let ad = device.clone().autodiff();
+    let mut model = umesh_net::UNetConfig::cpu().init(&ad);
+    let mut optim = AdamConfig::new().init();
+    let steps = 5;
+    let t = Instant::now();
+    for _ in 0..steps {
+        let xin = Tensor::<5>::random([4, 3, x, y, z], umesh_net::burn::tensor::Distribution::Default, &ad);
+        let yout = Tensor::<5>::random([4, 3, x, y, z], umesh_net::burn::tensor::Distribution::Default, &ad);
+        let loss = (model.forward(xin) - yout).square().mean();
+        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        model = optim.step(1e-3, model, grads);
+    }
+    out.insert("train_samples_per_s".into(), serde_json::json!((steps * 4) as f64 / t.elapsed().as_secs_f64()));
+    out.insert("threads".into(), serde_json::json!(rayon::current_num_threads()));
+    out.insert("peak_memory_mb".into(), serde_json::json!(peak_memory_mb()));
+    Ok(serde_json::Value::Object(out))
 }

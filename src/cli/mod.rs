@@ -8,6 +8,7 @@ mod input;
 mod phantom;
 mod simulate;
 mod surface;
+mod train;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -37,6 +38,10 @@ enum Command {
     Simulate(Box<simulate::Args>),
     /// Training data: generate, merge, stats.
     Dataset(dataset::Args),
+    /// Train the U-Net on a dataset (Adam, MSE; checkpoints, resume, metrics).
+    Train(Box<train::Args>),
+    /// Target registration error of a model on a dataset's validation split.
+    Eval(train::EvalArgs),
     /// Benchmarks: grid construction, FE solves, dataset generation.
     Bench(bench::Args),
 }
@@ -50,6 +55,8 @@ pub fn main() -> ExitCode {
         Command::Surface(a) => surface::run(a),
         Command::Simulate(a) => simulate::run(*a),
         Command::Dataset(a) => dataset::run(a),
+        Command::Train(a) => train::run(*a),
+        Command::Eval(a) => train::eval(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

@@ -1,0 +1,61 @@
+//! Inference: surface displacement grid in, volume displacement grid out, batch of one.
+
+use crate::model::{UNet, UNetConfig};
+use crate::training::load_weights;
+use crate::{ModelInfo, NetError};
+use burn::prelude::*;
+use std::path::Path;
+
+pub struct Predictor {
+    pub info: ModelInfo,
+    model: UNet,
+    device: Device,
+    input: Vec<f32>,
+    output: Vec<f32>,
+}
+
+impl std::fmt::Debug for Predictor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Predictor").field("config", &self.info.config).finish()
+    }
+}
+
+impl Predictor {
+    /// Load `model.json` and `model.safetensors` from a model folder.
+    pub fn load(dir: &Path) -> Result<Self, NetError> {
+        let info = ModelInfo::read(dir)?;
+        let device = Device::flex();
+        let mut model = info.config.init(&device);
+        load_weights(&mut model, &dir.join("model.safetensors"))?;
+        Ok(Self::from_model(info, model, device))
+    }
+
+    pub fn from_model(info: ModelInfo, model: UNet, device: Device) -> Self {
+        Self { info, model, device, input: Vec::new(), output: Vec::new() }
+    }
+
+    pub fn config(&self) -> &UNetConfig {
+        &self.info.config
+    }
+
+    /// u_s [3, X, Y, Z] (mm) -> u_v [3, X, Y, Z] (mm). The returned slice is reused by the
+    /// next call (no per-frame allocation on our side).
+    pub fn predict(&mut self, u_s: &[f32], shape: [usize; 3]) -> Result<&[f32], NetError> {
+        self.info.config.check_shape([1, 3, shape[0], shape[1], shape[2]]).map_err(NetError::Invalid)?;
+        let n = 3 * shape[0] * shape[1] * shape[2];
+        if u_s.len() != n {
+            return Err(NetError::Invalid(format!("the input holds {} values, the grid {shape:?} x 3 needs {n}", u_s.len())));
+        }
+        let s = self.info.normalization.input_scale_mm;
+        self.input.clear();
+        self.input.extend(u_s.iter().map(|v| v / s));
+        let x =
+            Tensor::<5>::from_data(TensorData::new(std::mem::take(&mut self.input), [1, 3, shape[0], shape[1], shape[2]]), &self.device);
+        let y = self.model.forward(x);
+        let data = y.into_data().try_to_vec::<f32>().map_err(|e| NetError::Invalid(format!("{e:?}")))?;
+        let o = self.info.normalization.output_scale_mm;
+        self.output.clear();
+        self.output.extend(data.iter().map(|v| v * o));
+        Ok(&self.output)
+    }
+}

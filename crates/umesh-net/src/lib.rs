@@ -1,0 +1,53 @@
+//! umesh-net: the U-Mesh 3-D U-Net on burn (CPU `flex` backend by default): model, data,
+//! training, evaluation by target registration error, and inference.
+
+pub mod data;
+pub mod eval;
+pub mod inference;
+pub mod model;
+pub mod training;
+pub mod tre;
+
+pub use burn;
+pub use model::{UNet, UNetConfig};
+
+use std::path::Path;
+
+#[derive(Debug, thiserror::Error)]
+pub enum NetError {
+    #[error(transparent)]
+    Dataset(#[from] umesh_core::dataset::DatasetError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Io(String),
+    #[error("weights: {0}")]
+    Store(String),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// What a model folder holds besides its weights (`model.json`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ModelInfo {
+    pub config: UNetConfig,
+    pub normalization: data::Normalization,
+    pub padded_shape: [usize; 3],
+    pub dataset: String,
+    pub train_indices: Vec<usize>,
+    pub val_indices: Vec<usize>,
+    pub settings: training::TrainSettings,
+}
+
+impl ModelInfo {
+    pub fn read(dir: &Path) -> Result<Self, NetError> {
+        let p = dir.join("model.json");
+        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+        serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))
+    }
+    pub fn write(&self, dir: &Path) -> Result<(), NetError> {
+        let p = dir.join("model.json");
+        let text = serde_json::to_string_pretty(self).map_err(|e| NetError::Invalid(e.to_string()))?;
+        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))
+    }
+}

@@ -1,0 +1,119 @@
+//! The U-Net of the paper: k encoder steps (two padded 3x3x3 convolutions with ReLU, then a
+//! 2x2x2 max pooling, channels doubling), two 3x3x3 convolutions at the bottom, k decoder steps
+//! (2x2x2 transposed convolution, concatenation with the encoder features of the same level,
+//! two 3x3x3 convolutions), and a final 1x1x1 convolution to 3 channels.
+
+use burn::nn::PaddingConfig3d;
+use burn::nn::conv::{Conv3d, Conv3dConfig, ConvTranspose3d, ConvTranspose3dConfig};
+use burn::prelude::*;
+use burn::tensor::activation::relu;
+
+/// Architecture, saved beside the weights as JSON.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct UNetConfig {
+    /// Encoder (and decoder) steps k; the input's spatial sizes must be multiples of 2^k.
+    pub steps: usize,
+    /// Channels of the first layer; doubled at each step.
+    pub channels: usize,
+    /// Input channels: 3 displacement components (+1 with the visibility mask).
+    pub in_channels: usize,
+    pub out_channels: usize,
+}
+
+impl UNetConfig {
+    /// The paper's setting: 3 steps, 128 channels in the first layer.
+    pub fn paper() -> Self {
+        Self { steps: 3, channels: 128, in_channels: 3, out_channels: 3 }
+    }
+    /// Small enough for real-time inference on 2 CPU cores.
+    pub fn cpu() -> Self {
+        Self { steps: 3, channels: 8, in_channels: 3, out_channels: 3 }
+    }
+
+    pub fn init(&self, device: &Device) -> UNet {
+        let conv = |i: usize, o: usize| Conv3dConfig::new([i, o], [3, 3, 3]).with_padding(PaddingConfig3d::Explicit(1, 1, 1)).init(device);
+        let double = |i: usize, o: usize| DoubleConv { a: conv(i, o), b: conv(o, o) };
+        let c = self.channels;
+        let mut down = Vec::new();
+        let mut ch = self.in_channels;
+        for s in 0..self.steps {
+            down.push(double(ch, c << s));
+            ch = c << s;
+        }
+        let bottom = double(ch, c << self.steps);
+        let mut up = Vec::new();
+        let mut dec = Vec::new();
+        for s in (0..self.steps).rev() {
+            let (hi, lo) = (c << (s + 1), c << s);
+            up.push(ConvTranspose3dConfig::new([hi, lo], [2, 2, 2]).with_stride([2, 2, 2]).init(device));
+            dec.push(double(2 * lo, lo));
+        }
+        let head = Conv3dConfig::new([c, self.out_channels], [1, 1, 1]).init(device);
+        UNet { down, bottom, up, dec, head, steps: self.steps }
+    }
+
+    /// Check an input shape [B, C, X, Y, Z]; the error says what is wrong.
+    pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), String> {
+        let m = 1usize << self.steps;
+        if shape[1] != self.in_channels {
+            return Err(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels));
+        }
+        if let Some(a) = (2..5).find(|&a| shape[a] == 0 || !shape[a].is_multiple_of(m)) {
+            return Err(format!(
+                "the grid {:?} is not divisible by 2^{} = {m} along axis {} (pad the grid to a multiple of {m})",
+                &shape[2..],
+                self.steps,
+                a - 2
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct DoubleConv {
+    a: Conv3d,
+    b: Conv3d,
+}
+
+impl DoubleConv {
+    fn forward(&self, x: Tensor<5>) -> Tensor<5> {
+        relu(self.b.forward(relu(self.a.forward(x))))
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct UNet {
+    down: Vec<DoubleConv>,
+    bottom: DoubleConv,
+    up: Vec<ConvTranspose3d>,
+    dec: Vec<DoubleConv>,
+    head: Conv3d,
+    steps: usize,
+}
+
+/// 2x2x2 max pooling as a reshape plus a max over the pooled axes (burn 0.22 has no 3-D pool).
+pub fn max_pool_2x2x2(x: Tensor<5>) -> Tensor<5> {
+    let [b, c, d, h, w] = x.dims();
+    x.reshape([b * c, d / 2, 2, h / 2, 2, w / 2, 2]).max_dims(&[2, 4, 6]).reshape([b, c, d / 2, h / 2, w / 2])
+}
+
+impl UNet {
+    /// [B, C_in, X, Y, Z] -> [B, C_out, X, Y, Z]; X, Y, Z multiples of 2^steps.
+    pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
+        let mut skips = Vec::with_capacity(self.steps);
+        let mut x = x;
+        for d in &self.down {
+            let f = d.forward(x);
+            x = max_pool_2x2x2(f.clone());
+            skips.push(f);
+        }
+        x = self.bottom.forward(x);
+        for (u, d) in self.up.iter().zip(&self.dec) {
+            let up = u.forward(x);
+            let skip = skips.pop().unwrap_or_else(|| up.clone());
+            x = d.forward(Tensor::cat(vec![up, skip], 1));
+        }
+        self.head.forward(x)
+    }
+}

@@ -1,0 +1,198 @@
+//! Training with Adam on the mean squared error of Eq. 1, per-epoch validation loss and TRE,
+//! safetensors checkpoints, resume, metrics as JSON lines.
+
+use crate::data::{Normalization, SampleSet};
+use crate::model::{UNet, UNetConfig};
+use crate::{ModelInfo, NetError, tre};
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::prelude::*;
+use burn::store::{ModuleSnapshot, SafetensorsStore};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use umesh_core::phantom::SplitMix64;
+use umesh_core::{Cancel, Progress};
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrainSettings {
+    pub model: UNetConfig,
+    pub epochs: usize,
+    pub batch_size: usize,
+    pub learning_rate: f64,
+    pub seed: u64,
+    /// Virtual markers per sample for the validation TRE.
+    pub markers: usize,
+}
+
+impl Default for TrainSettings {
+    fn default() -> Self {
+        Self { model: UNetConfig::cpu(), epochs: 30, batch_size: 4, learning_rate: 1e-3, seed: 0, markers: 10 }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EpochMetrics {
+    pub epoch: usize,
+    pub train_loss: f64,
+    pub val_loss: f64,
+    pub val_tre_mean_mm: f64,
+    pub val_tre_max_mm: f64,
+    pub seconds: f64,
+    pub train_samples_per_s: f64,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct TrainReport {
+    pub out: PathBuf,
+    pub epochs: Vec<EpochMetrics>,
+    pub train_samples: usize,
+    pub val_samples: usize,
+    pub best_epoch: usize,
+}
+
+pub(crate) fn batch(set: &[Vec<f32>], ids: &[usize], shape: [usize; 3], scale: f32, device: &Device) -> Tensor<5> {
+    let n = 3 * shape[0] * shape[1] * shape[2];
+    let mut data = Vec::with_capacity(ids.len() * n);
+    for &k in ids {
+        data.extend(set[k].iter().map(|v| v / scale));
+    }
+    Tensor::from_data(TensorData::new(data, [ids.len(), 3, shape[0], shape[1], shape[2]]), device)
+}
+
+pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
+    let mut store = SafetensorsStore::from_file(path).overwrite(true);
+    model.save_into(&mut store).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
+}
+
+pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
+    let mut store = SafetensorsStore::from_file(path);
+    model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
+}
+
+/// Validation loss and per-sample mean TRE over `ids`.
+pub(crate) fn validate(
+    model: &UNet,
+    set: &SampleSet,
+    ids: &[usize],
+    norm: &Normalization,
+    markers: &[nalgebra::Vector3<f64>],
+    device: &Device,
+) -> (f64, Vec<f64>, Vec<f64>) {
+    let mut loss = 0.0;
+    let mut tres = Vec::new();
+    let mut moved = Vec::new();
+    for &k in ids {
+        let x = batch(&set.u_s, &[k], set.shape, norm.input_scale_mm, device);
+        let y = batch(&set.u_v, &[k], set.shape, norm.output_scale_mm, device);
+        let p = model.forward(x);
+        loss += (p.clone() - y).square().mean().into_scalar::<f32>() as f64;
+        let pred: Vec<f32> = p.into_data().try_to_vec::<f32>().unwrap_or_default().iter().map(|v| v * norm.output_scale_mm).collect();
+        let (err, disp) = tre::marker_errors(&set.grid, markers, &pred, &set.u_v[k]);
+        tres.extend(err);
+        moved.extend(disp);
+    }
+    (loss / ids.len().max(1) as f64, tres, moved)
+}
+
+/// Train on the dataset in `dataset`, writing the model folder `out`.
+pub fn run_train(
+    dataset: &Path,
+    out: &Path,
+    settings: &TrainSettings,
+    resume: bool,
+    progress: &Progress,
+    on_epoch: &(dyn Fn(&EpochMetrics) + Sync),
+    cancel: &Cancel,
+) -> Result<TrainReport, NetError> {
+    let set = SampleSet::load(dataset)?;
+    let (train, val) = set.split();
+    if train.is_empty() || val.is_empty() {
+        return Err(NetError::Invalid(format!("{}: {} samples are too few for an 80/20 split", dataset.display(), set.len())));
+    }
+    let cfg = &settings.model;
+    cfg.check_shape([1, 3, set.shape[0], set.shape[1], set.shape[2]])
+        .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
+    std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    let device = Device::flex();
+    device.seed(settings.seed);
+    let ad = device.clone().autodiff();
+    let norm = Normalization::fit(&set, &train);
+    let mut model = cfg.init(&ad);
+    let metrics_path = out.join("metrics.jsonl");
+    let mut epochs: Vec<EpochMetrics> = Vec::new();
+    if resume && out.join("last.safetensors").exists() {
+        load_weights(&mut model, &out.join("last.safetensors"))?;
+        if let Ok(text) = std::fs::read_to_string(&metrics_path) {
+            epochs = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+        }
+    }
+    let markers = tre::markers(&set.grid, settings.markers, settings.seed ^ 0x5EED);
+    let info = ModelInfo {
+        config: cfg.clone(),
+        normalization: norm,
+        padded_shape: set.shape,
+        dataset: dataset.display().to_string(),
+        train_indices: train.iter().map(|&k| set.indices[k]).collect(),
+        val_indices: val.iter().map(|&k| set.indices[k]).collect(),
+        settings: settings.clone(),
+    };
+    info.write(out)?;
+    let mut optim = AdamConfig::new().init();
+    let mut best = epochs.iter().map(|e| e.val_loss).fold(f64::INFINITY, f64::min);
+    let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
+    let total_batches = settings.epochs * train.len().div_ceil(settings.batch_size.max(1));
+    let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
+    for epoch in epochs.len() + 1..=settings.epochs {
+        let t = Instant::now();
+        let mut order = train.clone();
+        let mut rng = SplitMix64(settings.seed.wrapping_add(epoch as u64));
+        for i in (1..order.len()).rev() {
+            order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+        }
+        let mut train_loss = 0.0;
+        let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();
+        for ids in &batches {
+            if cancel.is_cancelled() {
+                return Err(NetError::Cancelled);
+            }
+            let x = batch(&set.u_s, ids, set.shape, norm.input_scale_mm, &ad);
+            let y = batch(&set.u_v, ids, set.shape, norm.output_scale_mm, &ad);
+            let loss = (model.forward(x) - y).square().mean();
+            train_loss += loss.clone().into_scalar::<f32>() as f64;
+            let grads = GradientsParams::from_grads(loss.backward(), &model);
+            model = optim.step(settings.learning_rate, model, grads);
+            done_batches += 1;
+            progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}", settings.epochs));
+        }
+        let train_secs = t.elapsed().as_secs_f64();
+        let valid = model.valid();
+        let (val_loss, tres, _) = validate(&valid, &set, &val, &norm, &markers, &device);
+        let (tre_mean, _, tre_max) = tre::summary(&tres);
+        let m = EpochMetrics {
+            epoch,
+            train_loss: train_loss / batches.len().max(1) as f64,
+            val_loss,
+            val_tre_mean_mm: tre_mean,
+            val_tre_max_mm: tre_max,
+            seconds: t.elapsed().as_secs_f64(),
+            train_samples_per_s: train.len() as f64 / train_secs.max(1e-9),
+        };
+        save_weights(&valid, &out.join("last.safetensors"))?;
+        if val_loss < best {
+            best = val_loss;
+            best_epoch = epoch;
+            save_weights(&valid, &out.join("model.safetensors"))?;
+        }
+        let mut line = serde_json::to_string(&m).unwrap_or_default();
+        line.push('\n');
+        use std::io::Write;
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&metrics_path)
+            .and_then(|mut f| f.write_all(line.as_bytes()))
+            .map_err(|e| NetError::Io(format!("{}: {e}", metrics_path.display())))?;
+        on_epoch(&m);
+        epochs.push(m);
+    }
+    Ok(TrainReport { out: out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
+}

@@ -1,0 +1,120 @@
+//! `umesh train` and `umesh eval`.
+
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+use umesh_net::UNetConfig;
+use umesh_net::training::{TrainSettings, run_train};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Dataset folder written by `umesh dataset generate`.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Model folder (model.json, model.safetensors, last.safetensors, metrics.jsonl).
+    #[arg(long, default_value = "out/model")]
+    pub out: PathBuf,
+    /// Network size: "cpu" (3 steps, 8 channels) or "paper" (3 steps, 128 channels).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Override the first layer's channels.
+    #[arg(long)]
+    pub channels: Option<usize>,
+    #[arg(long)]
+    pub steps: Option<usize>,
+    #[arg(long, default_value_t = TrainSettings::default().epochs)]
+    pub epochs: usize,
+    #[arg(long, default_value_t = TrainSettings::default().batch_size)]
+    pub batch_size: usize,
+    #[arg(long, default_value_t = TrainSettings::default().learning_rate)]
+    pub learning_rate: f64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Continue from `last.safetensors` and `metrics.jsonl` in --out.
+    #[arg(long)]
+    pub resume: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Model folder.
+    #[arg(long, default_value = "out/model")]
+    pub model: PathBuf,
+    #[arg(long)]
+    pub dataset: PathBuf,
+    #[arg(long, default_value_t = 10)]
+    pub markers: usize,
+    /// Also write the report as JSON to this file.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let mut model = match a.preset.as_str() {
+        "cpu" => UNetConfig::cpu(),
+        "paper" => UNetConfig::paper(),
+        p => anyhow::bail!("unknown preset {p:?} (cpu, paper)"),
+    };
+    if let Some(c) = a.channels {
+        model.channels = c;
+    }
+    if let Some(s) = a.steps {
+        model.steps = s;
+    }
+    let settings = TrainSettings {
+        model,
+        epochs: a.epochs,
+        batch_size: a.batch_size.max(1),
+        learning_rate: a.learning_rate,
+        seed: a.seed,
+        ..Default::default()
+    };
+    let (pb, progress) = super::progress_bar("training");
+    let quiet = a.json;
+    let pb2 = pb.clone();
+    let on_epoch = move |m: &umesh_net::training::EpochMetrics| {
+        if !quiet {
+            pb2.println(format!(
+                "epoch {:3}: train loss {:.4e}, val loss {:.4e}, val TRE mean {:.2} mm (max {:.2}), {:.1} s",
+                m.epoch, m.train_loss, m.val_loss, m.val_tre_mean_mm, m.val_tre_max_mm, m.seconds
+            ));
+        }
+    };
+    let report = run_train(&a.dataset, &a.out, &settings, a.resume, &progress, &on_epoch, &super::cancel());
+    pb.finish_and_clear();
+    let report = report.with_context(|| format!("training on {}", a.dataset.display()))?;
+    if a.json {
+        super::print_json(&serde_json::to_value(&report)?);
+    } else {
+        println!(
+            "model in {} (best epoch {}; {} train / {} validation samples)",
+            report.out.display(),
+            report.best_epoch,
+            report.train_samples,
+            report.val_samples
+        );
+    }
+    Ok(())
+}
+
+pub fn eval(a: EvalArgs) -> Result<()> {
+    let r = umesh_net::eval::run_eval(&a.model, &a.dataset, a.markers).with_context(|| format!("evaluating {}", a.model.display()))?;
+    let v = serde_json::json!({
+        "samples": r.samples, "markers_per_sample": r.markers_per_sample, "tre_mean_mm": r.tre_mean_mm, "tre_std_mm": r.tre_std_mm,
+        "tre_max_mm": r.tre_max_mm, "marker_displacement_mean_mm": r.marker_displacement_mean_mm,
+    });
+    if let Some(p) = &a.report {
+        umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes())?;
+    }
+    if a.json {
+        super::print_json(&v);
+    } else {
+        println!("validation samples        {}", r.samples);
+        println!("TRE (mm)                  {:.2} +/- {:.2}, max {:.2}", r.tre_mean_mm, r.tre_std_mm, r.tre_max_mm);
+        println!("marker displacement (mm)  {:.2} mean", r.marker_displacement_mean_mm);
+    }
+    Ok(())
+}

@@ -68,12 +68,20 @@ fn a_tiny_network_overfits_a_handful_of_samples() {
     let ad = device.autodiff();
     let mut model = tiny(1, 8).init(&ad);
     let mut optim = AdamConfig::new().init();
-    let x = Tensor::<5>::random([4, 3, 8, 8, 8], burn::tensor::Distribution::Normal(0.0, 1.0), &ad);
-    // A target the convolutions can express: a local linear map of the input's components.
+    // Smooth inputs (random values on a 2^3 lattice, each repeated over a 4^3 block), like
+    // displacement fields, and a target the network can express: a scaled copy.
+    // Inputs from our own generator: the backend's RNG is global and shared with the tests
+    // running beside this one.
+    let mut rng = umesh_core::phantom::SplitMix64(11);
+    let vals: Vec<f32> = (0..4 * 3 * 8).map(|_| (rng.next_f64() * 2.0 - 1.0) as f32).collect();
+    let coarse = Tensor::<5>::from_data(TensorData::new(vals, [4, 3, 2, 2, 2]), &ad);
+    let x = coarse.repeat_dim(2, 4).reshape([4, 3, 4, 2, 2, 2]).swap_dims(2, 3).reshape([4, 3, 8, 2, 2]);
+    let x = x.repeat_dim(3, 4).reshape([4, 3, 8, 4, 2, 2]).swap_dims(3, 4).reshape([4, 3, 8, 8, 2]);
+    let x = x.repeat_dim(4, 4).reshape([4, 3, 8, 8, 4, 2]).swap_dims(4, 5).reshape([4, 3, 8, 8, 8]).detach();
     let y = (x.clone() * 0.5).detach();
     let mut first = 0.0;
     let mut last = 0.0;
-    for step in 0..500 {
+    for step in 0..700 {
         let loss = (model.forward(x.clone()) - y.clone()).square().mean();
         let v = loss.clone().into_scalar::<f32>() as f64;
         if step == 0 {
@@ -81,10 +89,10 @@ fn a_tiny_network_overfits_a_handful_of_samples() {
         }
         last = v;
         let grads = GradientsParams::from_grads(loss.backward(), &model);
-        model = optim.step(if step < 300 { 3e-3 } else { 1e-3 }, model, grads);
+        model = optim.step(if step < 400 { 3e-3 } else { 1e-3 }, model, grads);
     }
-    // Measured here: about 27x in 500 steps (it then plateaus near 1e-2 of the input variance).
-    assert!(last < first / 20.0, "loss {first:e} -> {last:e}");
+    eprintln!("overfitting: loss {first:e} -> {last:e}");
+    assert!(last < first / 100.0, "loss {first:e} -> {last:e}");
 }
 
 #[test]

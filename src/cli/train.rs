@@ -38,8 +38,8 @@ pub struct Args {
 
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
-    /// Model folder.
-    #[arg(long, default_value = "out/model")]
+    /// Model folder (default: the bundled phantom model).
+    #[arg(long, default_value = "assets/model")]
     pub model: PathBuf,
     #[arg(long)]
     pub dataset: PathBuf,

@@ -191,6 +191,18 @@ pub fn nested_dissection(node_ijk: &[[usize; 3]]) -> Vec<usize> {
     out
 }
 
+/// Numeric Cholesky into `values` on the shared symbolic factorisation; false when the matrix
+/// is not positive definite.
+fn numeric_llt<T: faer::traits::ComplexField>(
+    sym: &SymbolicCholesky<usize>,
+    values: &mut [T],
+    mat: faer::sparse::SparseColMatRef<'_, usize, T>,
+    mem: &mut MemBuffer,
+) -> bool {
+    let par = faer::get_global_parallelism();
+    sym.factorize_numeric_llt(values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default()).is_ok()
+}
+
 impl Factorizer {
     fn new(node_ijk: &[[usize; 3]], free_of: &[u32]) -> Self {
         let mut perm_fwd = Vec::new();
@@ -242,27 +254,16 @@ impl Factorizer {
             self.l_values = vec![0.0; sym.len_val()];
             self.llt_symbolic = Some(sym);
         }
-        if let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem) {
-            let ok = sym
-                .factorize_numeric_llt(
-                    &mut self.l_values,
-                    mat,
-                    Side::Lower,
-                    LltRegularization::default(),
-                    par,
-                    MemStack::new(mem),
-                    Default::default(),
-                )
-                .is_ok();
-            if ok {
-                if at_rest {
-                    self.rest_values = Some(self.l_values.clone());
-                    self.current = Some(Factor::Rest);
-                } else {
-                    self.current = Some(Factor::Llt);
-                }
-                return Ok(FactorKind::Llt);
+        if let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem)
+            && numeric_llt(sym, &mut self.l_values, mat, mem)
+        {
+            if at_rest {
+                self.rest_values = Some(self.l_values.clone());
+                self.current = Some(Factor::Rest);
+            } else {
+                self.current = Some(Factor::Llt);
             }
+            return Ok(FactorKind::Llt);
         }
         if self.lu_symbolic.is_none() {
             self.lu_symbolic = Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| err(&e))?);
@@ -283,18 +284,7 @@ impl Factorizer {
         self.a32.extend(vals.iter().map(|&v| v as f32));
         self.l32.resize(sym.len_val(), 0.0);
         let a32 = faer::sparse::SparseColMatRef::new(symbolic, &self.a32);
-        let par = faer::get_global_parallelism();
-        let ok = sym
-            .factorize_numeric_llt(
-                &mut self.l32,
-                a32,
-                Side::Lower,
-                LltRegularization::default(),
-                par,
-                MemStack::new(mem),
-                Default::default(),
-            )
-            .is_ok();
+        let ok = numeric_llt(sym, &mut self.l32, a32, mem);
         if ok {
             self.current = Some(Factor::Llt32);
         }

@@ -14,6 +14,8 @@ pub mod nifti_io;
 pub mod npz;
 pub mod phantom;
 pub mod progress;
+pub mod register;
+pub mod rgbd;
 pub mod segmentation;
 pub mod simulate;
 pub mod surface;

@@ -45,6 +45,22 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
     Ok(mesh)
 }
 
+/// Read the vertices of a PLY, OBJ or STL file (a point cloud: faces optional).
+pub fn read_point_cloud(path: &Path) -> Result<Vec<Vector3<f64>>, MeshIoError> {
+    let bytes = std::fs::read(path).map_err(|source| MeshIoError::Io { path: path.into(), source })?;
+    let parse = |reason: String| MeshIoError::Parse { path: path.into(), reason };
+    let mesh = match ext(path).as_str() {
+        "obj" => parse_obj(&String::from_utf8_lossy(&bytes)).map_err(parse)?,
+        "stl" => parse_stl(&bytes).map_err(parse)?,
+        "ply" => parse_ply(&bytes).map_err(parse)?,
+        _ => return Err(MeshIoError::UnknownFormat { path: path.into() }),
+    };
+    if mesh.positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(parse("a vertex coordinate is not finite".into()));
+    }
+    Ok(mesh.positions)
+}
+
 /// Read a mesh that must be closed and consistently oriented (organ geometry);
 /// inward-facing meshes are flipped.
 pub fn read_closed_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {

@@ -1,0 +1,192 @@
+//! Intraoperative registration: observed RGB-D frame -> rigid pose (ICP) -> surface
+//! displacement of the grid's visible nodes (u_s) -> volume displacement (network or FE)
+//! -> internal structures deformed through their grid embedding -> overlay on the image.
+
+pub mod icp;
+pub mod nn;
+pub mod overlay;
+pub mod pipeline;
+
+use crate::dataset::DatasetContext;
+use crate::grid::{Embedding, ImmersedGrid};
+use crate::mesh::TriMesh;
+use crate::segmentation::Segmentation;
+use crate::surface::{SurfaceSettings, extract_surface};
+use icp::IcpTarget;
+use nalgebra::Vector3;
+
+/// An internal structure (tumour, vessel) to overlay.
+#[derive(Debug)]
+pub struct Structure {
+    pub label: i64,
+    pub name: String,
+    pub color: [u8; 3],
+    pub mesh: TriMesh,
+    embedding: Vec<Embedding>,
+}
+
+/// Distinct overlay colours: tumours warm, vessels cool.
+pub fn structure_color(name: &str, i: usize) -> [u8; 3] {
+    let n = name.to_lowercase();
+    if n.contains("tumo") || n.contains("lesion") {
+        [[255, 215, 40], [255, 140, 30], [250, 90, 160]][i % 3]
+    } else if n.contains("cava") || n.contains("ivc") {
+        [60, 120, 255]
+    } else if n.contains("portal") || n.contains("vein") {
+        [170, 90, 255]
+    } else {
+        [[80, 230, 120], [60, 220, 230], [230, 230, 230]][i % 3]
+    }
+}
+
+/// What registration needs from the preoperative model.
+#[derive(Debug)]
+pub struct RegistrationContext {
+    pub grid: ImmersedGrid,
+    /// The rest organ surface (world, mm).
+    pub surface: TriMesh,
+    pub surface_normals: Vec<Vector3<f64>>,
+    surface_embedding: Vec<Embedding>,
+    /// Vertices of the surface the training camera sees.
+    pub visible_vertices: Vec<usize>,
+    /// Grid nodes of the network input (u_s is non-zero there).
+    pub visible_nodes: Vec<usize>,
+    pub fixed: Vec<bool>,
+    pub structures: Vec<Structure>,
+    /// Visible node -> neighbouring visible nodes (6-connected), to fill unobserved nodes.
+    node_neighbours: Vec<Vec<usize>>,
+    pub(crate) icp_target: IcpTarget,
+}
+
+fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, String> {
+    pts.iter().map(|p| grid.embed(p).ok_or_else(|| format!("point {p:?} lies outside the grid"))).collect()
+}
+
+impl RegistrationContext {
+    /// From the dataset context of the model's grid, with the structures of `seg`.
+    pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, String> {
+        let mut structures = Vec::new();
+        for (i, &label) in seg.structure_labels.iter().enumerate() {
+            let mask = seg.volume.mask(&[label]);
+            if mask.count() == 0 {
+                continue;
+            }
+            let mesh = extract_surface(&mask, &SurfaceSettings { sigma_voxels: 0.8, step: 1, smooth_iterations: 10 });
+            if mesh.triangles.is_empty() {
+                continue;
+            }
+            let name = seg.label_name(label);
+            let embedding = embed_all(&ctx.grid, &mesh.positions)?;
+            structures.push(Structure { label, color: structure_color(&name, i), name, mesh, embedding });
+        }
+        let surface = ctx.surface;
+        let surface_normals = surface.vertex_normals();
+        let surface_embedding = embed_all(&ctx.grid, &surface.positions)?;
+        let mut vis = vec![false; surface.positions.len()];
+        for (t, tri) in surface.triangles.iter().enumerate() {
+            if ctx.visible.visible[t] {
+                for &v in tri {
+                    vis[v as usize] = true;
+                }
+            }
+        }
+        let visible_vertices: Vec<usize> = (0..vis.len()).filter(|&v| vis[v]).collect();
+        let grid = ctx.grid;
+        let mut slot = vec![usize::MAX; grid.node_count()];
+        for (k, &n) in ctx.visible_nodes.iter().enumerate() {
+            slot[n] = k;
+        }
+        let node_neighbours = ctx
+            .visible_nodes
+            .iter()
+            .map(|&n| {
+                let [i, j, k] = grid.node_ijk[n];
+                let mut out = Vec::new();
+                for (di, dj, dk) in [(-1i64, 0i64, 0i64), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)] {
+                    let q = [i as i64 + di, j as i64 + dj, k as i64 + dk];
+                    if q.iter().all(|&v| v >= 0)
+                        && let Some(m) = grid.node_at([q[0] as usize, q[1] as usize, q[2] as usize])
+                        && slot[m] != usize::MAX
+                    {
+                        out.push(slot[m]);
+                    }
+                }
+                out
+            })
+            .collect();
+        let spacing = surface.area_mm2().sqrt() / (surface.positions.len().max(1) as f64).sqrt();
+        let icp_target = IcpTarget::new(surface.positions.clone(), surface_normals.clone(), spacing);
+        Ok(Self {
+            grid,
+            surface,
+            surface_normals,
+            surface_embedding,
+            visible_vertices,
+            visible_nodes: ctx.visible_nodes,
+            fixed: ctx.fixed,
+            structures,
+            node_neighbours,
+            icp_target,
+        })
+    }
+
+    pub fn padded_shape(&self) -> [usize; 3] {
+        self.grid.padded_shape()
+    }
+
+    /// The organ surface deformed by a dense [3, X, Y, Z] displacement field.
+    pub fn deformed_surface(&self, field: &[f32]) -> TriMesh {
+        deform(&self.grid, &self.surface, &self.surface_embedding, field)
+    }
+
+    pub fn deformed_structure(&self, s: &Structure, field: &[f32]) -> TriMesh {
+        deform(&self.grid, &s.mesh, &s.embedding, field)
+    }
+}
+
+fn deform(grid: &ImmersedGrid, mesh: &TriMesh, emb: &[Embedding], field: &[f32]) -> TriMesh {
+    let mut out = mesh.clone();
+    for (p, e) in out.positions.iter_mut().zip(emb) {
+        *p += displacement_at(grid, field, e);
+    }
+    out
+}
+
+/// Displacement (mm) at an embedded point from a dense [3, X, Y, Z] field.
+pub fn displacement_at(grid: &ImmersedGrid, field: &[f32], e: &Embedding) -> Vector3<f64> {
+    let [x, y, z] = grid.padded_shape();
+    let cells = x * y * z;
+    let mut d = Vector3::zeros();
+    for (n, w) in e.nodes.iter().zip(e.weights) {
+        if w != 0.0 {
+            let idx = grid.dense_index(*n as usize);
+            for c in 0..3 {
+                d[c] += w * field[c * cells + idx] as f64;
+            }
+        }
+    }
+    d
+}
+
+/// Virtual markers for the TRE: `count` points inside the organ (inside cells) and, when the
+/// segmentation has internal structures, as many points on them; fixed by `seed`.
+pub fn virtual_markers(ctx: &RegistrationContext, count: usize, seed: u64) -> Vec<Vector3<f64>> {
+    let grid = &ctx.grid;
+    let mut rng = crate::phantom::SplitMix64(seed);
+    let inside: Vec<usize> = (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
+    let cells = if inside.is_empty() { (0..grid.cells.len()).collect() } else { inside };
+    let mut out = Vec::new();
+    for _ in 0..count {
+        let c = cells[(rng.next_u64() % cells.len() as u64) as usize];
+        let [i, j, k] = grid.cells[c].ijk;
+        let off = Vector3::new(i as f64 + rng.next_f64(), j as f64 + rng.next_f64(), k as f64 + rng.next_f64());
+        out.push(grid.origin_mm + off * grid.cell_size_mm);
+    }
+    let verts: Vec<&Vector3<f64>> = ctx.structures.iter().flat_map(|s| s.mesh.positions.iter()).collect();
+    if !verts.is_empty() {
+        for _ in 0..count {
+            out.push(*verts[(rng.next_u64() % verts.len() as u64) as usize]);
+        }
+    }
+    out
+}

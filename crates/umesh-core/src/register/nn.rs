@@ -1,0 +1,49 @@
+//! Nearest neighbours in 3-D by a uniform hash grid (points on a surface are evenly spread,
+//! so a grid with cells about the search radius beats a tree and builds in one pass).
+
+use nalgebra::Vector3;
+use std::collections::HashMap;
+
+#[derive(Debug)]
+pub struct PointGrid {
+    cell_mm: f64,
+    cells: HashMap<[i32; 3], Vec<u32>>,
+    pub points: Vec<Vector3<f64>>,
+}
+
+impl PointGrid {
+    pub fn new(points: Vec<Vector3<f64>>, cell_mm: f64) -> Self {
+        let cell_mm = cell_mm.max(1e-3);
+        let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
+        for (i, p) in points.iter().enumerate() {
+            cells.entry(Self::key(p, cell_mm)).or_default().push(i as u32);
+        }
+        Self { cell_mm, cells, points }
+    }
+
+    fn key(p: &Vector3<f64>, h: f64) -> [i32; 3] {
+        [(p.x / h).floor() as i32, (p.y / h).floor() as i32, (p.z / h).floor() as i32]
+    }
+
+    /// Index and distance of the nearest point within `radius_mm`.
+    pub fn nearest(&self, q: &Vector3<f64>, radius_mm: f64) -> Option<(usize, f64)> {
+        let r = (radius_mm / self.cell_mm).ceil() as i32;
+        let k = Self::key(q, self.cell_mm);
+        let mut best: Option<(usize, f64)> = None;
+        let r2 = radius_mm * radius_mm;
+        for dz in -r..=r {
+            for dy in -r..=r {
+                for dx in -r..=r {
+                    let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) else { continue };
+                    for &i in ids {
+                        let d2 = (self.points[i as usize] - q).norm_squared();
+                        if d2 <= r2 && best.is_none_or(|(_, b)| d2 < b) {
+                            best = Some((i as usize, d2));
+                        }
+                    }
+                }
+            }
+        }
+        best.map(|(i, d2)| (i, d2.sqrt()))
+    }
+}

@@ -1,0 +1,108 @@
+//! CPU rasterisation of the augmented-reality overlay: deformed internal structures, filled
+//! and shaded, blended over the camera image, and the organ's outline.
+
+use crate::mesh::TriMesh;
+use crate::rgbd::{ColorImage, DepthImage, Intrinsics, transform_point};
+use nalgebra::{Matrix4, Vector3};
+
+/// Rasterise `mesh` (world) seen by a camera; calls `shade(pixel, depth, normal_camera)` for
+/// every covered pixel that passes the z-buffer `zbuf` (camera depth, mm).
+pub fn rasterize(
+    mesh: &TriMesh,
+    camera_from_world: &Matrix4<f64>,
+    k: &Intrinsics,
+    zbuf: &mut [f32],
+    mut shade: impl FnMut(usize, f32, Vector3<f64>),
+) {
+    let (w, h) = (k.width, k.height);
+    let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
+    let proj: Vec<Option<(f64, f64, f64)>> = cam.iter().map(|p| k.project(p)).collect();
+    for t in &mesh.triangles {
+        let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else { continue };
+        let area = (b.0 - a.0) * (c.1 - a.1) - (c.0 - a.0) * (b.1 - a.1);
+        if area.abs() < 1e-12 {
+            continue;
+        }
+        let x0 = a.0.min(b.0).min(c.0).floor().max(0.0);
+        let y0 = a.1.min(b.1).min(c.1).floor().max(0.0);
+        let x1 = a.0.max(b.0).max(c.0).ceil().min(w as f64 - 1.0);
+        let y1 = a.1.max(b.1).max(c.1).ceil().min(h as f64 - 1.0);
+        if x0 > x1 || y0 > y1 {
+            continue;
+        }
+        let n = (cam[t[1] as usize] - cam[t[0] as usize]).cross(&(cam[t[2] as usize] - cam[t[0] as usize])).normalize();
+        for py in y0 as usize..=y1 as usize {
+            for px in x0 as usize..=x1 as usize {
+                let (qx, qy) = (px as f64, py as f64);
+                let w0 = ((b.0 - qx) * (c.1 - qy) - (c.0 - qx) * (b.1 - qy)) / area;
+                let w1 = ((c.0 - qx) * (a.1 - qy) - (a.0 - qx) * (c.1 - qy)) / area;
+                let w2 = 1.0 - w0 - w1;
+                if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
+                    continue;
+                }
+                // Perspective-correct depth: interpolate 1/z.
+                let z = 1.0 / (w0 / a.2 + w1 / b.2 + w2 / c.2);
+                let i = py * w + px;
+                if (z as f32) < zbuf[i] {
+                    zbuf[i] = z as f32;
+                    shade(i, z as f32, n);
+                }
+            }
+        }
+    }
+}
+
+/// A grey image of the depth (near bright), for recordings without colour.
+pub fn depth_preview(depth: &DepthImage) -> ColorImage {
+    let valid: Vec<f32> = depth.depth_mm.iter().copied().filter(|&d| d > 0.0).collect();
+    let lo = valid.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = valid.iter().copied().fold(0.0, f32::max);
+    let span = (hi - lo).max(1.0);
+    let mut img = ColorImage::new(depth.width, depth.height, [0, 0, 0]);
+    for (i, &d) in depth.depth_mm.iter().enumerate() {
+        if d > 0.0 {
+            let g = (230.0 - 180.0 * (d - lo) / span) as u8;
+            img.rgb[3 * i..3 * i + 3].copy_from_slice(&[g, g, g]);
+        }
+    }
+    img
+}
+
+/// Blend the structures (filled, shaded by their normal) and the organ outline over `base`.
+pub fn draw_overlay(
+    base: &mut ColorImage,
+    organ: &TriMesh,
+    structures: &[(TriMesh, [u8; 3])],
+    camera_from_world: &Matrix4<f64>,
+    k: &Intrinsics,
+    alpha: f32,
+) {
+    let n = k.width * k.height;
+    let mut zbuf = vec![f32::INFINITY; n];
+    let mut color = vec![[0u8; 3]; n];
+    let mut hit = vec![false; n];
+    for (mesh, rgb) in structures {
+        rasterize(mesh, camera_from_world, k, &mut zbuf, |i, _, nrm| {
+            let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
+            color[i] = rgb.map(|c| (c as f32 * s).min(255.0) as u8);
+            hit[i] = true;
+        });
+    }
+    for i in 0..n {
+        if hit[i] {
+            base.blend(i % k.width, i / k.width, color[i], alpha);
+        }
+    }
+    // Organ silhouette -> its outline.
+    let mut organ_z = vec![f32::INFINITY; n];
+    let mut inside = vec![false; n];
+    rasterize(organ, camera_from_world, k, &mut organ_z, |i, _, _| inside[i] = true);
+    for v in 1..k.height.saturating_sub(1) {
+        for u in 1..k.width.saturating_sub(1) {
+            let i = v * k.width + u;
+            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - k.width] || !inside[i + k.width]) {
+                base.blend(u, v, [255, 255, 255], 0.9);
+            }
+        }
+    }
+}

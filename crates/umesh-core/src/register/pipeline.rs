@@ -1,0 +1,521 @@
+//! The per-frame registration pipeline and its latency breakdown.
+
+use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
+use super::overlay::{depth_preview, draw_overlay};
+use super::{RegistrationContext, displacement_at};
+use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
+use crate::fem::{BoundaryConditions, MaterialParams};
+use crate::progress::{Cancel, Progress};
+use crate::rgbd::segment::{SegmentSettings, segment_frame};
+use crate::rgbd::stream::{FrameSource, Poll};
+use crate::rgbd::{ColorImage, DepthImage, Frame, Intrinsics, depth_to_points, rigid_inverse, transform_point};
+use nalgebra::{Matrix4, Vector3};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// Volume displacement from surface displacement: the network, or the FE model.
+pub trait DisplacementModel {
+    fn name(&self) -> String;
+    /// u_s [3, X, Y, Z] (mm) -> u_v [3, X, Y, Z] (mm), written into `out`.
+    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String>;
+}
+
+/// The co-rotational FE model driven by the same surface displacements (prescribed at the
+/// visible nodes, the fixed region held), for comparison with the network.
+pub struct FeDisplacementModel<'g> {
+    ctx: &'g RegistrationContext,
+    solver: FeSolver<'g>,
+    bc: BoundaryConditions,
+}
+
+impl<'g> FeDisplacementModel<'g> {
+    pub fn new(ctx: &'g RegistrationContext, material: MaterialParams) -> Result<Self, String> {
+        let mut constrained = ctx.fixed.clone();
+        for &n in &ctx.visible_nodes {
+            constrained[n] = true;
+        }
+        let solver = FeSolver::new(&ctx.grid, material, &constrained, SolverSettings { max_iterations: 10, ..Default::default() })
+            .map_err(|e| e.to_string())?;
+        let mut bc = BoundaryConditions::new(ctx.grid.node_count());
+        bc.fixed = ctx.fixed.clone();
+        Ok(Self { ctx, solver, bc })
+    }
+}
+
+impl FeDisplacementModel<'_> {
+    fn solve(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
+        let [x, y, z] = self.ctx.padded_shape();
+        let cells = x * y * z;
+        let g = &self.ctx.grid;
+        self.bc.prescribed_mm = self
+            .ctx
+            .visible_nodes
+            .iter()
+            .filter(|&&n| !self.ctx.fixed[n])
+            .map(|&n| {
+                let d = g.dense_index(n);
+                (n, Vector3::new(u_s[d] as f64, u_s[cells + d] as f64, u_s[2 * cells + d] as f64))
+            })
+            .collect();
+        let sol = self.solver.solve(&self.bc, SolveMethod::Corotational, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+        out.clear();
+        out.resize(3 * cells, 0.0);
+        for (n, u) in sol.displacement_mm.iter().enumerate() {
+            let d = g.dense_index(n);
+            for c in 0..3 {
+                out[c * cells + d] = u[c] as f32;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl DisplacementModel for FeDisplacementModel<'_> {
+    fn name(&self) -> String {
+        "co-rotational FE".into()
+    }
+    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
+        self.solve(u_s, out)
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RegisterSettings {
+    pub segment: SegmentSettings,
+    pub icp: IcpSettings,
+    /// Redo the rigid ICP on every frame (else on the first frame only: later frames deform).
+    pub icp_every_frame: bool,
+    /// Back-project every n-th pixel for ICP.
+    pub point_stride: usize,
+    /// Search range along each surface normal for the observed surface (mm).
+    pub search_mm: f64,
+    /// Start each frame's search from the previous frame's prediction (recovers the
+    /// tangential motion a depth camera cannot see).
+    pub warm_start: bool,
+    /// Network evaluations per frame; each further one re-measures from the last prediction.
+    pub iterations: usize,
+    /// Draw the overlay image.
+    pub overlay: bool,
+    pub overlay_alpha: f32,
+}
+
+impl Default for RegisterSettings {
+    fn default() -> Self {
+        Self {
+            segment: SegmentSettings::default(),
+            icp: IcpSettings::default(),
+            icp_every_frame: false,
+            point_stride: 4,
+            search_mm: 30.0,
+            warm_start: true,
+            iterations: 1,
+            overlay: true,
+            overlay_alpha: 0.6,
+        }
+    }
+}
+
+/// Ground truth of a synthetic recording (`ground_truth.json`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GroundTruth {
+    /// The true camera pose, row-major 4x4 (mm).
+    pub world_from_camera: [f64; 16],
+    /// Marker positions at rest (world, mm).
+    pub markers_rest_mm: Vec<[f64; 3]>,
+    /// True marker positions per frame (world, mm).
+    pub markers_mm: Vec<Vec<[f64; 3]>>,
+}
+
+impl GroundTruth {
+    pub fn read(path: &Path) -> Result<Self, String> {
+        let t = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let g: Self = serde_json::from_str(&t).map_err(|e| format!("{}: not a ground-truth file: {e}", path.display()))?;
+        if g.markers_mm.iter().any(|f| f.len() != g.markers_rest_mm.len()) {
+            return Err(format!("{}: a frame has a different number of markers", path.display()));
+        }
+        Ok(g)
+    }
+    pub fn pose(&self) -> Matrix4<f64> {
+        Matrix4::from_row_slice(&self.world_from_camera)
+    }
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Latency {
+    pub points_ms: f64,
+    pub icp_ms: f64,
+    pub surface_ms: f64,
+    pub predict_ms: f64,
+    pub overlay_ms: f64,
+    pub total_ms: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct FrameReport {
+    pub frame: usize,
+    pub timestamp_s: f64,
+    pub observed_points: usize,
+    /// Visible surface vertices whose displacement was measured.
+    pub measured_vertices: usize,
+    pub icp: Option<IcpReport>,
+    pub latency: Latency,
+    pub tre_mean_mm: Option<f64>,
+    pub tre_max_mm: Option<f64>,
+    /// TRE when the organ is taken as rigid (no deformation predicted): the baseline.
+    pub tre_rigid_mean_mm: Option<f64>,
+    pub marker_displacement_mean_mm: Option<f64>,
+}
+
+/// What one frame produced (for the GUI and the overlay writer).
+#[derive(Debug)]
+pub struct FrameOutput {
+    pub report: FrameReport,
+    /// Predicted u_v [3, X, Y, Z].
+    pub field: Vec<f32>,
+    pub overlay: Option<ColorImage>,
+    pub world_from_camera: Matrix4<f64>,
+}
+
+/// Registration state carried from frame to frame.
+pub struct Registrar<'c> {
+    pub ctx: &'c RegistrationContext,
+    pub settings: RegisterSettings,
+    pub world_from_camera: Matrix4<f64>,
+    posed: bool,
+    prev_field: Vec<f32>,
+    u_s: Vec<f32>,
+    field: Vec<f32>,
+}
+
+impl<'c> Registrar<'c> {
+    pub fn new(ctx: &'c RegistrationContext, settings: RegisterSettings, initial_world_from_camera: Matrix4<f64>) -> Self {
+        let [x, y, z] = ctx.padded_shape();
+        Self {
+            ctx,
+            settings,
+            world_from_camera: initial_world_from_camera,
+            posed: false,
+            prev_field: vec![0.0; 3 * x * y * z],
+            u_s: Vec::new(),
+            field: Vec::new(),
+        }
+    }
+
+    /// Forget the pose refinement and the previous prediction (a new sequence).
+    pub fn reset(&mut self, world_from_camera: Matrix4<f64>) {
+        self.world_from_camera = world_from_camera;
+        self.posed = false;
+        self.prev_field.iter_mut().for_each(|v| *v = 0.0);
+    }
+
+    /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
+    pub fn process(
+        &mut self,
+        frame: &Frame,
+        model: &mut dyn DisplacementModel,
+        truth: Option<&[[f64; 3]]>,
+        rest: Option<&[[f64; 3]]>,
+        true_pose: Option<&Matrix4<f64>>,
+    ) -> Result<FrameOutput, String> {
+        let t0 = Instant::now();
+        frame.validate()?;
+        let k = frame.intrinsics;
+        let keep = segment_frame(frame, &self.settings.segment)?;
+        let mut depth = frame.depth.clone();
+        for (d, &kp) in depth.depth_mm.iter_mut().zip(&keep) {
+            if !kp {
+                *d = 0.0;
+            }
+        }
+        let points = depth_to_points(&depth, &k, None, self.settings.point_stride);
+        let points_ms = ms(t0);
+        let t1 = Instant::now();
+        let mut icp = None;
+        if !self.posed || self.settings.icp_every_frame {
+            let r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp);
+            if r.fitness < 0.3 {
+                return Err(format!(
+                    "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
+                    frame.index, r.fitness, r.rms_mm
+                ));
+            }
+            self.world_from_camera = r.transform;
+            self.posed = true;
+            icp = Some(r);
+        }
+        let icp_ms = ms(t1);
+        let camera_from_world = rigid_inverse(&self.world_from_camera);
+        let mut surface_ms = 0.0;
+        let mut predict_ms = 0.0;
+        let mut measured = 0;
+        let start = if self.settings.warm_start { self.prev_field.clone() } else { vec![0.0; self.prev_field.len()] };
+        let mut current = start;
+        for _ in 0..self.settings.iterations.max(1) {
+            let t = Instant::now();
+            measured = self.surface_input(&depth, &k, &camera_from_world, &current);
+            surface_ms += ms(t);
+            let t = Instant::now();
+            model.predict(&self.u_s, &mut self.field).map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+            predict_ms += ms(t);
+            current.clone_from(&self.field);
+        }
+        if measured == 0 {
+            return Err(format!("frame {}: no visible surface point found in the depth image", frame.index));
+        }
+        self.prev_field.clone_from(&self.field);
+        let t = Instant::now();
+        let overlay = self.settings.overlay.then(|| {
+            let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
+            let organ = self.ctx.deformed_surface(&self.field);
+            let structures: Vec<_> = self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
+            draw_overlay(&mut img, &organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
+            img
+        });
+        let overlay_ms = ms(t);
+        let (mut tre_mean, mut tre_max, mut tre_rigid, mut disp) = (None, None, None, None);
+        if let (Some(truth), Some(rest), Some(tp)) = (truth, rest, true_pose) {
+            let true_cam = rigid_inverse(tp);
+            let (mut e, mut e0, mut d) = (Vec::new(), Vec::new(), Vec::new());
+            for (m_true, m_rest) in truth.iter().zip(rest) {
+                let (mt, mr) = (Vector3::from(*m_true), Vector3::from(*m_rest));
+                let Some(emb) = self.ctx.grid.embed(&mr) else { continue };
+                let pred = mr + displacement_at(&self.ctx.grid, &self.field, &emb);
+                let truth_cam = transform_point(&true_cam, &mt);
+                e.push((transform_point(&camera_from_world, &pred) - truth_cam).norm());
+                e0.push((transform_point(&camera_from_world, &mr) - truth_cam).norm());
+                d.push((mt - mr).norm());
+            }
+            if !e.is_empty() {
+                let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+                tre_mean = Some(mean(&e));
+                tre_max = Some(e.iter().copied().fold(0.0, f64::max));
+                tre_rigid = Some(mean(&e0));
+                disp = Some(mean(&d));
+            }
+        }
+        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, total_ms: ms(t0) };
+        Ok(FrameOutput {
+            report: FrameReport {
+                frame: frame.index,
+                timestamp_s: frame.timestamp_s,
+                observed_points: points.len(),
+                measured_vertices: measured,
+                icp,
+                latency,
+                tre_mean_mm: tre_mean,
+                tre_max_mm: tre_max,
+                tre_rigid_mean_mm: tre_rigid,
+                marker_displacement_mean_mm: disp,
+            },
+            field: self.field.clone(),
+            overlay,
+            world_from_camera: self.world_from_camera,
+        })
+    }
+
+    /// u_s from the observed depth: each visible surface vertex, moved by the `current`
+    /// displacement estimate, is pushed along its normal onto the observed surface; the grid's
+    /// visible nodes take the embedding-weighted mean of their vertices; nodes that no vertex
+    /// informs take the mean of their neighbours. Returns how many vertices were measured.
+    fn surface_input(&mut self, depth: &DepthImage, k: &Intrinsics, camera_from_world: &Matrix4<f64>, current: &[f32]) -> usize {
+        let ctx = self.ctx;
+        let g = &ctx.grid;
+        let [x, y, z] = ctx.padded_shape();
+        let cells = x * y * z;
+        let nv = ctx.visible_nodes.len();
+        let mut slot = std::collections::HashMap::with_capacity(nv);
+        for (i, &n) in ctx.visible_nodes.iter().enumerate() {
+            slot.insert(n as u32, i);
+        }
+        let mut acc = vec![Vector3::<f64>::zeros(); nv];
+        let mut wsum = vec![0.0f64; nv];
+        let rot = camera_from_world.fixed_view::<3, 3>(0, 0).into_owned();
+        let step = 0.5;
+        let max_steps = (self.settings.search_mm / step).ceil() as i64;
+        let mut measured = 0;
+        for &v in &ctx.visible_vertices {
+            let e = &ctx.surface_embedding[v];
+            let u0 = displacement_at(g, current, e);
+            let p = ctx.surface.positions[v] + u0;
+            let n = ctx.surface_normals[v];
+            let pc = transform_point(camera_from_world, &p);
+            let nc = rot * n;
+            // Grazing normals make the along-normal search ill-conditioned.
+            if nc.dot(&pc.normalize()) > -0.2 {
+                continue;
+            }
+            // f(t) = observed depth - point depth along p + t n; its root nearest t = 0.
+            let f = |t: f64| -> Option<f64> {
+                let q = pc + nc * t;
+                let (pu, pv, pz) = k.project(&q)?;
+                depth.sample(pu, pv, 15.0).map(|d| d as f64 - pz)
+            };
+            let f0 = f(0.0);
+            let mut found = (f0 == Some(0.0)).then_some(0.0);
+            // Walk outwards both ways at once, nearest root first.
+            let (mut lo, mut hi) = ((0.0, f0), (0.0, f0));
+            for s in 1..=max_steps {
+                if found.is_some() {
+                    break;
+                }
+                for dir in [1.0, -1.0] {
+                    let t = dir * s as f64 * step;
+                    let cur = (t, f(t));
+                    let last = if dir > 0.0 { hi } else { lo };
+                    if let (Some(a), Some(b)) = (last.1, cur.1)
+                        && a * b <= 0.0
+                        && a != b
+                    {
+                        found = Some(last.0 + (cur.0 - last.0) * a / (a - b));
+                        break;
+                    }
+                    if dir > 0.0 {
+                        hi = cur;
+                    } else {
+                        lo = cur;
+                    }
+                }
+            }
+            let Some(t) = found else { continue };
+            measured += 1;
+            let d = u0 + n * t;
+            for (node, w) in e.nodes.iter().zip(e.weights) {
+                if w > 1e-9
+                    && let Some(&s) = slot.get(node)
+                {
+                    acc[s] += d * w;
+                    wsum[s] += w;
+                }
+            }
+        }
+        let mut val: Vec<Option<Vector3<f64>>> = (0..nv).map(|i| (wsum[i] > 1e-6).then(|| acc[i] / wsum[i])).collect();
+        for _ in 0..8 {
+            if val.iter().all(Option::is_some) {
+                break;
+            }
+            let next: Vec<Option<Vector3<f64>>> = (0..nv)
+                .map(|i| {
+                    val[i].or_else(|| {
+                        let nb: Vec<Vector3<f64>> = ctx.node_neighbours[i].iter().filter_map(|&j| val[j]).collect();
+                        (!nb.is_empty()).then(|| nb.iter().sum::<Vector3<f64>>() / nb.len() as f64)
+                    })
+                })
+                .collect();
+            val = next;
+        }
+        self.u_s.clear();
+        self.u_s.resize(3 * cells, 0.0);
+        for (i, &n) in ctx.visible_nodes.iter().enumerate() {
+            let d = g.dense_index(n);
+            let u = val[i].unwrap_or_else(|| displacement_at_node(current, d, cells));
+            for c in 0..3 {
+                self.u_s[c * cells + d] = u[c] as f32;
+            }
+        }
+        measured
+    }
+}
+
+fn displacement_at_node(field: &[f32], d: usize, cells: usize) -> Vector3<f64> {
+    Vector3::new(field[d] as f64, field[cells + d] as f64, field[2 * cells + d] as f64)
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Summary {
+    pub frames: usize,
+    pub skipped: usize,
+    pub frame_ms_median: f64,
+    pub frame_ms_p95: f64,
+    pub tre_mean_mm: Option<f64>,
+    pub tre_max_mm: Option<f64>,
+    pub tre_rigid_mean_mm: Option<f64>,
+    pub marker_displacement_mean_mm: Option<f64>,
+}
+
+pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
+    let mut t: Vec<f64> = frames.iter().map(|f| f.latency.total_ms).collect();
+    t.sort_by(f64::total_cmp);
+    let pct = |p: f64| if t.is_empty() { 0.0 } else { t[((t.len() - 1) as f64 * p).round() as usize] };
+    let mean_of = |g: &dyn Fn(&FrameReport) -> Option<f64>| {
+        let v: Vec<f64> = frames.iter().filter_map(g).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    Summary {
+        frames: frames.len(),
+        skipped,
+        frame_ms_median: pct(0.5),
+        frame_ms_p95: pct(0.95),
+        tre_mean_mm: mean_of(&|f| f.tre_mean_mm),
+        tre_max_mm: frames.iter().filter_map(|f| f.tre_max_mm).reduce(f64::max),
+        tre_rigid_mean_mm: mean_of(&|f| f.tre_rigid_mean_mm),
+        marker_displacement_mean_mm: mean_of(&|f| f.marker_displacement_mean_mm),
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct RegisterReport {
+    pub model: String,
+    pub summary: Summary,
+    pub frames: Vec<FrameReport>,
+    pub log: Vec<String>,
+}
+
+/// Register every frame of `source`; `on_frame` receives each output (to write overlays).
+pub fn run_register(
+    source: &mut dyn FrameSource,
+    ctx: &RegistrationContext,
+    model: &mut dyn DisplacementModel,
+    initial_world_from_camera: Matrix4<f64>,
+    truth: Option<&GroundTruth>,
+    settings: &RegisterSettings,
+    on_frame: &mut dyn FnMut(&FrameOutput) -> Result<(), String>,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<RegisterReport, crate::rgbd::RgbdError> {
+    let mut reg = Registrar::new(ctx, settings.clone(), initial_world_from_camera);
+    let mut frames = Vec::new();
+    let mut log = Vec::new();
+    let mut skipped = 0;
+    let true_pose = truth.map(|g| g.pose());
+    let rest = truth.map(|g| g.markers_rest_mm.as_slice());
+    let mut n = 0u64;
+    loop {
+        if cancel.is_cancelled() {
+            return Err(crate::rgbd::RgbdError::Cancelled);
+        }
+        let frame = match source.poll(Duration::from_secs(10)) {
+            Poll::Frame(f) => f,
+            Poll::Pending => {
+                log.push("no frame for 10 s: stopping".into());
+                break;
+            }
+            Poll::Ended(reason) => {
+                if let Some(r) = reason {
+                    log.push(format!("the source ended: {r}"));
+                }
+                break;
+            }
+        };
+        log.extend(source.take_log());
+        n += 1;
+        progress.report(n, 0, &format!("frame {}", frame.index));
+        let gt = truth.and_then(|g| g.markers_mm.get(frame.index)).map(|v| v.as_slice());
+        match reg.process(&frame, model, gt, rest, true_pose.as_ref()) {
+            Ok(out) => {
+                on_frame(&out).map_err(crate::rgbd::RgbdError::Stream)?;
+                frames.push(out.report);
+            }
+            Err(e) => {
+                skipped += 1;
+                log.push(format!("frame {} skipped: {e}", frame.index));
+            }
+        }
+    }
+    log.extend(source.take_log());
+    skipped += source.dropped() as usize;
+    Ok(RegisterReport { model: model.name(), summary: summarize(&frames, skipped), frames, log })
+}

@@ -1,0 +1,295 @@
+//! Frame sources: recordings and live streams behind one trait.
+//!
+//! # TCP stream protocol (version 1)
+//!
+//! A camera bridge serves frames on a TCP port; umesh connects and reads. Each frame:
+//!
+//! ```text
+//! magic        8 bytes  "UMRGBD01"
+//! header_len   u32, little endian, at most 65536
+//! header       header_len bytes of UTF-8 JSON:
+//!              {"width": 640, "height": 480, "fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5,
+//!               "timestamp_s": 12.345, "depth_scale": 1000.0, "color": true}
+//! depth        width * height u16, little endian, `depth_scale` units per metre, 0 = no data
+//! color        width * height * 3 u8 RGB, only when "color" is true
+//! ```
+//!
+//! A reader thread keeps only the newest complete frame: frames the consumer is too slow
+//! for are dropped (and counted), never queued. A stream that stops mid-frame, or sends
+//! nothing for `stall_timeout`, ends with an error message instead of stalling the pipeline.
+
+use super::recording::Recording;
+use super::{ColorImage, DepthImage, Frame, Intrinsics, MAX_PIXELS, RgbdError};
+use std::io::{Read, Write};
+use std::net::{TcpStream, ToSocketAddrs};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+
+pub const MAGIC: &[u8; 8] = b"UMRGBD01";
+const MAX_HEADER: u32 = 65536;
+
+/// What a source gives when polled.
+#[derive(Debug)]
+pub enum Poll {
+    Frame(Box<Frame>),
+    /// No new frame yet.
+    Pending,
+    /// The source has ended; with the reason when it ended badly.
+    Ended(Option<String>),
+}
+
+pub trait FrameSource: Send {
+    /// A name for logs and the UI.
+    fn describe(&self) -> String;
+    /// Wait up to `timeout` for the next frame.
+    fn poll(&mut self, timeout: Duration) -> Poll;
+    /// Frames skipped because the consumer was late, or unreadable.
+    fn dropped(&self) -> u64;
+    /// Log lines (unreadable frames and the like) since the last call.
+    fn take_log(&mut self) -> Vec<String> {
+        Vec::new()
+    }
+}
+
+/// A recording played back frame by frame (as fast as polled; pacing is the caller's).
+#[derive(Debug)]
+pub struct RecordingSource {
+    pub recording: Recording,
+    next: usize,
+    dropped: u64,
+    log: Vec<String>,
+}
+
+impl RecordingSource {
+    pub fn new(recording: Recording) -> Self {
+        let log = recording.warnings.clone();
+        Self { recording, next: 0, dropped: 0, log }
+    }
+    pub fn seek(&mut self, frame: usize) {
+        self.next = frame;
+    }
+}
+
+impl FrameSource for RecordingSource {
+    fn describe(&self) -> String {
+        format!("recording {} ({} frames)", self.recording.dir.display(), self.recording.len())
+    }
+    fn poll(&mut self, _timeout: Duration) -> Poll {
+        while self.next < self.recording.len() {
+            let i = self.next;
+            self.next += 1;
+            match self.recording.read_frame(i) {
+                Ok(f) => return Poll::Frame(Box::new(f)),
+                Err(e) => {
+                    self.dropped += 1;
+                    self.log.push(format!("frame {i} skipped: {e}"));
+                }
+            }
+        }
+        Poll::Ended(None)
+    }
+    fn dropped(&self) -> u64 {
+        self.dropped
+    }
+    fn take_log(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.log)
+    }
+}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Header {
+    width: usize,
+    height: usize,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    timestamp_s: f64,
+    depth_scale: f64,
+    color: bool,
+}
+
+/// Write one frame in the stream protocol.
+pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std::io::Result<()> {
+    let k = frame.intrinsics;
+    let h = Header {
+        width: k.width,
+        height: k.height,
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        timestamp_s: frame.timestamp_s,
+        depth_scale,
+        color: frame.color.is_some(),
+    };
+    let header = serde_json::to_vec(&h).map_err(std::io::Error::other)?;
+    let mut buf = Vec::with_capacity(12 + header.len() + k.width * k.height * 5);
+    buf.extend_from_slice(MAGIC);
+    buf.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    buf.extend_from_slice(&header);
+    let s = (depth_scale / 1000.0) as f32;
+    for &d in &frame.depth.depth_mm {
+        buf.extend_from_slice(&((d * s).round().clamp(0.0, 65535.0) as u16).to_le_bytes());
+    }
+    if let Some(c) = &frame.color {
+        buf.extend_from_slice(&c.rgb);
+    }
+    w.write_all(&buf)
+}
+
+/// Read one frame; Ok(None) on a clean end of stream (between frames).
+pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, String> {
+    let mut magic = [0u8; 8];
+    match r.read(&mut magic[..1]) {
+        Ok(0) => return Ok(None),
+        Ok(_) => {}
+        Err(e) => return Err(format!("read: {e}")),
+    }
+    let cut = |e: std::io::Error, what: &str| format!("the stream stopped inside a frame ({what}): {e}");
+    r.read_exact(&mut magic[1..]).map_err(|e| cut(e, "magic"))?;
+    if &magic != MAGIC {
+        return Err(format!("bad magic {magic:?}: not a umesh RGB-D stream (UMRGBD01)"));
+    }
+    let mut len = [0u8; 4];
+    r.read_exact(&mut len).map_err(|e| cut(e, "header length"))?;
+    let len = u32::from_le_bytes(len);
+    if len == 0 || len > MAX_HEADER {
+        return Err(format!("header length {len} outside 1..={MAX_HEADER}"));
+    }
+    let mut header = vec![0u8; len as usize];
+    r.read_exact(&mut header).map_err(|e| cut(e, "header"))?;
+    let h: Header = serde_json::from_slice(&header).map_err(|e| format!("bad frame header: {e}"))?;
+    let k = Intrinsics { width: h.width, height: h.height, fx: h.fx, fy: h.fy, cx: h.cx, cy: h.cy };
+    k.validate().map_err(|e| format!("frame header: {e}"))?;
+    if !(h.depth_scale.is_finite() && h.depth_scale > 0.0) {
+        return Err(format!("frame header: depth_scale {} must be finite and positive", h.depth_scale));
+    }
+    debug_assert!(k.width * k.height <= MAX_PIXELS);
+    let n = k.width * k.height;
+    let mut raw = vec![0u8; 2 * n];
+    r.read_exact(&mut raw).map_err(|e| cut(e, "depth"))?;
+    let to_mm = (1000.0 / h.depth_scale) as f32;
+    let depth_mm = raw.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]]) as f32 * to_mm).collect();
+    let color = if h.color {
+        let mut rgb = vec![0u8; 3 * n];
+        r.read_exact(&mut rgb).map_err(|e| cut(e, "colour"))?;
+        Some(ColorImage { width: k.width, height: k.height, rgb })
+    } else {
+        None
+    };
+    Ok(Some(Frame {
+        index,
+        timestamp_s: h.timestamp_s,
+        intrinsics: k,
+        depth: DepthImage { width: k.width, height: k.height, depth_mm },
+        color,
+        mask: None,
+        world_from_camera: None,
+    }))
+}
+
+#[derive(Default)]
+struct Shared {
+    latest: Option<Frame>,
+    ended: Option<Option<String>>,
+    received: u64,
+    dropped: u64,
+}
+
+/// A live TCP source (see the module docs for the protocol).
+pub struct TcpSource {
+    addr: String,
+    shared: Arc<(Mutex<Shared>, Condvar)>,
+    stream: TcpStream,
+    ended_reported: bool,
+}
+
+impl std::fmt::Debug for TcpSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TcpSource").field("addr", &self.addr).finish()
+    }
+}
+
+impl TcpSource {
+    /// Connect to a bridge at `addr` ("host:port"). A stream silent for `stall_timeout` ends.
+    pub fn connect(addr: &str, stall_timeout: Duration) -> Result<Self, RgbdError> {
+        let sock = addr
+            .to_socket_addrs()
+            .map_err(|e| RgbdError::Stream(format!("{addr}: {e}")))?
+            .next()
+            .ok_or_else(|| RgbdError::Stream(format!("{addr}: no address")))?;
+        let stream = TcpStream::connect_timeout(&sock, Duration::from_secs(5))
+            .map_err(|e| RgbdError::Stream(format!("{addr}: cannot connect: {e}")))?;
+        stream.set_read_timeout(Some(stall_timeout)).map_err(|e| RgbdError::Stream(e.to_string()))?;
+        let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
+        let mut reader = std::io::BufReader::with_capacity(1 << 20, stream.try_clone().map_err(|e| RgbdError::Stream(e.to_string()))?);
+        let sh = shared.clone();
+        std::thread::Builder::new()
+            .name("umesh-tcp-source".into())
+            .spawn(move || {
+                let mut index = 0;
+                loop {
+                    let r = read_frame(&mut reader, index);
+                    let (lock, cv) = &*sh;
+                    let Ok(mut s) = lock.lock() else { return };
+                    match r {
+                        Ok(Some(f)) => {
+                            index += 1;
+                            s.received += 1;
+                            if s.latest.replace(f).is_some() {
+                                s.dropped += 1;
+                            }
+                        }
+                        Ok(None) => s.ended = Some(None),
+                        Err(e) => s.ended = Some(Some(e)),
+                    }
+                    let done = s.ended.is_some();
+                    drop(s);
+                    cv.notify_all();
+                    if done {
+                        return;
+                    }
+                }
+            })
+            .map_err(|e| RgbdError::Stream(e.to_string()))?;
+        Ok(Self { addr: addr.to_string(), shared, stream, ended_reported: false })
+    }
+
+    pub fn received(&self) -> u64 {
+        self.shared.0.lock().map(|s| s.received).unwrap_or(0)
+    }
+}
+
+impl Drop for TcpSource {
+    fn drop(&mut self) {
+        let _ = self.stream.shutdown(std::net::Shutdown::Both);
+    }
+}
+
+impl FrameSource for TcpSource {
+    fn describe(&self) -> String {
+        format!("tcp://{}", self.addr)
+    }
+    fn poll(&mut self, timeout: Duration) -> Poll {
+        let (lock, cv) = &*self.shared;
+        let Ok(guard) = lock.lock() else { return Poll::Ended(Some("reader thread failed".into())) };
+        let Ok((mut s, _)) = cv.wait_timeout_while(guard, timeout, |s| s.latest.is_none() && s.ended.is_none()) else {
+            return Poll::Ended(Some("reader thread failed".into()));
+        };
+        if let Some(f) = s.latest.take() {
+            return Poll::Frame(Box::new(f));
+        }
+        match &s.ended {
+            Some(reason) if !self.ended_reported => {
+                self.ended_reported = true;
+                Poll::Ended(reason.clone())
+            }
+            Some(_) => Poll::Ended(None),
+            None => Poll::Pending,
+        }
+    }
+    fn dropped(&self) -> u64 {
+        self.shared.0.lock().map(|s| s.dropped).unwrap_or(0)
+    }
+}

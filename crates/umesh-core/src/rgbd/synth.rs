@@ -1,0 +1,242 @@
+//! Synthetic RGB-D recordings with ground truth: the organ pressed by random probes with a
+//! load that ramps up over the sequence (SVK solves), seen by a virtual depth camera with
+//! noise and holes, plus the true positions of virtual markers.
+
+use super::recording::{RecordingMeta, write_frame, write_trajectory_log};
+use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse};
+use crate::dataset::{DatasetConfig, DatasetContext};
+use crate::fem::BoundaryConditions;
+use crate::fem::solver::{FeSolver, SolveMethod};
+use crate::loads::{apply_forces, deform_mesh};
+use crate::phantom::SplitMix64;
+use crate::progress::{Cancel, Progress};
+use crate::register::overlay::rasterize;
+use crate::register::pipeline::GroundTruth;
+use crate::register::{RegistrationContext, virtual_markers};
+use crate::segmentation::Segmentation;
+use crate::visible::Camera;
+use nalgebra::{Matrix4, Vector3};
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SynthSettings {
+    pub frames: usize,
+    pub fps: f64,
+    pub width: usize,
+    pub height: usize,
+    pub focal_px: f64,
+    /// Standard deviation of the depth noise (mm).
+    pub noise_mm: f64,
+    /// Holes (no depth) per frame, discs of `hole_radius_px`.
+    pub holes: usize,
+    pub hole_radius_px: f64,
+    /// Markers inside the organ (as many again on the internal structures).
+    pub markers: usize,
+    pub seed: u64,
+    /// Scale of the final load relative to the dataset's random forces.
+    pub load_scale: f64,
+}
+
+impl Default for SynthSettings {
+    fn default() -> Self {
+        Self {
+            frames: 20,
+            fps: 20.0,
+            width: 640,
+            height: 480,
+            focal_px: 525.0,
+            noise_mm: 1.0,
+            holes: 6,
+            hole_radius_px: 10.0,
+            markers: 10,
+            seed: 7,
+            load_scale: 1.0,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct SynthReport {
+    pub out: PathBuf,
+    pub frames: usize,
+    pub markers: usize,
+    pub max_marker_displacement_mm: f64,
+    pub mean_marker_displacement_mm: f64,
+    pub solve_ms_total: f64,
+}
+
+/// world_from_camera (OpenCV axes: x right, y down, z forward) of a look-at camera.
+pub fn camera_pose(c: &Camera) -> Matrix4<f64> {
+    let f = Vector3::from(c.direction).normalize();
+    let up0 = if f.z.abs() < 0.9 { Vector3::z() } else { Vector3::y() };
+    let r = f.cross(&up0).normalize();
+    let u = r.cross(&f);
+    let mut m = Matrix4::identity();
+    m.fixed_view_mut::<3, 1>(0, 0).copy_from(&r);
+    m.fixed_view_mut::<3, 1>(0, 1).copy_from(&(-u));
+    m.fixed_view_mut::<3, 1>(0, 2).copy_from(&f);
+    m.fixed_view_mut::<3, 1>(0, 3).copy_from(&Vector3::from(c.position_mm));
+    m
+}
+
+fn gaussian(rng: &mut SplitMix64) -> f64 {
+    let u1 = rng.next_f64().max(1e-12);
+    let u2 = rng.next_f64();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// Render depth (mm), colour and the organ mask of `mesh` from `world_from_camera`.
+pub fn render_frame(
+    mesh: &crate::mesh::TriMesh,
+    world_from_camera: &Matrix4<f64>,
+    k: &Intrinsics,
+    s: &SynthSettings,
+    rng: &mut SplitMix64,
+) -> (DepthImage, ColorImage, Vec<bool>) {
+    let n = k.width * k.height;
+    let cam = rigid_inverse(world_from_camera);
+    let mut z = vec![f32::INFINITY; n];
+    let mut shade = vec![0f32; n];
+    rasterize(mesh, &cam, k, &mut z, |i, _, nrm| shade[i] = nrm.z.abs() as f32);
+    let mask: Vec<bool> = z.iter().map(|d| d.is_finite()).collect();
+    let far = z.iter().copied().filter(|d| d.is_finite()).fold(0.0f32, f32::max) + 40.0;
+    let mut depth = vec![0f32; n];
+    let mut color = ColorImage::new(k.width, k.height, [0, 0, 0]);
+    for i in 0..n {
+        let tex = (rng.next_f64() * 12.0) as f32;
+        let (d, rgb) = if mask[i] {
+            let l = 0.3 + 0.7 * shade[i];
+            (z[i], [(150.0 * l + tex) as u8, (60.0 * l + tex * 0.5) as u8, (50.0 * l + tex * 0.5) as u8])
+        } else {
+            // A green drape behind the organ.
+            (far, [(35.0 + tex) as u8, (85.0 + tex) as u8, (70.0 + tex) as u8])
+        };
+        depth[i] = (d as f64 + s.noise_mm * gaussian(rng)).max(0.0) as f32;
+        color.rgb[3 * i..3 * i + 3].copy_from_slice(&rgb);
+    }
+    for _ in 0..s.holes {
+        let (cu, cv) = (rng.next_f64() * k.width as f64, rng.next_f64() * k.height as f64);
+        let r = s.hole_radius_px * (0.5 + rng.next_f64());
+        let (u0, u1) = ((cu - r).max(0.0) as usize, ((cu + r) as usize).min(k.width - 1));
+        let (v0, v1) = ((cv - r).max(0.0) as usize, ((cv + r) as usize).min(k.height - 1));
+        for v in v0..=v1 {
+            for u in u0..=u1 {
+                if (u as f64 - cu).powi(2) + (v as f64 - cv).powi(2) <= r * r {
+                    depth[v * k.width + u] = 0.0;
+                }
+            }
+        }
+    }
+    (DepthImage { width: k.width, height: k.height, depth_mm: depth }, color, mask)
+}
+
+/// Write a synthetic recording of `seg` to `out`.
+pub fn run_rgbd_synth(
+    seg: &Segmentation,
+    config: &DatasetConfig,
+    settings: &SynthSettings,
+    out: &Path,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<SynthReport, RgbdError> {
+    let bad = |r: String| super::invalid(out, r);
+    if settings.frames == 0 || settings.frames > 100_000 {
+        return Err(bad(format!("{} frames: between 1 and 100000", settings.frames)));
+    }
+    let k = Intrinsics {
+        width: settings.width,
+        height: settings.height,
+        fx: settings.focal_px,
+        fy: settings.focal_px,
+        cx: (settings.width as f64 - 1.0) / 2.0,
+        cy: (settings.height as f64 - 1.0) / 2.0,
+    };
+    k.validate().map_err(bad)?;
+    progress.report(0, settings.frames as u64, "preparing the grid");
+    let ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
+    let forces = ctx.sample_forces(config, 10_000_000 + settings.seed as usize);
+    let pose = camera_pose(&ctx.visible.camera);
+    let grid_ref = &ctx.grid;
+    let mut full = BoundaryConditions::new(grid_ref.node_count());
+    full.fixed = ctx.fixed.clone();
+    apply_forces(grid_ref, &mut full, &forces).map_err(bad)?;
+    let rest_surface = ctx.surface.clone();
+    let fixed = ctx.fixed.clone();
+    let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;
+    let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
+    let grid = &reg.grid;
+    let mut solver = FeSolver::new(grid, config.material, &fixed, config.solver.clone()).map_err(|e| bad(e.to_string()))?;
+    let mut rng = SplitMix64(settings.seed);
+    let mut truth = GroundTruth {
+        world_from_camera: pose.transpose().as_slice().try_into().unwrap_or([0.0; 16]),
+        markers_rest_mm: markers.iter().map(|m| [m.x, m.y, m.z]).collect(),
+        markers_mm: Vec::new(),
+    };
+    let mut solve_ms = 0.0;
+    let mut disp = Vec::new();
+    for f in 0..settings.frames {
+        if cancel.is_cancelled() {
+            return Err(RgbdError::Cancelled);
+        }
+        progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
+        let ramp = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
+        let mut bc = full.clone();
+        for v in &mut bc.forces_n {
+            *v *= ramp * settings.load_scale;
+        }
+        let u: Vec<Vector3<f64>> = if ramp == 0.0 {
+            vec![Vector3::zeros(); grid.node_count()]
+        } else {
+            let t = std::time::Instant::now();
+            let sol = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(|e| bad(format!("frame {f}: {e}")))?;
+            solve_ms += t.elapsed().as_secs_f64() * 1e3;
+            sol.displacement_mm
+        };
+        let surface = deform_mesh(grid, &rest_surface, &u);
+        let (depth, color, mask) = render_frame(&surface, &pose, &k, settings, &mut rng);
+        let m: Vec<[f64; 3]> = markers
+            .iter()
+            .map(|p| {
+                let d: Vector3<f64> =
+                    grid.embed(p).map(|e| e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum()).unwrap_or_default();
+                disp.push(d.norm());
+                [p.x + d.x, p.y + d.y, p.z + d.z]
+            })
+            .collect();
+        truth.markers_mm.push(m);
+        let frame = Frame {
+            index: f,
+            timestamp_s: f as f64 / settings.fps,
+            intrinsics: k,
+            depth,
+            color: Some(color),
+            mask: Some(mask),
+            world_from_camera: Some(pose),
+        };
+        write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
+    }
+    let io = |p: PathBuf| move |e: std::io::Error| RgbdError::Io { path: p, source: e };
+    let w = |name: &str, text: String| -> Result<(), RgbdError> {
+        let p = out.join(name);
+        crate::write_atomic(&p, text.as_bytes()).map_err(io(p.clone()))
+    };
+    w("intrinsics.json", k.to_open3d_json())?;
+    w("recording.json", json(&RecordingMeta { depth_scale: 1000.0, fps: settings.fps }))?;
+    w("trajectory.log", write_trajectory_log(&vec![pose; settings.frames]))?;
+    w("ground_truth.json", json(&truth))?;
+    w("synth.json", json(settings))?;
+    progress.report(settings.frames as u64, settings.frames as u64, "done");
+    let last = &disp[disp.len() - markers.len()..];
+    Ok(SynthReport {
+        out: out.to_path_buf(),
+        frames: settings.frames,
+        markers: markers.len(),
+        max_marker_displacement_mm: disp.iter().copied().fold(0.0, f64::max),
+        mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
+        solve_ms_total: solve_ms,
+    })
+}
+
+fn json<T: serde::Serialize>(v: &T) -> String {
+    serde_json::to_string_pretty(v).unwrap_or_default()
+}

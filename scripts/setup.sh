@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Installs what a fresh Debian machine with Rust 1.95 lacks for umesh. Idempotent.
-# Today: numpy for the NPZ interop test. The GUI's packages (EGL/Mesa for headless
-# screenshots) will be installed here too.
+# numpy for the NPZ interop test; Mesa's EGL and GL drivers for the headless screenshots
+# (wgpu's GL backend on llvmpipe, surfaceless: no X server, no GPU needed).
 set -euo pipefail
 need=()
-for p in ca-certificates pkg-config; do
+for p in ca-certificates pkg-config libegl1 libegl-mesa0 libgl1-mesa-dri; do
   dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then

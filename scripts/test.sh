@@ -5,4 +5,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/umesh-target}"
+# Headless screenshots render through EGL (Mesa llvmpipe) unless told otherwise.
+export WGPU_BACKEND="${WGPU_BACKEND:-gl}"
 exec cargo test --release --workspace "$@"

@@ -1,8 +1,6 @@
 //! umesh: physics-based deep network for augmented reality in liver surgery.
-//! The binary is a thin shell: each command lives in `cli/`.
-
-mod cli;
+//! The binary is a thin shell: commands live in `cli/`, the desktop app in `app/`.
 
 fn main() -> std::process::ExitCode {
-    cli::main()
+    umesh::cli::main()
 }

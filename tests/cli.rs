@@ -28,6 +28,11 @@ fn every_command_has_help() {
         vec!["surface", "--help"],
         vec!["simulate", "--help"],
         vec!["bench", "--help"],
+        vec!["rgbd", "synth", "--help"],
+        vec!["rgbd", "serve", "--help"],
+        vec!["register", "--help"],
+        vec!["screenshot", "--help"],
+        vec!["gui", "--help"],
     ] {
         let (ok, out, _) = umesh(&cmd);
         assert!(ok && out.contains("Usage"), "{cmd:?}");
@@ -277,4 +282,42 @@ print("ok", a)
     let out = Command::new("python3").args(["-c", script, dir.to_str().unwrap()]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stdout).starts_with("ok"));
+}
+
+#[test]
+fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
+    let rec = tmp("synth-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let (ok, out, err) = umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--json", "--out", rec.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let s = json(&out);
+    assert_eq!(s["frames"], 4);
+    for f in
+        ["intrinsics.json", "recording.json", "trajectory.log", "ground_truth.json", "depth/00003.png", "color/00003.png", "mask/00003.png"]
+    {
+        assert!(rec.join(f).exists(), "{f}");
+    }
+    let reg = tmp("synth-reg");
+    let (ok, out, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    let r = json(&out);
+    assert_eq!(r["frames"], 4, "{r}");
+    for k in ["frame_ms_median", "frame_ms_p95", "tre_mean_mm", "tre_max_mm"] {
+        assert!(r[k].as_f64().is_some_and(|v| v.is_finite() && v >= 0.0), "{k}: {r}");
+    }
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
+    let frames = report["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 4);
+    for f in frames {
+        assert!(f["tre_mean_mm"].as_f64().is_some(), "TRE per frame: {f}");
+    }
+    // Threshold: the paper's ex vivo TRE (2.92 mm) on 1 mm depth noise.
+    let tre = r["tre_mean_mm"].as_f64().unwrap();
+    eprintln!("synthetic registration: {r}");
+    assert!(tre < 2.92, "TRE {tre} mm");
+    assert!(reg.join("overlay/00003.png").exists());
+    // A recording without intrinsics: one clear error naming the folder.
+    std::fs::remove_file(rec.join("intrinsics.json")).unwrap();
+    let (ok, _, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap()]);
+    assert!(!ok && err.contains("no intrinsics") && err.contains("synth-rec"), "{err}");
 }

@@ -16,7 +16,7 @@ use umesh_core::{Cancel, Progress};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// What to measure: grid or fe.
+    /// What to measure: grid, fe, dataset, net or ui (frame time while an SVK solve runs).
     pub what: String,
     /// Repetitions (grid) or load cases (fe); medians are reported.
     #[arg(long, default_value_t = 5)]
@@ -48,7 +48,8 @@ pub fn run(a: Args) -> Result<()> {
         "fe" => bench_fe(repeat)?,
         "dataset" => bench_dataset(a.samples)?,
         "net" => bench_net(repeat.max(20))?,
-        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net)"),
+        "ui" => bench_ui()?,
+        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui)"),
     };
     if a.json {
         super::print_json(&value);
@@ -243,4 +244,17 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
     out.insert("threads".into(), serde_json::json!(rayon::current_num_threads()));
     out.insert("peak_memory_mb".into(), serde_json::json!(peak_memory_mb()));
     Ok(serde_json::Value::Object(out))
+}
+
+/// The app's frame time (offscreen, 1280x800, egui panels) while an SVK solve runs in the
+/// background.
+fn bench_ui() -> Result<serde_json::Value> {
+    let (mut t, solve_ms) = crate::app::screenshot::frame_times_during_solve(1280, 800).map_err(anyhow::Error::msg)?;
+    anyhow::ensure!(!t.is_empty(), "the solve finished before the first frame");
+    t.sort_by(f64::total_cmp);
+    let p95 = t[((t.len() - 1) as f64 * 0.95).round() as usize];
+    Ok(serde_json::json!({
+        "frames": t.len(), "frame_ms_median": t[t.len() / 2], "frame_ms_p95": p95, "frame_ms_max": t[t.len() - 1],
+        "solve_ms": solve_ms, "backend": std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "default".into()),
+    }))
 }

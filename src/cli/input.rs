@@ -52,3 +52,20 @@ impl InputArgs {
         Ok(segmentation::load_nifti(path, &organ, &self.structure_labels, &ReadOptions { max_voxels: self.max_voxels })?)
     }
 }
+
+/// The bundled model folder: `assets/model` under the working directory, else beside the
+/// sources this binary was built from.
+pub fn bundled_model() -> PathBuf {
+    let local = PathBuf::from("assets/model");
+    if local.join("model.json").is_file() {
+        return local;
+    }
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/model")
+}
+
+/// The dataset configuration of a model (its grid, loads and camera), or the paper's
+/// default for `seg` when the model predates that record.
+pub fn model_dataset_config(info: Option<&umesh_net::ModelInfo>, seg: &Segmentation) -> umesh_core::dataset::DatasetConfig {
+    info.and_then(|i| i.dataset_config.clone())
+        .unwrap_or_else(|| umesh_core::dataset::DatasetConfig::paper(super::dataset::default_fixed(seg, None, 6.0)))
+}

@@ -1,11 +1,15 @@
 //! Command-line interface: one file per command; all of them call umesh-core's `run_*`.
 
-mod bench;
-mod dataset;
+pub mod bench;
+pub mod dataset;
 mod demo;
 mod grid;
-mod input;
+mod gui;
+pub mod input;
 mod phantom;
+mod register;
+mod rgbd;
+mod screenshot;
 mod simulate;
 mod surface;
 mod train;
@@ -17,7 +21,7 @@ use std::process::ExitCode;
 #[command(
     name = "umesh",
     version,
-    about = "Physics-based deep network for augmented reality in liver surgery (U-Mesh).\n\nWith no command: run the demo pipeline on the bundled phantom."
+    about = "Physics-based deep network for augmented reality in liver surgery (U-Mesh).\n\nWith no command: open the app on the bundled phantom (or, with no display, run the demo pipeline)."
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -26,6 +30,10 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Open the desktop app.
+    Gui(gui::Args),
+    /// Render a named app scene headless to PNG (no window; EGL or Vulkan).
+    Screenshot(screenshot::Args),
     /// Run the pipeline on the bundled phantom: grid, surfaces, one SVK simulation.
     Demo(demo::Args),
     /// Write the procedural liver phantom (NIfTI label volume).
@@ -44,11 +52,18 @@ enum Command {
     Eval(train::EvalArgs),
     /// Benchmarks: grid construction, FE solves, dataset generation.
     Bench(bench::Args),
+    /// RGB-D recordings: synthetic ones with ground truth; serve one over TCP.
+    Rgbd(rgbd::Args),
+    /// Register RGB-D frames: overlays of the deformed internal structures, latency, TRE.
+    Register(Box<register::Args>),
 }
 
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
-    let result = match cli.command.unwrap_or(Command::Demo(demo::Args::default())) {
+    let default = if gui::has_display() { Command::Gui(gui::Args::default()) } else { Command::Demo(demo::Args::default()) };
+    let result = match cli.command.unwrap_or(default) {
+        Command::Gui(a) => gui::run(a),
+        Command::Screenshot(a) => screenshot::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Phantom(a) => phantom::run(a),
         Command::Grid(a) => grid::run(a),
@@ -58,6 +73,8 @@ pub fn main() -> ExitCode {
         Command::Train(a) => train::run(*a),
         Command::Eval(a) => train::eval(a),
         Command::Bench(a) => bench::run(a),
+        Command::Rgbd(a) => rgbd::run(a),
+        Command::Register(a) => register::run(*a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -209,3 +209,48 @@ impl TriMesh {
         Some(Mask { dims, data, world_from_voxel })
     }
 }
+
+/// Where a ray meets a mesh.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayHit {
+    /// Distance along the (unit) ray direction (mm).
+    pub distance_mm: f64,
+    pub triangle: usize,
+    pub point: Vector3<f64>,
+    /// Unit normal of the hit triangle (outward for outward-oriented meshes).
+    pub normal: Vector3<f64>,
+}
+
+impl TriMesh {
+    /// The nearest intersection of the ray `origin + t * direction` (t > 0) with the mesh
+    /// (Moller-Trumbore, both faces), e.g. to place a force probe under the mouse.
+    pub fn ray_cast(&self, origin: &Vector3<f64>, direction: &Vector3<f64>) -> Option<RayHit> {
+        let d = direction.try_normalize(1e-12)?;
+        let mut best: Option<RayHit> = None;
+        for (ti, t) in self.triangles.iter().enumerate() {
+            let [a, b, c] = t.map(|i| self.positions[i as usize]);
+            let (e1, e2) = (b - a, c - a);
+            let p = d.cross(&e2);
+            let det = e1.dot(&p);
+            if det.abs() < 1e-12 {
+                continue;
+            }
+            let inv = 1.0 / det;
+            let s = origin - a;
+            let u = s.dot(&p) * inv;
+            if !(0.0..=1.0).contains(&u) {
+                continue;
+            }
+            let q = s.cross(&e1);
+            let v = d.dot(&q) * inv;
+            if v < 0.0 || u + v > 1.0 {
+                continue;
+            }
+            let dist = e2.dot(&q) * inv;
+            if dist > 1e-9 && best.is_none_or(|h| dist < h.distance_mm) {
+                best = Some(RayHit { distance_mm: dist, triangle: ti, point: origin + d * dist, normal: e1.cross(&e2).normalize() });
+            }
+        }
+        best
+    }
+}

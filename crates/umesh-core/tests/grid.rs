@@ -215,3 +215,29 @@ fn grid_build_is_cancellable_and_rejects_bad_settings() {
         Err(grid::GridError::EmptyMask)
     ));
 }
+
+#[test]
+fn ray_cast_finds_the_nearest_surface_point_of_a_sphere() {
+    // A sphere of radius 40 mm from the marching-tetrahedra surface of a voxel ball.
+    let mut w = Matrix4::new_scaling(2.0);
+    w[(3, 3)] = 1.0;
+    let c = Vector3::new(60.0, 60.0, 60.0);
+    let mut data = Vec::with_capacity(61 * 61 * 61);
+    for k in 0..61 {
+        for j in 0..61 {
+            for i in 0..61 {
+                data.push((Vector3::new(i as f64, j as f64, k as f64) * 2.0 - c).norm() <= 40.0);
+            }
+        }
+    }
+    let mask = Mask { dims: [61, 61, 61], data, world_from_voxel: w };
+    let s = extract_surface(&mask, &SurfaceSettings::default());
+    for dir in [Vector3::new(1.0, 0.0, 0.0), Vector3::new(-0.3, 0.5, 0.8)] {
+        let origin = c - dir.normalize() * 200.0;
+        let hit = s.ray_cast(&origin, &dir).expect("the ray hits the sphere");
+        // The nearest hit is the near side: 200 - 40 mm away, within the surface's accuracy.
+        assert!((hit.distance_mm - 160.0).abs() < 1.5, "{}", hit.distance_mm);
+        assert!(hit.normal.dot(&dir.normalize()) < -0.9, "outward normal faces the ray");
+    }
+    assert!(s.ray_cast(&(c + Vector3::new(0.0, 0.0, 100.0)), &Vector3::z()).is_none(), "a ray pointing away misses");
+}

@@ -59,3 +59,16 @@ impl Predictor {
         Ok(&self.output)
     }
 }
+
+impl umesh_core::register::pipeline::DisplacementModel for Predictor {
+    fn name(&self) -> String {
+        format!("U-Net ({} steps, {} channels)", self.info.config.steps, self.info.config.channels)
+    }
+    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
+        let shape = self.info.padded_shape;
+        let y = Predictor::predict(self, u_s, shape).map_err(|e| e.to_string())?;
+        out.clear();
+        out.extend_from_slice(y);
+        Ok(())
+    }
+}

@@ -37,9 +37,32 @@ pub struct ModelInfo {
     pub train_indices: Vec<usize>,
     pub val_indices: Vec<usize>,
     pub settings: training::TrainSettings,
+    /// Hash of the dataset's `grid.npz` (copied beside the weights): a model only fits its grid.
+    #[serde(default)]
+    pub grid_hash: Option<String>,
+    /// The dataset's configuration (grid, loads, visibility), so that registration rebuilds
+    /// the same grid and visible nodes from the segmentation.
+    #[serde(default)]
+    pub dataset_config: Option<umesh_core::dataset::DatasetConfig>,
 }
 
 impl ModelInfo {
+    /// Refuse a grid this model was not trained on.
+    pub fn check_grid(&self, grid_hash: &str, padded_shape: [usize; 3]) -> Result<(), NetError> {
+        if padded_shape != self.padded_shape {
+            return Err(NetError::Invalid(format!(
+                "the model was trained on a {:?} grid, this one is {padded_shape:?}",
+                self.padded_shape
+            )));
+        }
+        match &self.grid_hash {
+            Some(h) if h != grid_hash => Err(NetError::Invalid(format!(
+                "the model was trained on another grid (grid hash {h}, this grid {grid_hash}): generate a dataset and train for it"
+            ))),
+            _ => Ok(()),
+        }
+    }
+
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("model.json");
         let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;

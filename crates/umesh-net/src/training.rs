@@ -126,6 +126,12 @@ pub fn run_train(
         }
     }
     let markers = tre::markers(&set.grid, settings.markers, settings.seed ^ 0x5EED);
+    // The grid travels with the model: registration needs its visible nodes and surface.
+    let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
+    let grid_src = dataset.join("grid.npz");
+    if let Ok(bytes) = std::fs::read(&grid_src) {
+        umesh_core::write_atomic(&out.join("grid.npz"), &bytes).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    }
     let info = ModelInfo {
         config: cfg.clone(),
         normalization: norm,
@@ -134,6 +140,8 @@ pub fn run_train(
         train_indices: train.iter().map(|&k| set.indices[k]).collect(),
         val_indices: val.iter().map(|&k| set.indices[k]).collect(),
         settings: settings.clone(),
+        grid_hash: manifest.as_ref().map(|m| m.grid_hash.clone()),
+        dataset_config: manifest.map(|m| m.config),
     };
     info.write(out)?;
     let mut optim = AdamConfig::new().init();

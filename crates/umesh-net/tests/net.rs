@@ -58,6 +58,8 @@ fn info_for(config: UNetConfig, padded_shape: [usize; 3]) -> ModelInfo {
         train_indices: vec![],
         val_indices: vec![],
         settings: TrainSettings { model: config, ..Default::default() },
+        grid_hash: None,
+        dataset_config: None,
     }
 }
 
@@ -174,10 +176,17 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     assert_eq!(r.epochs.len(), 2);
     assert_eq!(r.train_samples + r.val_samples, 10);
     assert!(r.epochs.iter().all(|e| e.train_loss.is_finite() && e.val_tre_mean_mm.is_finite()));
-    for f in ["model.json", "model.safetensors", "last.safetensors", "metrics.jsonl"] {
+    for f in ["model.json", "model.safetensors", "last.safetensors", "metrics.jsonl", "grid.npz"] {
         assert!(out.join(f).exists(), "{f}");
     }
     let info = ModelInfo::read(&out).unwrap();
+    // The model knows its grid and refuses another.
+    let manifest = umesh_core::dataset::Manifest::read(&ds).unwrap();
+    assert_eq!(info.grid_hash.as_deref(), Some(manifest.grid_hash.as_str()));
+    assert_eq!(info.dataset_config.as_ref(), Some(&c));
+    assert!(info.check_grid(&manifest.grid_hash, manifest.padded_shape).is_ok());
+    let e = info.check_grid("0123", manifest.padded_shape).unwrap_err().to_string();
+    assert!(e.contains("another grid"), "{e}");
     assert!(info.val_indices.iter().all(|i| i % 5 == 4));
     let ev = umesh_net::eval::run_eval(&out, &ds, 10).unwrap();
     assert_eq!(ev.samples, r.val_samples);

@@ -1,0 +1,326 @@
+//! Background work: every heavy computation runs as a task on bevy's async compute pool,
+//! polled each frame (bevy's `async_tasks` pattern), with progress and cancellation.
+
+use super::state::*;
+use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
+use nalgebra::Vector3;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+use umesh_core::fem::solver::SolveMethod;
+use umesh_core::grid::ImmersedGrid;
+use umesh_core::loads::{PointForce, deform_mesh};
+use umesh_core::simulate::{SimulationSettings, run_simulate};
+use umesh_core::surface::{SurfaceSettings, extract_surface};
+use umesh_core::{Cancel, Progress};
+
+pub enum JobOutput {
+    Loaded(OrganData),
+    /// The grid and the voxel volume of the organ mask it approximates (mm^3).
+    Grid(Arc<ImmersedGrid>, f64),
+    /// Labels of a NIfTI file, to choose from before loading: (value, name, voxels).
+    Inspected(std::path::PathBuf, Vec<(i64, String, usize)>),
+    Simulated(Deformation),
+    /// An FE check of a rehearsal prediction: the FE result and the surface difference.
+    Checked {
+        fe: Deformation,
+        mean_mm: f64,
+        max_mm: f64,
+    },
+    /// A network ready for rehearsal.
+    Model(Arc<Mutex<super::probes::RehearsalModel>>),
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct JobProgress {
+    pub done: u64,
+    pub total: u64,
+    pub message: String,
+}
+
+pub struct Job {
+    pub id: u64,
+    pub label: String,
+    pub progress: Arc<Mutex<JobProgress>>,
+    pub cancel: Cancel,
+    pub started: Instant,
+    task: Task<Result<JobOutput, String>>,
+}
+
+#[derive(Resource, Default)]
+pub struct Jobs {
+    pub running: Vec<Job>,
+    next_id: u64,
+    /// Finished jobs: (label, outcome, seconds).
+    pub finished: Vec<(String, String, f64)>,
+}
+
+impl Jobs {
+    /// Start `work` in the background; it receives a progress sink and a cancel flag.
+    pub fn spawn(
+        &mut self,
+        label: impl Into<String>,
+        work: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static,
+    ) -> u64 {
+        let progress = Arc::new(Mutex::new(JobProgress::default()));
+        let cancel = Cancel::new();
+        let (p2, c2) = (progress.clone(), cancel.clone());
+        let task = AsyncComputeTaskPool::get().spawn(async move {
+            let sink = Progress::new(move |done, total, msg| {
+                if let Ok(mut p) = p2.lock() {
+                    *p = JobProgress { done, total, message: msg.to_string() };
+                }
+            });
+            work(&sink, &c2)
+        });
+        self.next_id += 1;
+        self.running.push(Job { id: self.next_id, label: label.into(), progress, cancel, started: Instant::now(), task });
+        self.next_id
+    }
+
+    pub fn cancel(&self, id: u64) {
+        if let Some(j) = self.running.iter().find(|j| j.id == id) {
+            j.cancel.cancel();
+        }
+    }
+
+    pub fn is_running(&self, label_prefix: &str) -> bool {
+        self.running.iter().any(|j| j.label.starts_with(label_prefix))
+    }
+}
+
+/// Poll the tasks; apply finished results to the app state.
+pub fn poll_jobs(
+    mut jobs: ResMut<Jobs>,
+    mut organ: ResMut<Organ>,
+    mut grid: ResMut<GridState>,
+    mut sim: ResMut<Simulation>,
+    mut probes: ResMut<Probes>,
+    mut messages: ResMut<UiMessages>,
+    mut pending: ResMut<PendingOpenRes>,
+    mut rehearsal: ResMut<super::probes::Rehearsal>,
+) {
+    let mut i = 0;
+    while i < jobs.running.len() {
+        let Some(result) = check_ready(&mut jobs.running[i].task) else {
+            i += 1;
+            continue;
+        };
+        let job = jobs.running.remove(i);
+        let secs = job.started.elapsed().as_secs_f64();
+        let outcome = match result {
+            Ok(JobOutput::Loaded(data)) => {
+                let msg = format!("loaded {} ({} structures)", data.source, data.structures.len());
+                organ.set(data);
+                grid.grid = None;
+                grid.stats = None;
+                probes.list.clear();
+                probes.generation += 1;
+                sim.clear();
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Model(m)) => {
+                rehearsal.model = Some(m);
+                rehearsal.enabled = true;
+                rehearsal.shown_generation = u64::MAX;
+                let msg = "model loaded: rehearsal on (drag the probes)".to_string();
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Inspected(path, labels)) => {
+                let msg = format!("{}: {} labels", path.display(), labels.len());
+                pending.0 = Some(PendingOpen::new(path, labels));
+                msg
+            }
+            Ok(JobOutput::Grid(g, voxel_volume)) => {
+                let s = g.stats();
+                let msg = format!("grid: {} cells, {} nodes, padded {:?}", s.cells, s.nodes, s.padded_shape);
+                grid.voxel_volume_mm3 = voxel_volume;
+                grid.stats = Some(s);
+                grid.grid = Some(g);
+                grid.generation += 1;
+                sim.clear();
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Simulated(d)) => {
+                let msg = format!("{}: max displacement {:.1} mm in {:.0} ms", d.source, d.max_mm, d.solve_ms);
+                sim.set(d);
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Checked { fe, mean_mm, max_mm }) => {
+                let msg = format!("FE check: U-Net vs SVK surface difference {mean_mm:.2} mm mean, {max_mm:.2} mm max");
+                let _ = fe;
+                sim.check = Some((mean_mm, max_mm));
+                messages.info(msg.clone());
+                msg
+            }
+            Err(e) if job.cancel.is_cancelled() => {
+                let msg = format!("{} cancelled", job.label);
+                let _ = e;
+                messages.info(msg.clone());
+                msg
+            }
+            Err(e) => {
+                let msg = format!("{} failed: {e}", job.label);
+                messages.error(msg.clone());
+                msg
+            }
+        };
+        jobs.finished.push((job.label, outcome, secs));
+    }
+}
+
+/// Load a segmentation (or the bundled phantom) and extract its surfaces.
+pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, cancel| {
+        progress.report(0, 3, "reading");
+        let input = crate::cli::input::InputArgs {
+            seg: req.path.clone(),
+            organ_labels: req.organ_labels.clone(),
+            structure_labels: req.structure_labels.clone(),
+            structure_meshes: Vec::new(),
+            mesh_scale_mm: 1.0,
+            mesh_voxel_mm: 1.0,
+            max_voxels: umesh_core::nifti_io::DEFAULT_MAX_VOXELS,
+        };
+        let seg = input.load().map_err(|e| format!("{e:#}"))?;
+        if cancel.is_cancelled() {
+            return Err("cancelled".into());
+        }
+        progress.report(1, 3, "organ surface");
+        let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 1, ..Default::default() });
+        if surface.triangles.is_empty() {
+            return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
+        }
+        progress.report(2, 3, "structures");
+        let mut structures = Vec::new();
+        for (i, &label) in seg.structure_labels.iter().enumerate() {
+            let mask = seg.volume.mask(&[label]);
+            if mask.count() == 0 {
+                continue;
+            }
+            let mesh = extract_surface(&mask, &SurfaceSettings { sigma_voxels: 0.8, step: 1, smooth_iterations: 10 });
+            let name = seg.label_name(label);
+            structures.push(StructureMesh { label, color: umesh_core::register::structure_color(&name, i), name, mesh: Arc::new(mesh) });
+        }
+        let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
+        Ok(JobOutput::Loaded(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source }))
+    }
+}
+
+pub fn grid_job(
+    seg: Arc<umesh_core::segmentation::Segmentation>,
+    settings: umesh_core::grid::GridSettings,
+) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, cancel| {
+        let mask = seg.organ_mask();
+        let g = ImmersedGrid::from_mask(&mask, &settings, progress, cancel).map_err(|e| e.to_string())?;
+        Ok(JobOutput::Grid(Arc::new(g), mask.volume_mm3()))
+    }
+}
+
+/// A deformation from nodal displacements: the meshes follow through the grid embedding.
+pub fn deformation(
+    grid: &ImmersedGrid,
+    organ: &OrganData,
+    u: &[Vector3<f64>],
+    history: Vec<(usize, f64)>,
+    solve_ms: f64,
+    source: &str,
+) -> Deformation {
+    let surface = deform_mesh(grid, &organ.surface, u);
+    let disp: Vec<f32> = surface.positions.iter().zip(&organ.surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
+    let max = u.iter().map(|v| v.norm()).fold(0.0, f64::max);
+    let mean = u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
+    Deformation {
+        surface_displacement_mm: disp,
+        surface: Arc::new(surface),
+        structures: organ.structures.iter().map(|s| Arc::new(deform_mesh(grid, &s.mesh, u))).collect(),
+        max_mm: max,
+        mean_mm: mean,
+        history,
+        solve_ms,
+        source: source.into(),
+    }
+}
+
+/// Radius of an instrument tip: a probe's force is shared by the surface within it.
+pub const PROBE_TIP_RADIUS_MM: f64 = 8.0;
+
+/// Spread each probe's force evenly over the surface vertices within `radius_mm`: a point
+/// load on an immersed grid would crush the single (possibly mostly outside) cell under it.
+pub fn spread_probes(surface: &umesh_core::mesh::TriMesh, probes: &[Probe], radius_mm: f64) -> Vec<PointForce> {
+    let mut out = Vec::new();
+    for p in probes {
+        let near: Vec<&Vector3<f64>> = surface.positions.iter().filter(|v| (*v - p.point_mm).norm() <= radius_mm).collect();
+        if near.is_empty() {
+            out.push(PointForce { point_mm: p.point_mm.into(), force_n: p.force_n.into() });
+            continue;
+        }
+        let f = p.force_n / near.len() as f64;
+        out.extend(near.into_iter().map(|v| PointForce { point_mm: (*v).into(), force_n: f.into() }));
+    }
+    out
+}
+
+pub fn simulate_job(
+    organ: OrganData,
+    grid: Arc<ImmersedGrid>,
+    fixed: FixedChoice,
+    probes: Vec<Probe>,
+) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, cancel| {
+        if probes.is_empty() {
+            return Err("place at least one force probe (click on the organ)".into());
+        }
+        let settings = SimulationSettings {
+            material: Default::default(),
+            solver: Default::default(),
+            method: SolveMethod::Newton,
+            fixed: vec![fixed.region(&organ.seg)],
+            forces: spread_probes(&organ.surface, &probes, PROBE_TIP_RADIUS_MM),
+        };
+        let t = Instant::now();
+        let out = run_simulate(&grid, Some(&organ.seg.volume), &settings, progress, cancel).map_err(|e| e.to_string())?;
+        let history = out.solution.history.iter().enumerate().map(|(i, h)| (i + 1, h.residual)).collect();
+        Ok(JobOutput::Simulated(deformation(&grid, &organ, &out.solution.displacement_mm, history, t.elapsed().as_secs_f64() * 1e3, "SVK")))
+    }
+}
+
+/// Read a NIfTI's labels (names and voxel counts) so the user can choose organ and structures.
+pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |_, _| {
+        if umesh_core::segmentation::is_mesh_path(&path) {
+            return Ok(JobOutput::Inspected(path, Vec::new()));
+        }
+        let v = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| e.to_string())?;
+        let labels = v
+            .label_counts()
+            .into_iter()
+            .filter(|&(l, _)| l != 0)
+            .map(|(l, n)| (l, v.label_names.get(&l).cloned().unwrap_or_default(), n))
+            .collect::<Vec<_>>();
+        if labels.is_empty() {
+            return Err(format!("{}: no non-zero label: not a segmentation", path.display()));
+        }
+        Ok(JobOutput::Inspected(path, labels))
+    }
+}
+
+pub struct JobsPlugin;
+
+impl Plugin for JobsPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<Jobs>()
+            .init_resource::<Organ>()
+            .init_resource::<GridState>()
+            .init_resource::<Probes>()
+            .init_resource::<Simulation>()
+            .init_resource::<UiMessages>()
+            .init_resource::<PendingOpenRes>()
+            .add_systems(Update, poll_jobs);
+    }
+}

@@ -1,0 +1,119 @@
+//! The desktop app (Bevy + egui): one plugin per feature, egui panels apart from the state
+//! they show, heavy work in background tasks. Also renders named scenes headless to PNG.
+
+pub mod camera;
+pub mod convert;
+pub mod grid_preview;
+pub mod jobs;
+pub mod probes;
+pub mod scene;
+pub mod screenshot;
+pub mod state;
+pub mod ui;
+
+use bevy::prelude::*;
+use bevy::render::error_handler::{RenderError, RenderErrorHandler, RenderErrorPolicy};
+use bevy_egui::{EguiPlugin, EguiPrimaryContextPass};
+
+/// The plugins that hold state and logic, with no window or renderer (headless tests use
+/// these with `MinimalPlugins`).
+pub struct CorePlugins;
+
+impl Plugin for CorePlugins {
+    fn build(&self, app: &mut App) {
+        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin));
+    }
+}
+
+/// Everything interactive: scene, camera, grid preview, probes input, panels.
+pub struct ViewPlugins;
+
+impl Plugin for ViewPlugins {
+    fn build(&self, app: &mut App) {
+        app.add_plugins(EguiPlugin::default())
+            .add_plugins((
+                CorePlugins,
+                scene::ScenePlugin,
+                camera::OrbitCameraPlugin,
+                grid_preview::GridPreviewPlugin,
+                probes::ProbeInputPlugin,
+            ))
+            .init_resource::<ui::UiState>()
+            .add_systems(EguiPrimaryContextPass, ui::ui_system)
+            .insert_resource(ClearColor(Color::srgb(0.11, 0.12, 0.14)))
+            .insert_resource(RenderErrorHandler(render_error_policy));
+    }
+}
+
+/// bevy_pbr's SSAO compute pipeline (unused here) fails to compile on Mesa's GL; every other
+/// render error stops the app as bevy's default handler does.
+fn render_error_policy(error: &RenderError, main_world: &mut World, _render: &mut World) -> RenderErrorPolicy {
+    let d = error.description.to_lowercase();
+    if d.contains("ssao") || d.contains("screen_space_ambient_occlusion") {
+        warn!("ignoring a render error of the unused SSAO pipeline: {}", error.description.lines().next().unwrap_or(""));
+        return RenderErrorPolicy::Ignore;
+    }
+    error!("render error, quitting: {}", error.description);
+    main_world.write_message(AppExit::error());
+    RenderErrorPolicy::StopRendering
+}
+
+/// The 3-D camera (its viewport follows the space the panels leave) and, drawn on top, the
+/// camera egui renders with (a separate one: egui would otherwise shrink with the viewport).
+pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarget>) {
+    use bevy::camera::{CameraOutputMode, visibility::RenderLayers};
+    use bevy::render::render_resource::BlendState;
+    let t = world.get_resource::<camera::OrbitCamera>().cloned().unwrap_or_default().transform();
+    let mut main = world.spawn((Camera3d::default(), t, camera::MainCamera));
+    if let Some(tg) = &target {
+        main.insert(tg.clone());
+    }
+    let mut ui = world.spawn((
+        bevy_egui::PrimaryEguiContext,
+        Camera2d,
+        RenderLayers::none(),
+        Camera {
+            order: 1,
+            output_mode: CameraOutputMode::Write { blend_state: Some(BlendState::ALPHA_BLENDING), clear_color: ClearColorConfig::None },
+            clear_color: ClearColorConfig::Custom(Color::NONE),
+            ..default()
+        },
+    ));
+    if let Some(tg) = target {
+        ui.insert(tg);
+    }
+}
+
+fn spawn_window_cameras(world: &mut World) {
+    spawn_cameras(world, None);
+}
+
+fn load_phantom_at_start(mut jobs: ResMut<jobs::Jobs>) {
+    jobs.spawn("load phantom", jobs::load_job(state::OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+}
+
+/// Build a grid once an organ is loaded and none exists.
+fn auto_grid(organ: Res<state::Organ>, grid: Res<state::GridState>, mut jobs: ResMut<jobs::Jobs>, mut done: Local<u64>) {
+    if let Some(d) = &organ.data
+        && grid.grid.is_none()
+        && *done != organ.generation
+        && !jobs.is_running("grid")
+    {
+        *done = organ.generation;
+        jobs.spawn("grid", jobs::grid_job(d.seg.clone(), grid.settings.clone()));
+    }
+}
+
+/// Open the app window on the bundled phantom.
+pub fn run_gui() -> AppExit {
+    App::new()
+        .add_plugins(DefaultPlugins.set(WindowPlugin {
+            primary_window: Some(Window { title: "umesh".into(), resolution: (1400u32, 900u32).into(), ..default() }),
+            ..default()
+        }))
+        .add_plugins(ViewPlugins)
+        .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
+        .add_systems(Startup, (spawn_window_cameras, load_phantom_at_start))
+        .add_systems(Update, auto_grid)
+        .run()
+}

@@ -1,0 +1,82 @@
+//! The 3-D scene: the organ (semi-transparent, or coloured by displacement once deformed)
+//! and its internal structures in distinct colours; rebuilt when the state changes.
+
+use super::convert::{color_u8, displacement_colors, mesh_from_trimesh};
+use super::state::{Organ, Simulation};
+use bevy::prelude::*;
+
+#[derive(Component)]
+pub struct OrganMesh;
+
+#[derive(Component)]
+pub struct StructureMesh;
+
+#[derive(Resource, Default)]
+struct Shown {
+    organ: u64,
+    sim: u64,
+    deformed: bool,
+}
+
+fn setup(mut commands: Commands) {
+    // A directional light with shadows: it shades on GL as well as on Vulkan.
+    commands.spawn((
+        DirectionalLight { illuminance: 9000.0, shadow_maps_enabled: true, ..default() },
+        Transform::from_xyz(2.0, 6.0, -5.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+    commands.insert_resource(GlobalAmbientLight { brightness: 600.0, ..default() });
+}
+
+fn sync(
+    mut commands: Commands,
+    organ: Res<Organ>,
+    sim: Res<Simulation>,
+    mut shown: ResMut<Shown>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    old: Query<Entity, Or<(With<OrganMesh>, With<StructureMesh>)>>,
+) {
+    let deformed = sim.show_deformed && sim.result.is_some();
+    if shown.organ == organ.generation && shown.sim == sim.generation && shown.deformed == deformed {
+        return;
+    }
+    *shown = Shown { organ: organ.generation, sim: sim.generation, deformed };
+    for e in &old {
+        commands.entity(e).despawn();
+    }
+    let Some(data) = &organ.data else { return };
+    let def = sim.result.as_ref().filter(|_| deformed);
+    let (surface, colors) = match def {
+        Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32))),
+        None => (data.surface.as_ref(), None),
+    };
+    let organ_mat = if colors.is_some() {
+        StandardMaterial { base_color: Color::WHITE.with_alpha(0.55), alpha_mode: AlphaMode::Blend, perceptual_roughness: 0.7, ..default() }
+    } else {
+        StandardMaterial {
+            base_color: Color::srgba(0.62, 0.25, 0.2, 0.35),
+            alpha_mode: AlphaMode::Blend,
+            perceptual_roughness: 0.6,
+            double_sided: true,
+            cull_mode: None,
+            ..default()
+        }
+    };
+    commands.spawn((Mesh3d(meshes.add(mesh_from_trimesh(surface, colors))), MeshMaterial3d(materials.add(organ_mat)), OrganMesh));
+    for (i, s) in data.structures.iter().enumerate() {
+        let m = def.and_then(|d| d.structures.get(i)).map(|m| m.as_ref()).unwrap_or(s.mesh.as_ref());
+        commands.spawn((
+            Mesh3d(meshes.add(mesh_from_trimesh(m, None))),
+            MeshMaterial3d(materials.add(StandardMaterial { base_color: color_u8(s.color), perceptual_roughness: 0.5, ..default() })),
+            StructureMesh,
+        ));
+    }
+}
+
+pub struct ScenePlugin;
+
+impl Plugin for ScenePlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<Shown>().add_systems(Startup, setup).add_systems(PostUpdate, sync);
+    }
+}

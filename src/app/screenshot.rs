@@ -1,0 +1,198 @@
+//! Headless screenshots of named scenes: no window, no X server. The app renders into an
+//! offscreen image (egui included) through whatever adapter wgpu finds: with
+//! `WGPU_BACKEND=gl`, EGL surfaceless on Mesa's llvmpipe. Deterministic: fixed camera, fixed
+//! state computed before rendering, warm-up frames before the capture.
+
+use super::camera::OrbitCamera;
+use super::jobs::{self, JobOutput};
+use super::probes::{ProbeRay, ProbeSettings, Rehearsal, RehearsalModel, probe_from_ray};
+use super::state::*;
+use bevy::asset::RenderAssetUsages;
+use bevy::camera::RenderTarget;
+use bevy::prelude::*;
+use bevy::render::RenderPlugin;
+use bevy::render::render_resource::TextureFormat;
+use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
+use bevy::window::ExitCondition;
+use bevy::winit::WinitPlugin;
+use bevy_egui::EguiGlobalSettings;
+use nalgebra::Vector3;
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use umesh_core::{Cancel, Progress};
+
+pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal"];
+
+fn run(job: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String>) -> Result<JobOutput, String> {
+    job(&Progress::none(), &Cancel::new())
+}
+
+/// Rays from the anterior side toward points of the organ: deterministic probe positions.
+fn anterior_probes(organ: &OrganData, offsets: &[(f64, f64)]) -> Vec<Probe> {
+    let (lo, hi) = organ.surface.bounds().unwrap_or_default();
+    let c = (lo + hi) * 0.5;
+    let size = hi - lo;
+    offsets
+        .iter()
+        .filter_map(|&(dx, dz)| {
+            let origin = Vector3::new(c.x + dx * size.x, hi.y + 100.0, c.z + dz * size.z);
+            probe_from_ray(organ, &ProbeRay { origin_mm: origin, direction: -Vector3::y() }, &ProbeSettings::default())
+        })
+        .collect()
+}
+
+/// Compute the state a scene shows (synchronously: a screenshot waits for nothing).
+pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
+    let JobOutput::Loaded(organ) = run(jobs::load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }))? else {
+        return Err("unexpected job output".into());
+    };
+    world.resource_mut::<Organ>().set(organ.clone());
+    let mut cam = OrbitCamera::default();
+    cam.frame(world.resource::<Organ>());
+    world.insert_resource(cam);
+    let show_grid = scene == "grid";
+    if scene != "phantom" {
+        let JobOutput::Grid(g, vox) = run(jobs::grid_job(organ.seg.clone(), Default::default()))? else { return Err("grid".into()) };
+        let mut gs = world.resource_mut::<GridState>();
+        gs.stats = Some(g.stats());
+        gs.grid = Some(g.clone());
+        gs.voxel_volume_mm3 = vox;
+        gs.show = show_grid;
+        gs.generation += 1;
+    }
+    world.resource_mut::<GridState>().show = show_grid;
+    match scene {
+        "phantom" | "grid" => {}
+        "probes" => {
+            let probes = anterior_probes(&organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
+            let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
+            let fixed = FixedChoice::default();
+            let JobOutput::Simulated(d) = run(jobs::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
+                return Err("simulate".into());
+            };
+            let mut pr = world.resource_mut::<Probes>();
+            for p in probes {
+                pr.add(p);
+            }
+            pr.selected = None;
+            world.resource_mut::<Simulation>().set(d);
+        }
+        "rehearsal" => {
+            let model = RehearsalModel::load(&crate::cli::input::bundled_model(), &organ)?;
+            let mut probes = anterior_probes(&organ, &[(0.0, 0.1)]);
+            // Pulled 15 mm inward and a little up, as a drag would.
+            for p in &mut probes {
+                p.force_n = (-p.normal * 15.0 + Vector3::new(0.0, 0.0, 5.0)) * ProbeSettings::default().newtons_per_mm;
+            }
+            let mut pr = world.resource_mut::<Probes>();
+            for p in probes {
+                pr.add(p);
+            }
+            pr.selected = None;
+            let mut reh = world.resource_mut::<Rehearsal>();
+            reh.model = Some(Arc::new(Mutex::new(model)));
+            reh.enabled = true;
+            reh.shown_generation = u64::MAX;
+        }
+        other => return Err(format!("unknown scene {other:?}; scenes: {}", SCENES.join(", "))),
+    }
+    Ok(())
+}
+
+#[derive(Resource, Default)]
+struct Captured(Arc<Mutex<Option<Result<(), String>>>>);
+
+/// Render `scene` at `width` x `height` into a PNG at `out`.
+pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_frames: u32) -> Result<(), String> {
+    if !SCENES.contains(&scene) {
+        return Err(format!("unknown scene {scene:?}; scenes: {}", SCENES.join(", ")));
+    }
+    if !(16..=8192).contains(&width) || !(16..=8192).contains(&height) {
+        return Err(format!("size {width}x{height} must lie within 16..8192"));
+    }
+    let (mut app, handle) = headless_app(scene, width, height)?;
+    for _ in 0..warmup_frames.max(4) {
+        app.update();
+    }
+    let captured = Captured::default();
+    let slot = captured.0.clone();
+    let path = out.to_path_buf();
+    app.world_mut().spawn(Screenshot::image(handle)).observe(move |ev: On<ScreenshotCaptured>| {
+        let r = ev.image.clone().try_into_dynamic().map_err(|e| e.to_string()).and_then(|img| {
+            let mut bytes = Vec::new();
+            img.to_rgba8().write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| e.to_string())?;
+            umesh_core::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))
+        });
+        if let Ok(mut s) = slot.lock() {
+            *s = Some(r);
+        }
+    });
+    for _ in 0..30 {
+        app.update();
+        if let Some(r) = captured.0.lock().ok().and_then(|mut s| s.take()) {
+            return r;
+        }
+        if let Some(exit) = app.should_exit() {
+            return Err(format!("the renderer stopped: {exit:?}"));
+        }
+    }
+    Err("the screenshot was not captured within 30 frames (no usable GPU or EGL adapter?)".into())
+}
+
+/// An app rendering `scene` offscreen into an image of `width` x `height`.
+pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle<Image>), String> {
+    let mut app = App::new();
+    app.add_plugins(
+        DefaultPlugins
+            .set(WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..default() })
+            .set(RenderPlugin { synchronous_pipeline_compilation: true, ..default() })
+            // wgpu's GL backend logs a harmless texture-view heuristic every frame.
+            .set(bevy::log::LogPlugin { filter: "wgpu=error,wgpu_hal=off,naga=warn".into(), ..default() })
+            .disable::<WinitPlugin>(),
+    )
+    .add_plugins(super::ViewPlugins)
+    .insert_resource(EguiGlobalSettings { auto_create_primary_context: false, ..default() });
+    app.finish();
+    app.cleanup();
+    prepare_scene(app.world_mut(), scene)?;
+    let mut target = Image::new_target_texture(width, height, TextureFormat::Rgba8UnormSrgb, None);
+    target.asset_usage = RenderAssetUsages::RENDER_WORLD;
+    let handle = app.world_mut().resource_mut::<Assets<Image>>().add(target);
+    super::spawn_cameras(app.world_mut(), Some(RenderTarget::Image(handle.clone().into())));
+    Ok((app, handle))
+}
+
+/// Frame times (ms) of the app, rendering offscreen, while an SVK solve runs in the
+/// background: the UI must stay responsive.
+pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, f64), String> {
+    let (mut app, _) = headless_app("probes", width, height)?;
+    for _ in 0..5 {
+        app.update();
+    }
+    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
+    let grid = app.world().resource::<GridState>().grid.clone().ok_or("no grid")?;
+    let probes = app.world().resource::<Probes>().list.clone();
+    let t0 = std::time::Instant::now();
+    app.world_mut().resource_mut::<jobs::Jobs>().spawn("simulate", jobs::simulate_job(organ, grid, FixedChoice::default(), probes));
+    let mut times = Vec::new();
+    while !app.world().resource::<jobs::Jobs>().running.is_empty() {
+        let t = std::time::Instant::now();
+        app.update();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if t0.elapsed().as_secs() > 600 {
+            return Err("the solve did not finish within 10 minutes".into());
+        }
+    }
+    Ok((times, t0.elapsed().as_secs_f64() * 1e3))
+}
+
+/// Compare two images: the fraction of pixels whose largest channel difference exceeds
+/// `threshold` (0-255). Sizes must match.
+pub fn image_difference(a: &image::RgbaImage, b: &image::RgbaImage, threshold: u8) -> Result<f64, String> {
+    if a.dimensions() != b.dimensions() {
+        return Err(format!("sizes differ: {:?} vs {:?}", a.dimensions(), b.dimensions()));
+    }
+    let bad =
+        a.pixels().zip(b.pixels()).filter(|(p, q)| (0..3).any(|c| (p[c] as i16 - q[c] as i16).unsigned_abs() > threshold as u16)).count();
+    Ok(bad as f64 / (a.width() as f64 * a.height() as f64))
+}

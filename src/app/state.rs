@@ -1,0 +1,237 @@
+//! What the app shows and edits: plain resources, free of rendering (tested headless).
+
+use bevy::prelude::*;
+use nalgebra::Vector3;
+use std::path::PathBuf;
+use std::sync::Arc;
+use umesh_core::fem::FixedRegion;
+use umesh_core::grid::{GridSettings, GridStats, ImmersedGrid};
+use umesh_core::mesh::TriMesh;
+use umesh_core::segmentation::Segmentation;
+
+/// The loaded organ: segmentation, surface and internal structures (world RAS, mm).
+#[derive(Clone)]
+pub struct OrganData {
+    pub seg: Arc<Segmentation>,
+    pub surface: Arc<TriMesh>,
+    pub structures: Vec<StructureMesh>,
+    /// Where it came from (file name or "bundled phantom").
+    pub source: String,
+}
+
+#[derive(Clone)]
+pub struct StructureMesh {
+    pub label: i64,
+    pub name: String,
+    pub color: [u8; 3],
+    pub mesh: Arc<TriMesh>,
+}
+
+#[derive(Resource, Default)]
+pub struct Organ {
+    pub data: Option<OrganData>,
+    /// Bumped on every change, so that the scene rebuilds its meshes.
+    pub generation: u64,
+}
+
+impl Organ {
+    pub fn set(&mut self, data: OrganData) {
+        self.data = Some(data);
+        self.generation += 1;
+    }
+}
+
+#[derive(Resource)]
+pub struct GridState {
+    pub settings: GridSettings,
+    pub grid: Option<Arc<ImmersedGrid>>,
+    pub stats: Option<GridStats>,
+    pub show: bool,
+    pub generation: u64,
+    /// Volume of the voxel mask the grid approximates (mm^3).
+    pub voxel_volume_mm3: f64,
+}
+
+impl Default for GridState {
+    fn default() -> Self {
+        Self { settings: GridSettings::default(), grid: None, stats: None, show: true, generation: 0, voxel_volume_mm3: 0.0 }
+    }
+}
+
+/// A force probe on the organ surface.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Probe {
+    pub point_mm: Vector3<f64>,
+    pub normal: Vector3<f64>,
+    pub force_n: Vector3<f64>,
+}
+
+#[derive(Resource, Default)]
+pub struct Probes {
+    pub list: Vec<Probe>,
+    pub selected: Option<usize>,
+    /// The probe being dragged with the mouse.
+    pub dragging: Option<usize>,
+    pub generation: u64,
+}
+
+impl Probes {
+    pub fn add(&mut self, p: Probe) -> usize {
+        self.list.push(p);
+        self.selected = Some(self.list.len() - 1);
+        self.generation += 1;
+        self.list.len() - 1
+    }
+    pub fn remove(&mut self, i: usize) {
+        if i < self.list.len() {
+            self.list.remove(i);
+            self.selected = None;
+            self.dragging = None;
+            self.generation += 1;
+        }
+    }
+}
+
+/// Which nodes the simulation holds fixed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum FixedChoice {
+    /// Nodes within `distance_mm` of a label (the phantom: the vena cava).
+    Label { label: i64, distance_mm: f64 },
+    /// The posterior slab of the organ, `fraction` of its depth.
+    Posterior { fraction: f64 },
+}
+
+impl Default for FixedChoice {
+    fn default() -> Self {
+        FixedChoice::Label { label: umesh_core::phantom::VENA_CAVA, distance_mm: 6.0 }
+    }
+}
+
+impl FixedChoice {
+    pub fn region(&self, seg: &Segmentation) -> FixedRegion {
+        match *self {
+            FixedChoice::Label { label, distance_mm } => FixedRegion::Label { label, distance_mm },
+            FixedChoice::Posterior { fraction } => {
+                let (lo, hi) = seg.organ_mask().world_bounds().unwrap_or_default();
+                FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: fraction * (hi.y - lo.y) }
+            }
+        }
+    }
+}
+
+/// A displacement field over the grid and the meshes it deforms.
+#[derive(Clone)]
+pub struct Deformation {
+    /// Per surface vertex: displacement magnitude (mm), for the colour map.
+    pub surface_displacement_mm: Vec<f32>,
+    pub surface: Arc<TriMesh>,
+    pub structures: Vec<Arc<TriMesh>>,
+    pub max_mm: f64,
+    pub mean_mm: f64,
+    /// Newton history: (iteration, relative residual).
+    pub history: Vec<(usize, f64)>,
+    pub solve_ms: f64,
+    /// What produced it: "SVK", "U-Net", ...
+    pub source: String,
+}
+
+#[derive(Resource, Default)]
+pub struct Simulation {
+    pub fixed: FixedChoice,
+    pub result: Option<Deformation>,
+    pub show_deformed: bool,
+    pub generation: u64,
+    /// FE check of a rehearsal prediction: (mean, max) difference at the surface (mm).
+    pub check: Option<(f64, f64)>,
+}
+
+impl Simulation {
+    pub fn set(&mut self, d: Deformation) {
+        self.result = Some(d);
+        self.show_deformed = true;
+        self.generation += 1;
+    }
+    pub fn clear(&mut self) {
+        self.result = None;
+        self.check = None;
+        self.generation += 1;
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Level {
+    Info,
+    Error,
+}
+
+/// Messages for the status bar and the error window: errors are shown, never panicked on.
+#[derive(Resource, Default)]
+pub struct UiMessages {
+    pub list: Vec<(Level, String)>,
+    /// Errors not yet dismissed.
+    pub unread_errors: usize,
+}
+
+impl UiMessages {
+    pub fn info(&mut self, m: impl Into<String>) {
+        let m = m.into();
+        info!("{m}");
+        self.list.push((Level::Info, m));
+    }
+    pub fn error(&mut self, m: impl Into<String>) {
+        let m = m.into();
+        warn!("{m}");
+        self.list.push((Level::Error, m));
+        self.unread_errors += 1;
+    }
+    pub fn last(&self) -> Option<&(Level, String)> {
+        self.list.last()
+    }
+}
+
+/// What to open: a NIfTI with its labels, or a closed mesh.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OpenRequest {
+    pub path: Option<PathBuf>,
+    pub organ_labels: Vec<i64>,
+    pub structure_labels: Vec<i64>,
+}
+
+/// A file picked in File > Open, waiting for the user's choice of labels.
+#[derive(Clone, Debug)]
+pub struct PendingOpen {
+    pub path: PathBuf,
+    /// (value, name, voxels, role): role 0 none, 1 organ, 2 structure.
+    pub labels: Vec<(i64, String, usize, u8)>,
+}
+
+impl PendingOpen {
+    /// Guess roles from the names: "liver" is the organ; vessels and tumours are structures.
+    pub fn new(path: PathBuf, labels: Vec<(i64, String, usize)>) -> Self {
+        let labels = labels
+            .into_iter()
+            .map(|(v, name, n)| {
+                let l = name.to_lowercase();
+                let role = if l.contains("liver") {
+                    1
+                } else if ["vein", "cava", "tumo", "lesion", "vessel", "portal"].iter().any(|k| l.contains(k)) {
+                    2
+                } else {
+                    0
+                };
+                (v, name, n, role)
+            })
+            .collect();
+        Self { path, labels }
+    }
+    pub fn request(&self) -> OpenRequest {
+        OpenRequest {
+            path: Some(self.path.clone()),
+            organ_labels: self.labels.iter().filter(|l| l.3 == 1).map(|l| l.0).collect(),
+            structure_labels: self.labels.iter().filter(|l| l.3 == 2).map(|l| l.0).collect(),
+        }
+    }
+}
+
+#[derive(Resource, Default)]
+pub struct PendingOpenRes(pub Option<PendingOpen>);

@@ -1,0 +1,371 @@
+//! egui panels: left (data and settings), right (inspector), bottom (status and jobs), a
+//! menu bar, the help window and the error window. Panels only read and edit the state
+//! resources; the work itself is started through `Jobs`.
+
+use super::jobs::{Jobs, grid_job, inspect_job, load_job, simulate_job};
+use super::probes::{ProbeSettings, Rehearsal, RehearsalModel, start_fe_check};
+use super::state::*;
+use bevy::prelude::*;
+use bevy::tasks::{IoTaskPool, Task, futures::check_ready};
+use bevy_egui::{EguiContexts, egui};
+use egui_plot::{Line, Plot, PlotPoints};
+use std::sync::{Arc, Mutex};
+
+#[derive(Resource, Default)]
+pub struct UiState {
+    pub show_help: bool,
+    pub frame_ms: f32,
+    file_dialog: Option<Task<Option<std::path::PathBuf>>>,
+}
+
+#[derive(bevy::ecs::system::SystemParam)]
+pub struct AppState<'w> {
+    organ: ResMut<'w, Organ>,
+    grid: ResMut<'w, GridState>,
+    probes: ResMut<'w, Probes>,
+    sim: ResMut<'w, Simulation>,
+    jobs: ResMut<'w, Jobs>,
+    messages: ResMut<'w, UiMessages>,
+    pending: ResMut<'w, PendingOpenRes>,
+    probe_settings: ResMut<'w, ProbeSettings>,
+    rehearsal: ResMut<'w, Rehearsal>,
+}
+
+fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState) {
+    egui::MenuBar::new().ui(ui, |ui| {
+        ui.menu_button("File", |ui| {
+            if ui.button("Open segmentation or mesh...").clicked() {
+                uis.file_dialog = Some(IoTaskPool::get().spawn(async {
+                    rfd::AsyncFileDialog::new()
+                        .add_filter("segmentation / mesh", &["nii", "gz", "hdr", "obj", "ply", "stl"])
+                        .pick_file()
+                        .await
+                        .map(|f| f.path().to_path_buf())
+                }));
+            }
+            if ui.button("Bundled phantom").clicked() {
+                st.jobs.spawn("load phantom", load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+            }
+        });
+        ui.menu_button("View", |ui| {
+            ui.checkbox(&mut st.grid.show, "Grid (G)");
+            ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)");
+        });
+        if ui.button("Help (F1)").clicked() {
+            uis.show_help = !uis.show_help;
+        }
+    });
+}
+
+fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
+    ui.heading("Data");
+    match &st.organ.data {
+        Some(d) => {
+            ui.label(format!("Organ: {}", d.source));
+            for s in &d.structures {
+                let c = egui::Color32::from_rgb(s.color[0], s.color[1], s.color[2]);
+                ui.colored_label(c, format!("■ {} (label {})", s.name, s.label));
+            }
+        }
+        None => {
+            ui.label("No organ loaded (File > Open).");
+        }
+    }
+    ui.separator();
+    ui.heading("Grid");
+    let mut h = st.grid.settings.cell_size_mm as f32;
+    let r = ui.add(egui::Slider::new(&mut h, 3.0..=15.0).text("cell size (mm)"));
+    st.grid.settings.cell_size_mm = h as f64;
+    let mut sub = st.grid.settings.subdivisions;
+    let r2 = ui.add(egui::Slider::new(&mut sub, 0..=3).text("boundary subdivisions"));
+    st.grid.settings.subdivisions = sub;
+    let rebuild = r.drag_stopped() || r2.drag_stopped() || (r.changed() && !r.dragged()) || (r2.changed() && !r2.dragged());
+    if (ui.button("Build grid").clicked() || rebuild)
+        && let Some(d) = &st.organ.data
+    {
+        st.jobs.spawn("grid", grid_job(d.seg.clone(), st.grid.settings.clone()));
+    }
+    ui.separator();
+    ui.heading("Simulation");
+    let is_label = matches!(st.sim.fixed, FixedChoice::Label { .. });
+    ui.horizontal(|ui| {
+        ui.label("Fixed:");
+        if ui.radio(is_label, "near a label").clicked() {
+            st.sim.fixed = FixedChoice::default();
+        }
+        if ui.radio(!is_label, "posterior slab").clicked() {
+            st.sim.fixed = FixedChoice::Posterior { fraction: 0.1 };
+        }
+    });
+    match &mut st.sim.fixed {
+        FixedChoice::Label { label, distance_mm } => {
+            ui.add(egui::DragValue::new(label).prefix("label "));
+            ui.add(egui::Slider::new(distance_mm, 1.0..=20.0).text("within (mm)"));
+        }
+        FixedChoice::Posterior { fraction } => {
+            ui.add(egui::Slider::new(fraction, 0.02..=0.5).text("of the depth"));
+        }
+    }
+    ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
+    let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
+    if ui.add_enabled(can, egui::Button::new("Simulate (SVK)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
+        && let (Some(d), Some(g)) = (&st.organ.data, &st.grid.grid)
+    {
+        st.jobs.spawn("simulate", simulate_job(d.clone(), g.clone(), st.sim.fixed.clone(), st.probes.list.clone()));
+    }
+    ui.separator();
+    ui.heading("Rehearsal");
+    if ui.button("Load the bundled model").clicked()
+        && let Some(d) = &st.organ.data
+    {
+        let d = d.clone();
+        st.jobs.spawn("load model", move |_, _| {
+            let m = RehearsalModel::load(&crate::cli::input::bundled_model(), &d)?;
+            Ok(super::jobs::JobOutput::Model(Arc::new(Mutex::new(m))))
+        });
+    }
+    let has_model = st.rehearsal.model.is_some();
+    ui.add_enabled(has_model, egui::Checkbox::new(&mut st.rehearsal.enabled, "live U-Net deformation"));
+    ui.add(egui::Slider::new(&mut st.rehearsal.radius_mm, 5.0..=60.0).text("probe radius (mm)"));
+    if ui.add_enabled(has_model && !st.probes.list.is_empty(), egui::Button::new("FE check")).clicked()
+        && let Err(e) = start_fe_check(&mut st.jobs, &st.rehearsal, &st.probes, &st.organ, &st.probe_settings)
+    {
+        st.messages.error(e);
+    }
+    if let Some((mean, max)) = st.sim.check {
+        ui.label(format!("U-Net vs SVK: {mean:.2} mm mean, {max:.2} mm max"));
+    }
+}
+
+fn right_panel(ui: &mut egui::Ui, st: &mut AppState) {
+    ui.heading("Inspector");
+    if let Some(s) = &st.grid.stats {
+        egui::Grid::new("grid_stats").striped(true).show(ui, |ui| {
+            ui.label("cells");
+            ui.label(format!("{} ({} inside, {} boundary)", s.cells, s.inside_cells, s.boundary_cells));
+            ui.end_row();
+            ui.label("nodes");
+            ui.label(s.nodes.to_string());
+            ui.end_row();
+            ui.label("volume error");
+            let err = 100.0 * (s.grid_volume_mm3 - st.grid.voxel_volume_mm3) / st.grid.voxel_volume_mm3.max(1e-9);
+            ui.label(format!("{err:+.2} %"));
+            ui.end_row();
+            ui.label("padded shape");
+            ui.label(format!("{:?}", s.padded_shape));
+            ui.end_row();
+        });
+    } else {
+        ui.label("No grid yet.");
+    }
+    ui.separator();
+    ui.label(format!("Probes ({}): click the organ to add, drag to pull", st.probes.list.len()));
+    let mut remove = None;
+    let mut changed = false;
+    let mut selected = st.probes.selected;
+    for (i, p) in st.probes.list.iter_mut().enumerate() {
+        ui.horizontal(|ui| {
+            if ui.selectable_label(selected == Some(i), format!("#{}", i + 1)).clicked() {
+                selected = Some(i);
+            }
+            for c in 0..3 {
+                changed |= ui.add(egui::DragValue::new(&mut p.force_n[c]).speed(0.01).max_decimals(3)).changed();
+            }
+            ui.label("N");
+            if ui.small_button("delete").clicked() {
+                remove = Some(i);
+            }
+        });
+    }
+    st.probes.selected = selected;
+    if changed {
+        st.probes.generation += 1;
+    }
+    if let Some(i) = remove {
+        st.probes.remove(i);
+    }
+    if let Some(d) = &st.sim.result {
+        ui.separator();
+        ui.label(format!("{}: max {:.2} mm, mean {:.2} mm ({:.0} ms)", d.source, d.max_mm, d.mean_mm, d.solve_ms));
+        if !d.history.is_empty() {
+            let pts: PlotPoints = d.history.iter().map(|&(i, r)| [i as f64, r.max(1e-16).log10()]).collect();
+            Plot::new("newton").height(120.0).x_axis_label("iteration").y_axis_label("log10 residual").show(ui, |p| {
+                p.line(Line::new("residual", pts));
+            });
+        }
+    }
+}
+
+fn bottom_panel(ui: &mut egui::Ui, st: &mut AppState, uis: &UiState) {
+    ui.horizontal(|ui| {
+        ui.label(format!("{:.1} ms/frame", uis.frame_ms));
+        ui.separator();
+        if let Some((lvl, m)) = st.messages.last() {
+            let c = if *lvl == Level::Error { egui::Color32::LIGHT_RED } else { ui.visuals().text_color() };
+            ui.colored_label(c, m);
+        }
+    });
+    let mut cancel = None;
+    for j in &st.jobs.running {
+        let p = j.progress.lock().map(|p| p.clone()).unwrap_or_default();
+        ui.horizontal(|ui| {
+            let frac = if p.total > 0 { p.done as f32 / p.total as f32 } else { 0.0 };
+            ui.label(&j.label);
+            ui.add(egui::ProgressBar::new(frac).desired_width(220.0).text(format!(
+                "{} ({:.0} s)",
+                p.message,
+                j.started.elapsed().as_secs_f64()
+            )));
+            if ui.button("Cancel").clicked() {
+                cancel = Some(j.id);
+            }
+        });
+    }
+    if let Some(id) = cancel {
+        st.jobs.cancel(id);
+    }
+}
+
+fn open_window(ctx: &egui::Context, st: &mut AppState) {
+    let Some(p) = &mut st.pending.0 else { return };
+    let mut open = true;
+    let mut go = false;
+    egui::Window::new("Open segmentation").open(&mut open).show(ctx, |ui| {
+        ui.label(p.path.display().to_string());
+        if p.labels.is_empty() {
+            ui.label("A closed organ mesh.");
+        }
+        egui::Grid::new("labels").striped(true).show(ui, |ui| {
+            for (v, name, n, role) in &mut p.labels {
+                ui.label(format!("{v}"));
+                ui.label(if name.is_empty() { "-" } else { name.as_str() });
+                ui.label(format!("{n} voxels"));
+                ui.radio_value(role, 0, "ignore");
+                ui.radio_value(role, 1, "organ");
+                ui.radio_value(role, 2, "structure");
+                ui.end_row();
+            }
+        });
+        go = ui.button("Open").clicked();
+    });
+    if go {
+        let req = p.request();
+        if req.organ_labels.is_empty() && !p.labels.is_empty() {
+            st.messages.error("choose at least one organ label");
+        } else {
+            st.jobs.spawn("load", load_job(req));
+            st.pending.0 = None;
+        }
+    } else if !open {
+        st.pending.0 = None;
+    }
+}
+
+pub fn ui_system(
+    mut contexts: EguiContexts,
+    mut st: AppState,
+    mut uis: ResMut<UiState>,
+    keys: Res<ButtonInput<KeyCode>>,
+    time: Res<Time>,
+    mut cameras: Query<&mut Camera, With<super::camera::MainCamera>>,
+) -> Result {
+    uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
+    if let Some(task) = &mut uis.file_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.file_dialog = None;
+        if let Some(path) = picked {
+            st.jobs.spawn("inspect", inspect_job(path));
+        }
+    }
+    let ctx = contexts.ctx_mut()?.clone();
+    if !ctx.egui_wants_keyboard_input() {
+        if keys.just_pressed(KeyCode::F1) {
+            uis.show_help = !uis.show_help;
+        }
+        if keys.just_pressed(KeyCode::KeyG) {
+            st.grid.show = !st.grid.show;
+        }
+        if keys.just_pressed(KeyCode::KeyD) {
+            st.sim.show_deformed = !st.sim.show_deformed;
+            st.sim.generation += 1;
+        }
+        if keys.just_pressed(KeyCode::Delete)
+            && let Some(i) = st.probes.selected
+        {
+            st.probes.remove(i);
+        }
+    }
+    let mut root = egui::Ui::new(
+        ctx.clone(),
+        "root".into(),
+        egui::UiBuilder::new().layer_id(egui::LayerId::background()).max_rect(ctx.viewport_rect()),
+    );
+    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis));
+    egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
+    egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
+        egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, &mut st));
+    });
+    egui::Panel::right("right").default_size(280.0).show(&mut root, |ui| {
+        egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, &mut st));
+    });
+    // The 3-D view gets what the panels leave.
+    let rect = root.available_rect_before_wrap();
+    let ppp = ctx.pixels_per_point();
+    for mut cam in &mut cameras {
+        let Some(target) = cam.physical_target_size() else { continue };
+        let pos = UVec2::new((rect.min.x * ppp).max(0.0) as u32, (rect.min.y * ppp).max(0.0) as u32).min(target);
+        let size = UVec2::new((rect.width() * ppp) as u32, (rect.height() * ppp) as u32).min(target - pos);
+        if size.x >= 16 && size.y >= 16 {
+            let vp = bevy::camera::Viewport { physical_position: pos, physical_size: size, ..default() };
+            if cam.viewport.as_ref().is_none_or(|v| v.physical_position != pos || v.physical_size != size) {
+                cam.viewport = Some(vp);
+            }
+        }
+    }
+    open_window(&ctx, &mut st);
+    if uis.show_help {
+        egui::Window::new("Keyboard and mouse").open(&mut uis.show_help).show(&ctx, |ui| {
+            egui::Grid::new("keys").show(ui, |ui| {
+                for (k, what) in [
+                    ("left click", "place a force probe on the organ"),
+                    ("left drag", "pull the probe: direction and magnitude"),
+                    ("right drag", "rotate the view"),
+                    ("middle drag / shift + right drag", "pan"),
+                    ("wheel", "zoom"),
+                    ("F", "frame the organ"),
+                    ("G", "show or hide the grid"),
+                    ("D", "show the rest or deformed organ"),
+                    ("Delete", "delete the selected probe"),
+                    ("F1", "this window"),
+                ] {
+                    ui.strong(k);
+                    ui.label(what);
+                    ui.end_row();
+                }
+            });
+        });
+    }
+    if st.messages.unread_errors > 0 {
+        let errors: Vec<String> = st
+            .messages
+            .list
+            .iter()
+            .filter(|(l, _)| *l == Level::Error)
+            .rev()
+            .take(st.messages.unread_errors)
+            .map(|(_, m)| m.clone())
+            .collect();
+        let mut dismiss = false;
+        egui::Window::new("Error").collapsible(false).show(&ctx, |ui| {
+            for e in errors.iter().rev() {
+                ui.colored_label(egui::Color32::LIGHT_RED, e);
+            }
+            dismiss = ui.button("OK").clicked();
+        });
+        if dismiss {
+            st.messages.unread_errors = 0;
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,212 @@
+//! `umesh register`: RGB-D frames -> rigid ICP -> surface displacement -> network (and,
+//! when asked, the co-rotational FE) -> deformed internal structures overlaid on the frames.
+
+use super::input::{InputArgs, bundled_model, model_dataset_config};
+use anyhow::{Context, Result, bail};
+use nalgebra::Matrix4;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use umesh_core::dataset::DatasetContext;
+use umesh_core::register::RegistrationContext;
+use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, RegisterReport, RegisterSettings, run_register};
+use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
+use umesh_core::rgbd::stream::{FrameSource, RecordingSource, TcpSource};
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    #[command(flatten)]
+    pub input: InputArgs,
+    /// Model folder (default: the bundled phantom model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Recorded RGB-D folder (color/, depth/, intrinsics JSON; see the README).
+    #[arg(long, conflicts_with = "source")]
+    pub recording: Option<PathBuf>,
+    /// Live source: a TCP camera bridge "host:port" speaking umesh's frame protocol.
+    #[arg(long)]
+    pub source: Option<String>,
+    /// Intrinsics JSON (default: found in the recording).
+    #[arg(long)]
+    pub intrinsics: Option<PathBuf>,
+    /// Initial camera pose (world_from_camera) as an Open3D .log file (default: the
+    /// recording's trajectory.log).
+    #[arg(long)]
+    pub initial_pose: Option<PathBuf>,
+    /// Overlay PNGs and report.json go here.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also register with the co-rotational FE model driven by the same surface displacements.
+    #[arg(long)]
+    pub compare_fe: bool,
+    /// Network evaluations per frame.
+    #[arg(long, default_value_t = RegisterSettings::default().iterations)]
+    pub iterations: usize,
+    /// Redo rigid ICP on every frame.
+    #[arg(long)]
+    pub icp_every_frame: bool,
+    /// Depth range of the organ when the recording has no masks (mm).
+    #[arg(long, default_value_t = 100.0)]
+    pub depth_min_mm: f32,
+    #[arg(long, default_value_t = 3000.0)]
+    pub depth_max_mm: f32,
+    /// Ignore the recording's masks.
+    #[arg(long)]
+    pub no_mask: bool,
+    /// Skip writing overlay PNGs.
+    #[arg(long)]
+    pub no_overlay: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn open_source(a: &Args) -> Result<(Box<dyn FrameSource>, Option<Matrix4<f64>>, Option<GroundTruth>)> {
+    match (&a.recording, &a.source) {
+        (Some(dir), None) => {
+            let rec = Recording::open(dir, a.intrinsics.as_deref())?;
+            for w in &rec.warnings {
+                eprintln!("warning: {w}");
+            }
+            let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied());
+            let gt_path = dir.join("ground_truth.json");
+            let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path).map_err(anyhow::Error::msg)?) } else { None };
+            Ok((Box::new(RecordingSource::new(rec)), pose, truth))
+        }
+        (None, Some(addr)) => Ok((Box::new(TcpSource::connect(addr, Duration::from_secs(5))?), None, None)),
+        _ => bail!("give --recording DIR or --source HOST:PORT"),
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let model_dir = a.model.clone().unwrap_or_else(bundled_model);
+    let mut net =
+        umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
+    let seg = a.input.load()?;
+    let config = model_dataset_config(Some(&net.info), &seg);
+    let dctx = DatasetContext::prepare(&seg, &config, &super::cancel())?;
+    net.info
+        .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
+        .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
+    let ctx = RegistrationContext::new(dctx, &seg).map_err(anyhow::Error::msg)?;
+    let (mut source, rec_pose, truth) = open_source(&a)?;
+    let pose = match &a.initial_pose {
+        Some(p) => *read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?,
+        None => rec_pose.context("no initial camera pose: give --initial-pose FILE.log (Open3D trajectory format)")?,
+    };
+    let mut settings = RegisterSettings {
+        iterations: a.iterations.max(1),
+        icp_every_frame: a.icp_every_frame,
+        overlay: !a.no_overlay,
+        ..Default::default()
+    };
+    settings.segment.depth_min_mm = a.depth_min_mm;
+    settings.segment.depth_max_mm = a.depth_max_mm;
+    settings.segment.use_mask = !a.no_mask;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let report =
+        register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &a.out.join("overlay"), "registering (U-Net)")?;
+    let fe_report = if a.compare_fe {
+        let Some(dir) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
+        let (mut src, _, _) = open_source(&Args { recording: Some(dir.clone()), source: None, ..a.clone() })?;
+        let mut fe = FeDisplacementModel::new(&ctx, config.material).map_err(anyhow::Error::msg)?;
+        Some(register_with(&mut *src, &ctx, &mut fe, pose, truth.as_ref(), &settings, &a.out.join("overlay_fe"), "registering (FE)")?)
+    } else {
+        None
+    };
+    let summary = |r: &RegisterReport| {
+        let s = &r.summary;
+        serde_json::json!({
+            "model": r.model, "frames": s.frames, "skipped": s.skipped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
+            "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
+            "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
+            "latency_ms_median": latency_medians(r),
+        })
+    };
+    let mut v = summary(&report);
+    if let Some(fe) = &fe_report {
+        v["fe"] = summary(fe);
+    }
+    let full =
+        serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
+    umesh_core::write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())?;
+    for l in &report.log {
+        eprintln!("{l}");
+    }
+    if report.summary.frames == 0 {
+        bail!("no frame could be registered (see the log lines above)");
+    }
+    if a.json {
+        super::print_json(&v);
+    } else {
+        println!(
+            "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10}",
+            "frame", "points", "ICP", "u_s", "predict", "overlay", "total ms", "TRE mm"
+        );
+        for f in &report.frames {
+            let l = &f.latency;
+            println!(
+                "{:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10}",
+                f.frame,
+                l.points_ms,
+                l.icp_ms,
+                l.surface_ms,
+                l.predict_ms,
+                l.overlay_ms,
+                l.total_ms,
+                f.tre_mean_mm.map(|t| format!("{t:.2}")).unwrap_or_else(|| "-".into())
+            );
+        }
+        for r in std::iter::once(&report).chain(fe_report.as_ref()) {
+            let s = &r.summary;
+            println!(
+                "{}: {} frames ({} skipped), {:.1} ms median, {:.1} ms p95{}",
+                r.model,
+                s.frames,
+                s.skipped,
+                s.frame_ms_median,
+                s.frame_ms_p95,
+                match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {
+                    (Some(m), Some(x), Some(r0)) => format!("; TRE {m:.2} mm mean, {x:.2} mm max (rigid only: {r0:.2} mm)"),
+                    _ => String::new(),
+                }
+            );
+        }
+        println!("overlays and report.json in {}", a.out.display());
+    }
+    Ok(())
+}
+
+fn latency_medians(r: &RegisterReport) -> serde_json::Value {
+    let med = |f: &dyn Fn(&umesh_core::register::pipeline::Latency) -> f64| {
+        let mut v: Vec<f64> = r.frames.iter().map(|x| f(&x.latency)).collect();
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() { 0.0 } else { v[v.len() / 2] }
+    };
+    serde_json::json!({
+        "points": med(&|l| l.points_ms), "icp": med(&|l| l.icp_ms), "u_s": med(&|l| l.surface_ms),
+        "predict": med(&|l| l.predict_ms), "overlay": med(&|l| l.overlay_ms), "total": med(&|l| l.total_ms),
+    })
+}
+
+fn register_with(
+    source: &mut dyn FrameSource,
+    ctx: &RegistrationContext,
+    model: &mut dyn umesh_core::register::pipeline::DisplacementModel,
+    pose: Matrix4<f64>,
+    truth: Option<&GroundTruth>,
+    settings: &RegisterSettings,
+    overlay_dir: &Path,
+    message: &str,
+) -> Result<RegisterReport> {
+    let (pb, progress) = super::progress_bar(message);
+    let mut write = |o: &umesh_core::register::pipeline::FrameOutput| -> Result<(), String> {
+        if let Some(img) = &o.overlay {
+            let p = overlay_dir.join(format!("{:05}.png", o.report.frame));
+            let bytes = img.encode_png()?;
+            umesh_core::write_atomic(&p, &bytes).map_err(|e| format!("{}: {e}", p.display()))?;
+        }
+        Ok(())
+    };
+    let r = run_register(source, ctx, model, pose, truth, settings, &mut write, &progress, &super::cancel());
+    pb.finish_and_clear();
+    Ok(r?)
+}

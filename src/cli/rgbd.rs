@@ -1,0 +1,167 @@
+//! `umesh rgbd synth` (synthetic recordings with ground truth) and `umesh rgbd serve`
+//! (stream a recording over the TCP frame protocol, as a camera bridge would).
+
+use super::input::{InputArgs, bundled_model, model_dataset_config};
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use umesh_core::rgbd::recording::Recording;
+use umesh_core::rgbd::stream::{FrameSource, Poll, RecordingSource, write_frame};
+use umesh_core::rgbd::synth::{SynthSettings, run_rgbd_synth};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(subcommand)]
+    command: Sub,
+}
+
+#[derive(clap::Subcommand, Debug)]
+enum Sub {
+    /// Deform the organ with the FE model over a short sequence and render a recording.
+    Synth(Box<SynthArgs>),
+    /// Serve a recording's frames on a TCP port in umesh's stream protocol.
+    Serve(ServeArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SynthArgs {
+    #[command(flatten)]
+    pub input: InputArgs,
+    /// Use this model's grid and camera (default: the bundled model's).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    #[arg(long, default_value_t = SynthSettings::default().frames)]
+    pub frames: usize,
+    #[arg(long, default_value_t = SynthSettings::default().fps)]
+    pub fps: f64,
+    #[arg(long, default_value_t = SynthSettings::default().width)]
+    pub width: usize,
+    #[arg(long, default_value_t = SynthSettings::default().height)]
+    pub height: usize,
+    #[arg(long, default_value_t = SynthSettings::default().focal_px)]
+    pub focal_px: f64,
+    /// Depth noise, standard deviation (mm).
+    #[arg(long, default_value_t = SynthSettings::default().noise_mm)]
+    pub noise_mm: f64,
+    /// Holes (no depth) per frame.
+    #[arg(long, default_value_t = SynthSettings::default().holes)]
+    pub holes: usize,
+    /// Markers inside the organ (as many again on the internal structures).
+    #[arg(long, default_value_t = SynthSettings::default().markers)]
+    pub markers: usize,
+    /// Scale of the final load relative to the dataset's random forces.
+    #[arg(long, default_value_t = SynthSettings::default().load_scale)]
+    pub load_scale: f64,
+    #[arg(long, default_value_t = SynthSettings::default().seed)]
+    pub seed: u64,
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ServeArgs {
+    #[arg(long)]
+    pub recording: PathBuf,
+    /// Intrinsics JSON (default: found in the recording).
+    #[arg(long)]
+    pub intrinsics: Option<PathBuf>,
+    #[arg(long, default_value = "127.0.0.1:7878")]
+    pub listen: String,
+    /// Frames per second (default: the recording's).
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Play the recording this many times (0: forever).
+    #[arg(long, default_value_t = 1)]
+    pub loops: usize,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    match a.command {
+        Sub::Synth(s) => synth(*s),
+        Sub::Serve(s) => serve(s),
+    }
+}
+
+fn synth(a: SynthArgs) -> Result<()> {
+    let seg = a.input.load()?;
+    let model_dir = a.model.clone().unwrap_or_else(bundled_model);
+    let info = umesh_net::ModelInfo::read(&model_dir).ok();
+    if a.model.is_some() && info.is_none() {
+        anyhow::bail!("{}: not a model folder (model.json)", model_dir.display());
+    }
+    let config = model_dataset_config(info.as_ref(), &seg);
+    let settings = SynthSettings {
+        frames: a.frames,
+        fps: a.fps,
+        width: a.width,
+        height: a.height,
+        focal_px: a.focal_px,
+        noise_mm: a.noise_mm,
+        holes: a.holes,
+        markers: a.markers,
+        load_scale: a.load_scale,
+        seed: a.seed,
+        ..Default::default()
+    };
+    let (pb, progress) = super::progress_bar("synthetic recording");
+    let r = run_rgbd_synth(&seg, &config, &settings, &a.out, &progress, &super::cancel());
+    pb.finish_and_clear();
+    let r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;
+    if a.json {
+        super::print_json(&serde_json::to_value(&r)?);
+    } else {
+        println!(
+            "{} frames in {} ({} markers; mean marker displacement at the last frame {:.2} mm, max {:.2} mm; FE {:.1} s)",
+            r.frames,
+            r.out.display(),
+            r.markers,
+            r.mean_marker_displacement_mm,
+            r.max_marker_displacement_mm,
+            r.solve_ms_total / 1e3
+        );
+    }
+    Ok(())
+}
+
+fn serve(a: ServeArgs) -> Result<()> {
+    let rec = Recording::open(&a.recording, a.intrinsics.as_deref())?;
+    let fps = a.fps.unwrap_or(rec.meta.fps).max(0.1);
+    let depth_scale = rec.meta.depth_scale;
+    let listener = std::net::TcpListener::bind(&a.listen).with_context(|| format!("listening on {}", a.listen))?;
+    eprintln!("serving {} ({} frames at {fps} fps) on {}", a.recording.display(), rec.len(), a.listen);
+    let (mut sock, peer) = listener.accept()?;
+    eprintln!("client {peer}");
+    let mut played = 0;
+    let mut index = 0usize;
+    loop {
+        let mut src = RecordingSource::new(rec.clone());
+        let start = Instant::now();
+        let mut n = 0u32;
+        loop {
+            match src.poll(Duration::ZERO) {
+                Poll::Frame(mut f) => {
+                    f.timestamp_s = index as f64 / fps;
+                    index += 1;
+                    if let Err(e) = write_frame(&mut sock, &f, depth_scale) {
+                        eprintln!("client gone: {e}");
+                        return Ok(());
+                    }
+                    n += 1;
+                    let due = start + Duration::from_secs_f64(n as f64 / fps);
+                    std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                }
+                Poll::Pending => continue,
+                Poll::Ended(_) => break,
+            }
+            for l in src.take_log() {
+                eprintln!("{l}");
+            }
+        }
+        played += 1;
+        if a.loops != 0 && played >= a.loops {
+            return Ok(());
+        }
+    }
+}

@@ -115,3 +115,27 @@ fn loading_errors_are_shown_in_the_ui_not_panicked_on() {
     app.update();
     assert_eq!(app.world().resource::<UiMessages>().unread_errors, 2);
 }
+
+#[test]
+fn the_real_totalsegmentator_case_opens_with_liver_and_two_vessels() {
+    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/totalsegmentator/example_seg.nii.gz");
+    if !path.exists() {
+        eprintln!("SKIPPED: {} not found", path.display());
+        return;
+    }
+    // File > Open first lists the labels with their names, guessing the roles.
+    let inspect = umesh::app::jobs::inspect_job(path.clone());
+    let Ok(JobOutput::Inspected(_, labels)) = inspect(&Default::default(), &Default::default()) else { panic!("inspect failed") };
+    let pending = PendingOpen::new(path.clone(), labels);
+    let liver = pending.labels.iter().find(|l| l.0 == 5).unwrap();
+    assert_eq!((liver.1.as_str(), liver.3), ("liver", 1));
+    let mut app = app();
+    let req = OpenRequest { path: Some(path), organ_labels: vec![5], structure_labels: vec![63, 64] };
+    app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(req));
+    finish_jobs(&mut app, Duration::from_secs(60));
+    let organ = app.world().resource::<Organ>();
+    let d = organ.data.as_ref().expect("loaded");
+    let names: Vec<&str> = d.structures.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["inferior_vena_cava", "portal_vein_and_splenic_vein"]);
+    assert!(d.surface.topology().is_watertight());
+}

@@ -71,7 +71,13 @@ impl Jobs {
                     *p = JobProgress { done, total, message: msg.to_string() };
                 }
             });
-            work(&sink, &c2)
+            // Leave a core to the UI and the (software) renderer: the solvers' rayon loops run
+            // in a pool one thread smaller than the machine.
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2).saturating_sub(1).max(1);
+            match rayon::ThreadPoolBuilder::new().num_threads(threads).build() {
+                Ok(pool) => pool.install(|| work(&sink, &c2)),
+                Err(_) => work(&sink, &c2),
+            }
         });
         self.next_id += 1;
         self.running.push(Job { id: self.next_id, label: label.into(), progress, cancel, started: Instant::now(), task });

@@ -64,7 +64,8 @@ pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarge
     use bevy::camera::{CameraOutputMode, visibility::RenderLayers};
     use bevy::render::render_resource::BlendState;
     let t = world.get_resource::<camera::OrbitCamera>().cloned().unwrap_or_default().transform();
-    let mut main = world.spawn((Camera3d::default(), t, camera::MainCamera));
+    // No MSAA: with software rendering (llvmpipe) it costs more than the whole scene.
+    let mut main = world.spawn((Camera3d::default(), t, camera::MainCamera, Msaa::Off));
     if let Some(tg) = &target {
         main.insert(tg.clone());
     }
@@ -72,6 +73,7 @@ pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarge
         bevy_egui::PrimaryEguiContext,
         Camera2d,
         RenderLayers::none(),
+        Msaa::Off,
         Camera {
             order: 1,
             output_mode: CameraOutputMode::Write { blend_state: Some(BlendState::ALPHA_BLENDING), clear_color: ClearColorConfig::None },

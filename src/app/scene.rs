@@ -25,6 +25,7 @@ fn setup(mut commands: Commands) {
         Transform::from_xyz(2.0, 6.0, -5.0).looking_at(Vec3::ZERO, Vec3::Y),
     ));
     commands.insert_resource(GlobalAmbientLight { brightness: 600.0, ..default() });
+    commands.insert_resource(bevy::light::DirectionalLightShadowMap { size: 1024 });
 }
 
 fn sync(

@@ -164,11 +164,18 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
 
 /// Frame times (ms) of the app, rendering offscreen, while an SVK solve runs in the
 /// background: the UI must stay responsive.
-pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, f64), String> {
+pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Vec<f64>, f64), String> {
     let (mut app, _) = headless_app("probes", width, height)?;
     for _ in 0..5 {
         app.update();
     }
+    let idle: Vec<f64> = (0..10)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            app.update();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
     let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
     let grid = app.world().resource::<GridState>().grid.clone().ok_or("no grid")?;
     let probes = app.world().resource::<Probes>().list.clone();
@@ -183,7 +190,7 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, f6
             return Err("the solve did not finish within 10 minutes".into());
         }
     }
-    Ok((times, t0.elapsed().as_secs_f64() * 1e3))
+    Ok((times, idle, t0.elapsed().as_secs_f64() * 1e3))
 }
 
 /// Compare two images: the fraction of pixels whose largest channel difference exceeds

@@ -168,20 +168,25 @@ pub fn displacement_at(grid: &ImmersedGrid, field: &[f32], e: &Embedding) -> Vec
     d
 }
 
+/// `count` uniformly random points in the grid's fully inside cells (all cells if none is).
+pub fn inside_markers(grid: &ImmersedGrid, count: usize, rng: &mut crate::phantom::SplitMix64) -> Vec<Vector3<f64>> {
+    let inside: Vec<usize> = (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
+    let cells = if inside.is_empty() { (0..grid.cells.len()).collect() } else { inside };
+    (0..count)
+        .map(|_| {
+            let c = cells[(rng.next_u64() % cells.len() as u64) as usize];
+            let [i, j, k] = grid.cells[c].ijk;
+            let off = Vector3::new(i as f64 + rng.next_f64(), j as f64 + rng.next_f64(), k as f64 + rng.next_f64());
+            grid.origin_mm + off * grid.cell_size_mm
+        })
+        .collect()
+}
+
 /// Virtual markers for the TRE: `count` points inside the organ (inside cells) and, when the
 /// segmentation has internal structures, as many points on them; fixed by `seed`.
 pub fn virtual_markers(ctx: &RegistrationContext, count: usize, seed: u64) -> Vec<Vector3<f64>> {
-    let grid = &ctx.grid;
     let mut rng = crate::phantom::SplitMix64(seed);
-    let inside: Vec<usize> = (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
-    let cells = if inside.is_empty() { (0..grid.cells.len()).collect() } else { inside };
-    let mut out = Vec::new();
-    for _ in 0..count {
-        let c = cells[(rng.next_u64() % cells.len() as u64) as usize];
-        let [i, j, k] = grid.cells[c].ijk;
-        let off = Vector3::new(i as f64 + rng.next_f64(), j as f64 + rng.next_f64(), k as f64 + rng.next_f64());
-        out.push(grid.origin_mm + off * grid.cell_size_mm);
-    }
+    let mut out = inside_markers(&ctx.grid, count, &mut rng);
     let verts: Vec<&Vector3<f64>> = ctx.structures.iter().flat_map(|s| s.mesh.positions.iter()).collect();
     if !verts.is_empty() {
         for _ in 0..count {

@@ -202,16 +202,10 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
         }
         progress.report(2, 3, "structures");
-        let mut structures = Vec::new();
-        for (i, &label) in seg.structure_labels.iter().enumerate() {
-            let mask = seg.volume.mask(&[label]);
-            if mask.count() == 0 {
-                continue;
-            }
-            let mesh = extract_surface(&mask, &SurfaceSettings { sigma_voxels: 0.8, step: 1, smooth_iterations: 10 });
-            let name = seg.label_name(label);
-            structures.push(StructureMesh { label, color: umesh_core::register::structure_color(&name, i), name, mesh: Arc::new(mesh) });
-        }
+        let structures = umesh_core::register::structure_surfaces(&seg)
+            .into_iter()
+            .map(|(label, name, color, mesh)| StructureMesh { label, name, color, mesh: Arc::new(mesh) })
+            .collect();
         let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
         Ok(JobOutput::Loaded(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source }))
     }

@@ -23,7 +23,8 @@ fn ext(path: &Path) -> String {
     path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default()
 }
 
-pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
+/// Parse any supported file by its extension; vertex coordinates must be finite.
+fn parse_file(path: &Path) -> Result<TriMesh, MeshIoError> {
     let bytes = std::fs::read(path).map_err(|source| MeshIoError::Io { path: path.into(), source })?;
     let parse = |reason: String| MeshIoError::Parse { path: path.into(), reason };
     let mesh = match ext(path).as_str() {
@@ -32,33 +33,28 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
         "ply" => parse_ply(&bytes).map_err(parse)?,
         _ => return Err(MeshIoError::UnknownFormat { path: path.into() }),
     };
-    if mesh.triangles.is_empty() {
-        return Err(parse("the file holds no triangles".into()));
-    }
-    let n = mesh.positions.len() as u32;
-    if mesh.triangles.iter().flatten().any(|&i| i >= n) {
-        return Err(parse("a face refers to a vertex that does not exist".into()));
-    }
     if mesh.positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
         return Err(parse("a vertex coordinate is not finite".into()));
     }
     Ok(mesh)
 }
 
+pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
+    let mesh = parse_file(path)?;
+    let parse = |reason: &str| MeshIoError::Parse { path: path.into(), reason: reason.into() };
+    if mesh.triangles.is_empty() {
+        return Err(parse("the file holds no triangles"));
+    }
+    let n = mesh.positions.len() as u32;
+    if mesh.triangles.iter().flatten().any(|&i| i >= n) {
+        return Err(parse("a face refers to a vertex that does not exist"));
+    }
+    Ok(mesh)
+}
+
 /// Read the vertices of a PLY, OBJ or STL file (a point cloud: faces optional).
 pub fn read_point_cloud(path: &Path) -> Result<Vec<Vector3<f64>>, MeshIoError> {
-    let bytes = std::fs::read(path).map_err(|source| MeshIoError::Io { path: path.into(), source })?;
-    let parse = |reason: String| MeshIoError::Parse { path: path.into(), reason };
-    let mesh = match ext(path).as_str() {
-        "obj" => parse_obj(&String::from_utf8_lossy(&bytes)).map_err(parse)?,
-        "stl" => parse_stl(&bytes).map_err(parse)?,
-        "ply" => parse_ply(&bytes).map_err(parse)?,
-        _ => return Err(MeshIoError::UnknownFormat { path: path.into() }),
-    };
-    if mesh.positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
-        return Err(parse("a vertex coordinate is not finite".into()));
-    }
-    Ok(mesh.positions)
+    Ok(parse_file(path)?.positions)
 }
 
 /// Read a mesh that must be closed and consistently oriented (organ geometry);

@@ -39,6 +39,24 @@ pub fn structure_color(name: &str, i: usize) -> [u8; 3] {
     }
 }
 
+/// The surfaces of the segmentation's internal structures, with names and overlay colours
+/// (labels with no voxel or no surface are left out).
+pub fn structure_surfaces(seg: &Segmentation) -> Vec<(i64, String, [u8; 3], TriMesh)> {
+    let mut out = Vec::new();
+    for (i, &label) in seg.structure_labels.iter().enumerate() {
+        let mask = seg.volume.mask(&[label]);
+        if mask.count() == 0 {
+            continue;
+        }
+        let mesh = extract_surface(&mask, &SurfaceSettings { sigma_voxels: 0.8, step: 1, smooth_iterations: 10 });
+        if !mesh.triangles.is_empty() {
+            let name = seg.label_name(label);
+            out.push((label, name.clone(), structure_color(&name, i), mesh));
+        }
+    }
+    out
+}
+
 /// What registration needs from the preoperative model.
 #[derive(Debug)]
 pub struct RegistrationContext {
@@ -66,18 +84,9 @@ impl RegistrationContext {
     /// From the dataset context of the model's grid, with the structures of `seg`.
     pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, String> {
         let mut structures = Vec::new();
-        for (i, &label) in seg.structure_labels.iter().enumerate() {
-            let mask = seg.volume.mask(&[label]);
-            if mask.count() == 0 {
-                continue;
-            }
-            let mesh = extract_surface(&mask, &SurfaceSettings { sigma_voxels: 0.8, step: 1, smooth_iterations: 10 });
-            if mesh.triangles.is_empty() {
-                continue;
-            }
-            let name = seg.label_name(label);
+        for (label, name, color, mesh) in structure_surfaces(seg) {
             let embedding = embed_all(&ctx.grid, &mesh.positions)?;
-            structures.push(Structure { label, color: structure_color(&name, i), name, mesh, embedding });
+            structures.push(Structure { label, name, color, mesh, embedding });
         }
         let surface = ctx.surface;
         let surface_normals = surface.vertex_normals();

@@ -72,9 +72,10 @@ impl Jobs {
                 }
             });
             // Leave a core to the UI and the (software) renderer: the solvers' rayon loops run
-            // in a pool one thread smaller than the machine.
+            // in a pool one thread smaller than the machine, at a lower priority, so that the
+            // renderer's threads win whenever they have work.
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2).saturating_sub(1).max(1);
-            match rayon::ThreadPoolBuilder::new().num_threads(threads).build() {
+            match rayon::ThreadPoolBuilder::new().num_threads(threads).start_handler(|_| lower_thread_priority()).build() {
                 Ok(pool) => pool.install(|| work(&sink, &c2)),
                 Err(_) => work(&sink, &c2),
             }
@@ -179,6 +180,16 @@ pub fn poll_jobs(
     }
 }
 
+/// Nice the calling thread (Linux: priorities are per thread) so background work yields to the UI.
+#[allow(unsafe_code)]
+fn lower_thread_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority only reads its integer arguments; who = 0 is the calling thread.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+    }
+}
+
 /// Load a segmentation (or the bundled phantom) and extract its surfaces.
 pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
     move |progress, cancel| {
@@ -197,7 +208,9 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             return Err("cancelled".into());
         }
         progress.report(1, 3, "organ surface");
-        let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 1, ..Default::default() });
+        // Sampled every second voxel: a quarter of the triangles (68k instead of 272k on the
+        // phantom), which software renderers need and which is plenty for display and picking.
+        let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
         if surface.triangles.is_empty() {
             return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
         }

@@ -10,6 +10,7 @@ pub mod scene;
 pub mod screenshot;
 pub mod state;
 pub mod ui;
+pub mod view3d;
 
 use bevy::prelude::*;
 use bevy::render::error_handler::{RenderError, RenderErrorHandler, RenderErrorPolicy};
@@ -37,6 +38,7 @@ impl Plugin for ViewPlugins {
                 camera::OrbitCameraPlugin,
                 grid_preview::GridPreviewPlugin,
                 probes::ProbeInputPlugin,
+                view3d::View3dPlugin,
             ))
             .init_resource::<ui::UiState>()
             .add_systems(EguiPrimaryContextPass, ui::ui_system)
@@ -58,29 +60,15 @@ fn render_error_policy(error: &RenderError, main_world: &mut World, _render: &mu
     RenderErrorPolicy::StopRendering
 }
 
-/// The 3-D camera (its viewport follows the space the panels leave) and, drawn on top, the
-/// camera egui renders with (a separate one: egui would otherwise shrink with the viewport).
+/// The 3-D camera, rendering into the [`view3d::View3d`] image, and the camera egui renders
+/// with into `target` (the window when None); the UI shows the 3-D image between its panels.
 pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarget>) {
-    use bevy::camera::{CameraOutputMode, visibility::RenderLayers};
-    use bevy::render::render_resource::BlendState;
+    use bevy::camera::{RenderTarget, visibility::RenderLayers};
     let t = world.get_resource::<camera::OrbitCamera>().cloned().unwrap_or_default().transform();
+    let image = world.resource::<view3d::View3d>().image.clone();
     // No MSAA: with software rendering (llvmpipe) it costs more than the whole scene.
-    let mut main = world.spawn((Camera3d::default(), t, camera::MainCamera, Msaa::Off));
-    if let Some(tg) = &target {
-        main.insert(tg.clone());
-    }
-    let mut ui = world.spawn((
-        bevy_egui::PrimaryEguiContext,
-        Camera2d,
-        RenderLayers::none(),
-        Msaa::Off,
-        Camera {
-            order: 1,
-            output_mode: CameraOutputMode::Write { blend_state: Some(BlendState::ALPHA_BLENDING), clear_color: ClearColorConfig::None },
-            clear_color: ClearColorConfig::Custom(Color::NONE),
-            ..default()
-        },
-    ));
+    world.spawn((Camera3d::default(), t, camera::MainCamera, Msaa::Off, RenderTarget::Image(image.into())));
+    let mut ui = world.spawn((bevy_egui::PrimaryEguiContext, Camera2d, RenderLayers::none(), Msaa::Off, Camera { order: 1, ..default() }));
     if let Some(tg) = target {
         ui.insert(tg);
     }

@@ -6,6 +6,7 @@ use super::camera::MainCamera;
 use super::convert::{bevy_dir_from_world, bevy_from_world, world_dir_from_bevy, world_from_bevy};
 use super::jobs::{JobOutput, Jobs, deformation};
 use super::state::*;
+use super::view3d::View3d;
 use bevy::prelude::*;
 use bevy::window::PrimaryWindow;
 use bevy_egui::input::egui_wants_any_pointer_input;
@@ -65,8 +66,9 @@ fn place_probes(
     }
 }
 
-fn cursor_ray(window: &Window, camera: &Camera, tf: &GlobalTransform) -> Option<Ray3d> {
-    let pos = window.cursor_position()?;
+fn cursor_ray(window: &Window, view: &View3d, camera: &Camera, tf: &GlobalTransform) -> Option<Ray3d> {
+    let size = camera.physical_target_size()?;
+    let pos = view.viewport_position(window.cursor_position()?, size)?;
     camera.viewport_to_world(tf, pos).ok()
 }
 
@@ -78,9 +80,10 @@ fn mouse_probes(
     mut rays: MessageWriter<ProbeRay>,
     mut probes: ResMut<Probes>,
     settings: Res<ProbeSettings>,
+    view: Res<View3d>,
 ) {
     let (Ok(window), Ok((camera, tf))) = (window.single(), cam.single()) else { return };
-    let Some(ray) = cursor_ray(window, camera, tf) else { return };
+    let Some(ray) = cursor_ray(window, &view, camera, tf) else { return };
     if buttons.just_pressed(MouseButton::Left) {
         rays.write(ProbeRay { origin_mm: world_from_bevy(ray.origin), direction: world_dir_from_bevy(*ray.direction) });
         return;

@@ -21,7 +21,8 @@ struct Shown {
 fn setup(mut commands: Commands) {
     // A directional light with shadows: it shades on GL as well as on Vulkan.
     commands.spawn((
-        DirectionalLight { illuminance: 9000.0, shadow_maps_enabled: std::env::var_os("UMESH_NO_SHADOWS").is_none(), ..default() },
+        // Shadows follow the view quality (view3d).
+        DirectionalLight { illuminance: 9000.0, shadow_maps_enabled: true, ..default() },
         Transform::from_xyz(2.0, 6.0, -5.0).looking_at(Vec3::ZERO, Vec3::Y),
     ));
     commands.insert_resource(GlobalAmbientLight { brightness: 600.0, ..default() });

@@ -169,7 +169,7 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
     for _ in 0..5 {
         app.update();
     }
-    let idle: Vec<f64> = (0..10)
+    let idle: Vec<f64> = (0..30)
         .map(|_| {
             let t = std::time::Instant::now();
             app.update();

@@ -31,7 +31,7 @@ pub struct AppState<'w> {
     rehearsal: ResMut<'w, Rehearsal>,
 }
 
-fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState) {
+fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d) {
     egui::MenuBar::new().ui(ui, |ui| {
         ui.menu_button("File", |ui| {
             if ui.button("Open segmentation or mesh...").clicked() {
@@ -50,6 +50,17 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState) {
         ui.menu_button("View", |ui| {
             ui.checkbox(&mut st.grid.show, "Grid (G)");
             ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)");
+            ui.separator();
+            let mut q = view.quality.clone();
+            ui.add(egui::Slider::new(&mut q.render_scale, 0.25..=1.0).text("3-D resolution"));
+            ui.checkbox(&mut q.shadows, "Shadows");
+            if let Some((name, software)) = &view.adapter {
+                ui.weak(format!("{name}{}", if *software { " (software: half resolution, no shadows by default)" } else { "" }));
+            }
+            if q != view.quality {
+                view.quality = q;
+                view.quality_locked = true;
+            }
         });
         if ui.button("Help (F1)").clicked() {
             uis.show_help = !uis.show_help;
@@ -267,7 +278,7 @@ pub fn ui_system(
     mut uis: ResMut<UiState>,
     keys: Res<ButtonInput<KeyCode>>,
     time: Res<Time>,
-    mut cameras: Query<&mut Camera, With<super::camera::MainCamera>>,
+    mut view: ResMut<super::view3d::View3d>,
 ) -> Result {
     uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
     if let Some(task) = &mut uis.file_dialog
@@ -301,7 +312,7 @@ pub fn ui_system(
         "root".into(),
         egui::UiBuilder::new().layer_id(egui::LayerId::background()).max_rect(ctx.viewport_rect()),
     );
-    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis));
+    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view));
     egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
     egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
         egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, &mut st));
@@ -311,17 +322,11 @@ pub fn ui_system(
     });
     // The 3-D view gets what the panels leave.
     let rect = root.available_rect_before_wrap();
-    let ppp = ctx.pixels_per_point();
-    for mut cam in &mut cameras {
-        let Some(target) = cam.physical_target_size() else { continue };
-        let pos = UVec2::new((rect.min.x * ppp).max(0.0) as u32, (rect.min.y * ppp).max(0.0) as u32).min(target);
-        let size = UVec2::new((rect.width() * ppp) as u32, (rect.height() * ppp) as u32).min(target - pos);
-        if size.x >= 16 && size.y >= 16 {
-            let vp = bevy::camera::Viewport { physical_position: pos, physical_size: size, ..default() };
-            if cam.viewport.as_ref().is_none_or(|v| v.physical_position != pos || v.physical_size != size) {
-                cam.viewport = Some(vp);
-            }
-        }
+    view.rect = Some(rect);
+    view.pixels_per_point = ctx.pixels_per_point();
+    if let Some(tex) = view.texture {
+        let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
+        root.painter().image(tex, rect, uv, egui::Color32::WHITE);
     }
     open_window(&ctx, &mut st);
     if uis.show_help {

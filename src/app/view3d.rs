@@ -1,0 +1,128 @@
+//! The 3-D view: the main camera renders offscreen into an image, and the UI shows that
+//! image in the space the panels leave. The image can be smaller than the view (a render
+//! scale): on a software rasteriser (llvmpipe, lavapipe) fragment work dominates the frame,
+//! so the view renders there at half resolution and without shadows by default.
+
+use bevy::asset::RenderAssetUsages;
+use bevy::prelude::*;
+use bevy::render::render_resource::{Extent3d, TextureFormat};
+use bevy::render::renderer::RenderAdapterInfo;
+use bevy_egui::{EguiTextureHandle, EguiUserTextures, egui};
+
+/// How the 3-D view is rendered; the View menu edits it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Quality {
+    /// Rendered pixels per displayed pixel along each axis (0.25..=1).
+    pub render_scale: f32,
+    pub shadows: bool,
+}
+
+impl Quality {
+    pub const FULL: Quality = Quality { render_scale: 1.0, shadows: true };
+    /// Measured with `umesh bench ui` on llvmpipe: a quarter of the fragments and no shadow pass.
+    pub const SOFTWARE: Quality = Quality { render_scale: 0.5, shadows: false };
+}
+
+#[derive(Resource)]
+pub struct View3d {
+    pub image: Handle<Image>,
+    pub texture: Option<egui::TextureId>,
+    /// The view's rectangle in logical window pixels (egui points), set by the UI each frame.
+    pub rect: Option<egui::Rect>,
+    pub pixels_per_point: f32,
+    pub quality: Quality,
+    /// The adapter's name and whether it rasterises on the CPU, once known.
+    pub adapter: Option<(String, bool)>,
+    /// The quality was chosen by a user (or a test); adapter detection leaves it alone.
+    pub quality_locked: bool,
+}
+
+impl FromWorld for View3d {
+    fn from_world(world: &mut World) -> Self {
+        let mut img = Image::new_target_texture(64, 64, TextureFormat::Rgba8UnormSrgb, None);
+        img.asset_usage = RenderAssetUsages::default();
+        img.data = None;
+        // The old contents are redrawn anyway.
+        img.copy_on_resize = false;
+        let image = world.resource_mut::<Assets<Image>>().add(img);
+        // UMESH_QUALITY=full|software overrides the adapter-based choice (benchmarks, tests).
+        let forced = match std::env::var("UMESH_QUALITY").as_deref() {
+            Ok("full") => Some(Quality::FULL),
+            Ok("software") => Some(Quality::SOFTWARE),
+            _ => None,
+        };
+        let quality_locked = forced.is_some();
+        let quality = forced.unwrap_or(Quality::FULL);
+        Self { image, texture: None, rect: None, pixels_per_point: 1.0, quality, adapter: None, quality_locked }
+    }
+}
+
+impl View3d {
+    /// The image size for the current rectangle and render scale (physical pixels).
+    pub fn image_size(&self) -> Option<UVec2> {
+        let r = self.rect?;
+        let s = self.pixels_per_point * self.quality.render_scale.clamp(0.25, 1.0);
+        let size = UVec2::new((r.width() * s).round() as u32, (r.height() * s).round() as u32);
+        (size.x >= 16 && size.y >= 16).then_some(size)
+    }
+
+    /// A cursor position in logical window pixels -> the camera's viewport position (image
+    /// pixels), or None outside the view.
+    pub fn viewport_position(&self, cursor: Vec2, image_size: UVec2) -> Option<Vec2> {
+        let r = self.rect?;
+        if !r.contains(egui::pos2(cursor.x, cursor.y)) || r.width() <= 0.0 || r.height() <= 0.0 {
+            return None;
+        }
+        let u = (cursor.x - r.min.x) / r.width();
+        let v = (cursor.y - r.min.y) / r.height();
+        Some(Vec2::new(u * image_size.x as f32, v * image_size.y as f32))
+    }
+}
+
+/// Choose the quality from the adapter once it is known: software rasterisers get
+/// [`Quality::SOFTWARE`].
+fn detect_adapter(info: Option<Res<RenderAdapterInfo>>, mut view: ResMut<View3d>) {
+    if view.adapter.is_some() {
+        return;
+    }
+    let Some(info) = info else { return };
+    let software = format!("{:?}", info.device_type) == "Cpu"
+        || ["llvmpipe", "lavapipe", "softpipe", "swiftshader"].iter().any(|n| info.name.to_lowercase().contains(n));
+    info!("render adapter: {} ({:?}, {:?}); software rasteriser: {software}", info.name, info.backend, info.device_type);
+    view.adapter = Some((info.name.clone(), software));
+    if software && !view.quality_locked {
+        view.quality = Quality::SOFTWARE;
+    }
+}
+
+/// Keep the image the size the view needs and registered with egui.
+fn resize_image(mut view: ResMut<View3d>, mut images: ResMut<Assets<Image>>, mut textures: ResMut<EguiUserTextures>) {
+    if view.texture.is_none() {
+        view.texture = Some(textures.add_image(EguiTextureHandle::Strong(view.image.clone())));
+    }
+    let Some(size) = view.image_size() else { return };
+    let Some(img) = images.get(&view.image) else { return };
+    if img.size() != size
+        && let Some(mut img) = images.get_mut(&view.image)
+    {
+        img.resize(Extent3d { width: size.x, height: size.y, depth_or_array_layers: 1 });
+    }
+}
+
+fn apply_shadows(view: Res<View3d>, mut lights: Query<&mut DirectionalLight>) {
+    if view.is_changed() {
+        for mut l in &mut lights {
+            if l.shadow_maps_enabled != view.quality.shadows {
+                l.shadow_maps_enabled = view.quality.shadows;
+            }
+        }
+    }
+}
+
+pub struct View3dPlugin;
+
+impl Plugin for View3dPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<View3d>().add_systems(Update, (detect_adapter, resize_image, apply_shadows).chain());
+    }
+}

@@ -24,6 +24,6 @@ pub struct GridPreviewPlugin;
 
 impl Plugin for GridPreviewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, draw_grid);
+        app.add_systems(Update, draw_grid.run_if(resource_equals(super::state::Mode::Model)));
     }
 }

@@ -29,6 +29,8 @@ pub enum JobOutput {
     },
     /// A network ready for rehearsal.
     Model(Arc<Mutex<super::probes::RehearsalModel>>),
+    /// A synthetic RGB-D recording written to this folder.
+    Synthesized(std::path::PathBuf, String),
 }
 
 #[derive(Clone, Debug, Default)]
@@ -106,6 +108,7 @@ pub fn poll_jobs(
     mut messages: ResMut<UiMessages>,
     mut pending: ResMut<PendingOpenRes>,
     mut rehearsal: ResMut<super::probes::Rehearsal>,
+    mut ar: ResMut<super::ar::Ar>,
 ) {
     let mut i = 0;
     while i < jobs.running.len() {
@@ -132,6 +135,12 @@ pub fn poll_jobs(
                 rehearsal.enabled = true;
                 rehearsal.shown_generation = u64::MAX;
                 let msg = "model loaded: rehearsal on (drag the probes)".to_string();
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Synthesized(dir, summary)) => {
+                let msg = format!("synthetic recording in {}: {summary}; press Open recording", dir.display());
+                ar.source_text = dir.display().to_string();
                 messages.info(msg.clone());
                 msg
             }
@@ -180,9 +189,27 @@ pub fn poll_jobs(
     }
 }
 
+/// A synthetic RGB-D recording of the organ deformed by the FE model (`umesh rgbd synth`).
+pub fn synth_job(
+    organ: OrganData,
+    model_dir: std::path::PathBuf,
+    out: std::path::PathBuf,
+    frames: usize,
+) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, cancel| {
+        let info = umesh_net::ModelInfo::read(&model_dir).ok();
+        let config = crate::cli::input::model_dataset_config(info.as_ref(), &organ.seg);
+        let settings = umesh_core::rgbd::synth::SynthSettings { frames, ..Default::default() };
+        let r = umesh_core::rgbd::synth::run_rgbd_synth(&organ.seg, &config, &settings, &out, progress, cancel)
+            .map_err(|e| format!("{}: {e}", out.display()))?;
+        let summary = format!("{} frames, markers move {:.1} mm by the last", r.frames, r.mean_marker_displacement_mm);
+        Ok(JobOutput::Synthesized(out, summary))
+    }
+}
+
 /// Nice the calling thread (Linux: priorities are per thread) so background work yields to the UI.
 #[allow(unsafe_code)]
-fn lower_thread_priority() {
+pub fn lower_thread_priority() {
     #[cfg(target_os = "linux")]
     // SAFETY: setpriority only reads its integer arguments; who = 0 is the calling thread.
     unsafe {

@@ -4,13 +4,20 @@
 pub mod camera;
 pub mod convert;
 pub mod grid_preview;
+pub mod ar;
 pub mod jobs;
 pub mod probes;
+pub mod qa;
+pub mod qa_view;
 pub mod scene;
 pub mod screenshot;
 pub mod state;
 pub mod ui;
+pub mod ui_ar;
+pub mod ui_jobs;
+pub mod ui_qa;
 pub mod view3d;
+pub mod workflow;
 
 use bevy::prelude::*;
 use bevy::render::error_handler::{RenderError, RenderErrorHandler, RenderErrorPolicy};
@@ -22,7 +29,9 @@ pub struct CorePlugins;
 
 impl Plugin for CorePlugins {
     fn build(&self, app: &mut App) {
-        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin));
+        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin, workflow::WorkflowPlugin, qa::QaPlugin, ar::ArPlugin))
+            .init_resource::<state::ActiveModel>()
+            .init_resource::<state::Mode>();
     }
 }
 
@@ -39,8 +48,10 @@ impl Plugin for ViewPlugins {
                 grid_preview::GridPreviewPlugin,
                 probes::ProbeInputPlugin,
                 view3d::View3dPlugin,
+                qa_view::QaViewPlugin,
             ))
             .init_resource::<ui::UiState>()
+            .init_resource::<ui_jobs::JobsUi>()
             .add_systems(EguiPrimaryContextPass, ui::ui_system)
             .insert_resource(ClearColor(Color::srgb(0.11, 0.12, 0.14)))
             .insert_resource(RenderErrorHandler(render_error_policy));

@@ -143,7 +143,12 @@ pub struct RehearsalModel {
 impl RehearsalModel {
     /// Load a model and rebuild its grid from the organ's segmentation (they must match).
     pub fn load(dir: &std::path::Path, organ: &OrganData) -> Result<Self, String> {
-        let predictor = umesh_net::inference::Predictor::load(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        Self::load_checkpoint(dir, "model.safetensors", organ)
+    }
+
+    /// Load one checkpoint of a model folder (`model.safetensors`, `last.safetensors`).
+    pub fn load_checkpoint(dir: &std::path::Path, file: &str, organ: &OrganData) -> Result<Self, String> {
+        let predictor = umesh_net::inference::Predictor::load_checkpoint(dir, file).map_err(|e| format!("{}: {e}", dir.display()))?;
         let config = crate::cli::input::model_dataset_config(Some(&predictor.info), &organ.seg);
         let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
         predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).map_err(|e| format!("{}: {e}", dir.display()))?;
@@ -277,6 +282,9 @@ pub struct ProbeInputPlugin;
 
 impl Plugin for ProbeInputPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes));
+        app.add_systems(
+            Update,
+            (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes).run_if(resource_equals(Mode::Model)),
+        );
     }
 }

@@ -75,10 +75,20 @@ fn sync(
     }
 }
 
+/// The organ and its structures show in the model view only (the QA view has its own).
+fn visibility(mode: Res<super::state::Mode>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
+    let want = if *mode == super::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
+    for mut v in &mut q {
+        if *v != want {
+            *v = want;
+        }
+    }
+}
+
 pub struct ScenePlugin;
 
 impl Plugin for ScenePlugin {
     fn build(&self, app: &mut App) {
-        app.init_resource::<Shown>().add_systems(Startup, setup).add_systems(PostUpdate, sync);
+        app.init_resource::<Shown>().add_systems(Startup, setup).add_systems(PostUpdate, (sync, visibility).chain());
     }
 }

@@ -21,7 +21,13 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use umesh_core::{Cancel, Progress};
 
-pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal"];
+pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "jobs", "qa", "ar"];
+
+/// A folder for data a scene generates (a small dataset, a short recording), kept between
+/// runs: the generation is deterministic and is skipped when the folder is complete.
+fn scene_cache(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("umesh-scene-{name}"))
+}
 
 fn run(job: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String>) -> Result<JobOutput, String> {
     job(&Progress::none(), &Cancel::new())
@@ -94,6 +100,70 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             reh.enabled = true;
             reh.shown_generation = u64::MAX;
         }
+        "jobs" => {
+            // The dashboard on the bundled model's training metrics.
+            world.insert_resource(Mode::Jobs);
+            let mut j = world.resource_mut::<super::ui_jobs::JobsUi>();
+            let dir = crate::cli::input::bundled_model();
+            j.folder_text = short_path(&dir);
+            j.dash = Some(super::ui_jobs::DashSource::Folder(dir));
+        }
+        "qa" => {
+            // Four samples made with the bundled model's configuration, the model beside them.
+            let model = ActiveModel::default();
+            let info = umesh_net::ModelInfo::read(&model.dir).map_err(|e| e.to_string())?;
+            let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
+            config.samples = 4;
+            config.shard_size = 4;
+            let dir = scene_cache("qa-dataset");
+            umesh_core::dataset::run_generate(
+                &organ.seg,
+                &dir,
+                &config,
+                umesh_core::dataset::ShardSelection::all(),
+                &Progress::none(),
+                &Cancel::new(),
+            )
+            .map_err(|e| e.to_string())?;
+            let (ds, m, p) = super::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
+            let p = p.map(|p| Arc::new(Mutex::new(p)));
+            let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
+            let sample = super::qa::load_sample(&ds, &m, first, p.as_deref())?;
+            world.insert_resource(Mode::Qa);
+            let mut qa = world.resource_mut::<super::qa::Qa>();
+            qa.path_text = dir.display().to_string();
+            qa.dataset = Some(Arc::new(ds));
+            qa.manifest = Some(m);
+            qa.predictor = p;
+            if let Some(t) = sample.tre_mm {
+                qa.tre.insert(first, t);
+            }
+            qa.sample = Some(Arc::new(sample));
+            qa.show_u_s = true;
+            qa.show_prediction = true;
+            qa.generation += 1;
+            qa.reorder();
+            // Frame the truth and the prediction beside it.
+            let mut cam = world.resource_mut::<OrbitCamera>();
+            cam.focus.x -= cam.distance * 0.18;
+            cam.distance *= 1.5;
+        }
+        "ar" => {
+            let model = ActiveModel::default();
+            let dir = scene_cache("ar-recording");
+            if !dir.join("trajectory.log").is_file() {
+                let JobOutput::Synthesized(..) = run(jobs::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))? else {
+                    return Err("synthetic recording".into());
+                };
+            }
+            world.insert_resource(Mode::Ar);
+            let mut ar = world.resource_mut::<super::ar::Ar>();
+            ar.source_text = dir.display().to_string();
+            ar.show_points = true;
+            let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model);
+            s.send(super::ar::ArCommand::Seek(3));
+            ar.session = Some(s);
+        }
         other => return Err(format!("unknown scene {other:?}; scenes: {}", SCENES.join(", "))),
     }
     Ok(())
@@ -112,6 +182,22 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     }
     let (mut app, handle) = headless_app(scene, width, height)?;
     for _ in 0..warmup_frames.max(4) {
+        app.update();
+    }
+    // The AR view waits for its worker's first overlay (a minute at most).
+    let t0 = std::time::Instant::now();
+    while scene == "ar" && app.world().resource::<super::ar::Ar>().last.is_none() {
+        if t0.elapsed().as_secs() > 60 {
+            return Err("the AR view showed no frame within 60 s".into());
+        }
+        if app.world().resource::<super::ar::Ar>().session.is_none() {
+            let last = app.world().resource::<UiMessages>().last().map(|m| m.1.clone()).unwrap_or_default();
+            return Err(format!("the AR session stopped: {last}"));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        app.update();
+    }
+    for _ in 0..3 {
         app.update();
     }
     let captured = Captured::default();

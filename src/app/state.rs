@@ -235,3 +235,42 @@ impl PendingOpen {
 
 #[derive(Resource, Default)]
 pub struct PendingOpenRes(pub Option<PendingOpen>);
+
+/// The model the QA browser and the AR view use: a model folder and one of its checkpoints
+/// (the bundled model by default; the training dashboard changes it).
+#[derive(Resource, Clone, Debug)]
+pub struct ActiveModel {
+    pub dir: std::path::PathBuf,
+    pub checkpoint: String,
+}
+
+impl Default for ActiveModel {
+    fn default() -> Self {
+        Self { dir: crate::cli::input::bundled_model(), checkpoint: "model.safetensors".into() }
+    }
+}
+
+/// What the window shows: the organ and its simulation, the jobs, the dataset browser or
+/// the AR view.
+#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Mode {
+    #[default]
+    Model,
+    Jobs,
+    Qa,
+    Ar,
+}
+
+impl Mode {
+    pub const ALL: [(Mode, &'static str); 4] = [(Mode::Model, "Model"), (Mode::Jobs, "Jobs"), (Mode::Qa, "Dataset QA"), (Mode::Ar, "AR view")];
+    /// Whether the 3-D view is shown (the jobs and AR views are pure UI).
+    pub fn shows_3d(self) -> bool {
+        matches!(self, Mode::Model | Mode::Qa)
+    }
+}
+
+/// A path relative to the working directory when it lies inside it (shorter to read, and
+/// the same on every checkout).
+pub fn short_path(p: &std::path::Path) -> String {
+    std::env::current_dir().ok().and_then(|d| p.strip_prefix(d).ok().map(|r| r.display().to_string())).unwrap_or_else(|| p.display().to_string())
+}

@@ -31,7 +31,18 @@ pub struct AppState<'w> {
     rehearsal: ResMut<'w, Rehearsal>,
 }
 
-fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d) {
+/// The state of the jobs, QA and AR views.
+#[derive(bevy::ecs::system::SystemParam)]
+pub struct Views<'w> {
+    mode: ResMut<'w, Mode>,
+    jobs_ui: ResMut<'w, super::ui_jobs::JobsUi>,
+    queue: ResMut<'w, super::workflow::WorkQueue>,
+    qa: ResMut<'w, super::qa::Qa>,
+    ar: ResMut<'w, super::ar::Ar>,
+    active: ResMut<'w, ActiveModel>,
+}
+
+fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d, mode: &mut Mode) {
     egui::MenuBar::new().ui(ui, |ui| {
         ui.menu_button("File", |ui| {
             if ui.button("Open segmentation or mesh...").clicked() {
@@ -64,6 +75,10 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
         });
         if ui.button("Help (F1)").clicked() {
             uis.show_help = !uis.show_help;
+        }
+        ui.separator();
+        for (m, name) in Mode::ALL {
+            ui.selectable_value(mode, m, name);
         }
     });
 }
@@ -279,6 +294,8 @@ pub fn ui_system(
     keys: Res<ButtonInput<KeyCode>>,
     time: Res<Time>,
     mut view: ResMut<super::view3d::View3d>,
+    mut views: Views,
+    mut ar_texture: Local<Option<egui::TextureHandle>>,
 ) -> Result {
     uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
     if let Some(task) = &mut uis.file_dialog
@@ -290,21 +307,38 @@ pub fn ui_system(
         }
     }
     let ctx = contexts.ctx_mut()?.clone();
+    let mode = *views.mode;
     if !ctx.egui_wants_keyboard_input() {
         if keys.just_pressed(KeyCode::F1) {
             uis.show_help = !uis.show_help;
         }
-        if keys.just_pressed(KeyCode::KeyG) {
-            st.grid.show = !st.grid.show;
+        if mode == Mode::Model {
+            if keys.just_pressed(KeyCode::KeyG) {
+                st.grid.show = !st.grid.show;
+            }
+            if keys.just_pressed(KeyCode::KeyD) {
+                st.sim.show_deformed = !st.sim.show_deformed;
+                st.sim.generation += 1;
+            }
+            if keys.just_pressed(KeyCode::Delete)
+                && let Some(i) = st.probes.selected
+            {
+                st.probes.remove(i);
+            }
         }
-        if keys.just_pressed(KeyCode::KeyD) {
-            st.sim.show_deformed = !st.sim.show_deformed;
-            st.sim.generation += 1;
-        }
-        if keys.just_pressed(KeyCode::Delete)
-            && let Some(i) = st.probes.selected
-        {
-            st.probes.remove(i);
+        if mode == Mode::Qa {
+            if keys.just_pressed(KeyCode::ArrowRight) {
+                views.qa.step(1);
+            }
+            if keys.just_pressed(KeyCode::ArrowLeft) {
+                views.qa.step(-1);
+            }
+            if keys.just_pressed(KeyCode::KeyR) {
+                match views.qa.toggle_flag() {
+                    Ok(m) => st.messages.info(m),
+                    Err(e) => st.messages.error(e),
+                }
+            }
         }
     }
     let mut root = egui::Ui::new(
@@ -312,21 +346,79 @@ pub fn ui_system(
         "root".into(),
         egui::UiBuilder::new().layer_id(egui::LayerId::background()).max_rect(ctx.viewport_rect()),
     );
-    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view));
+    let mut new_mode = mode;
+    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut new_mode));
     egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
-    egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
-        egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, &mut st));
-    });
-    egui::Panel::right("right").default_size(280.0).show(&mut root, |ui| {
-        egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, &mut st));
-    });
-    // The 3-D view gets what the panels leave.
-    let rect = root.available_rect_before_wrap();
-    view.rect = Some(rect);
-    view.pixels_per_point = ctx.pixels_per_point();
-    if let Some(tex) = view.texture {
-        let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
-        root.painter().image(tex, rect, uv, egui::Color32::WHITE);
+    let Views { jobs_ui, queue, qa, ar, active, .. } = &mut views;
+    match mode {
+        Mode::Model => {
+            egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, &mut st));
+            });
+            egui::Panel::right("right").default_size(280.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, &mut st));
+            });
+        }
+        Mode::Jobs => {
+            egui::Panel::left("jobs_left").default_size(300.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| super::ui_jobs::forms_panel(ui, jobs_ui, queue, &st.organ, &mut st.messages));
+            });
+            let load = egui::CentralPanel::default().show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active)).inner;
+            if let Some((dir, file)) = load {
+                **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
+                if let Some(d) = &st.organ.data {
+                    let d = d.clone();
+                    st.jobs.spawn("load model", move |_, _| {
+                        let m = RehearsalModel::load_checkpoint(&dir, &file, &d)?;
+                        Ok(super::jobs::JobOutput::Model(Arc::new(Mutex::new(m))))
+                    });
+                }
+            }
+        }
+        Mode::Qa => {
+            egui::Panel::left("qa_left").default_size(280.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| super::ui_qa::left_panel(ui, qa, &st.organ, active, &mut st.messages));
+            });
+            egui::Panel::right("qa_right").default_size(280.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| super::ui_qa::right_panel(ui, qa));
+            });
+        }
+        Mode::Ar => {
+            let mut synth = false;
+            egui::Panel::left("ar_left").default_size(290.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| synth = super::ui_ar::left_panel(ui, ar, &st.organ, active, &mut st.messages));
+            });
+            egui::Panel::right("ar_right").default_size(250.0).show(&mut root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| super::ui_ar::right_panel(ui, ar));
+            });
+            egui::CentralPanel::default().show(&mut root, |ui| super::ui_ar::central(ui, ar, &mut ar_texture));
+            if synth {
+                match &st.organ.data {
+                    Some(d) if !st.jobs.is_running("synthetic") => {
+                        st.jobs.spawn(
+                            "synthetic recording",
+                            super::jobs::synth_job(d.clone(), active.dir.clone(), super::ui_ar::synthetic_recording_dir(), 20),
+                        );
+                    }
+                    Some(_) => {}
+                    None => st.messages.error("load an organ first"),
+                }
+            }
+        }
+    }
+    if new_mode != mode {
+        *views.mode = new_mode;
+    }
+    // The 3-D view gets what the panels leave (only where the mode shows it).
+    view.active = mode.shows_3d();
+    if mode.shows_3d() {
+        let rect = root.available_rect_before_wrap();
+        view.rect = Some(rect);
+        view.pixels_per_point = ctx.pixels_per_point();
+        if let Some(tex) = view.texture {
+            let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
+            root.painter().image(tex, rect, uv, egui::Color32::WHITE);
+        }
     }
     open_window(&ctx, &mut st);
     if uis.show_help {

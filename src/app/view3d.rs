@@ -35,6 +35,8 @@ pub struct View3d {
     pub adapter: Option<(String, bool)>,
     /// The quality was chosen by a user (or a test); adapter detection leaves it alone.
     pub quality_locked: bool,
+    /// Whether the current mode shows the 3-D view (the camera renders only then).
+    pub active: bool,
 }
 
 impl FromWorld for View3d {
@@ -53,7 +55,7 @@ impl FromWorld for View3d {
         };
         let quality_locked = forced.is_some();
         let quality = forced.unwrap_or(Quality::FULL);
-        Self { image, texture: None, rect: None, pixels_per_point: 1.0, quality, adapter: None, quality_locked }
+        Self { image, texture: None, rect: None, pixels_per_point: 1.0, quality, adapter: None, quality_locked, active: true }
     }
 }
 
@@ -109,8 +111,13 @@ fn resize_image(mut view: ResMut<View3d>, mut images: ResMut<Assets<Image>>, mut
     }
 }
 
-fn apply_shadows(view: Res<View3d>, mut lights: Query<&mut DirectionalLight>) {
+fn apply_shadows(view: Res<View3d>, mut lights: Query<&mut DirectionalLight>, mut cams: Query<&mut Camera, With<super::camera::MainCamera>>) {
     if view.is_changed() {
+        for mut c in &mut cams {
+            if c.is_active != view.active {
+                c.is_active = view.active;
+            }
+        }
         for mut l in &mut lights {
             if l.shadow_maps_enabled != view.quality.shadows {
                 l.shadow_maps_enabled = view.quality.shadows;

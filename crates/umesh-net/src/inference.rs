@@ -23,10 +23,16 @@ impl std::fmt::Debug for Predictor {
 impl Predictor {
     /// Load `model.json` and `model.safetensors` from a model folder.
     pub fn load(dir: &Path) -> Result<Self, NetError> {
+        Self::load_checkpoint(dir, "model.safetensors")
+    }
+
+    /// Load `model.json` and one checkpoint of the folder: `model.safetensors` (the best
+    /// validation epoch) or `last.safetensors` (the latest epoch).
+    pub fn load_checkpoint(dir: &Path, file: &str) -> Result<Self, NetError> {
         let info = ModelInfo::read(dir)?;
         let device = Device::flex();
         let mut model = info.config.init(&device);
-        load_weights(&mut model, &dir.join("model.safetensors"))?;
+        load_weights(&mut model, &dir.join(file))?;
         Ok(Self::from_model(info, model, device))
     }
 

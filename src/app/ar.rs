@@ -1,0 +1,420 @@
+//! The AR view's engine: a worker thread owns the source (a recording or a live TCP
+//! stream), the network and the registrar, and sends overlay frames back; the UI sends it
+//! play / pause / step / seek / ICP / pose commands. The UI thread never waits for it.
+
+use super::state::ActiveModel;
+use bevy::prelude::*;
+use nalgebra::{Matrix4, Rotation3, Vector3};
+use std::path::PathBuf;
+use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
+use std::time::{Duration, Instant};
+use umesh_core::dataset::DatasetContext;
+use umesh_core::register::RegistrationContext;
+use umesh_core::register::pipeline::{FrameReport, GroundTruth, RegisterSettings, Registrar};
+use umesh_core::rgbd::recording::Recording;
+use umesh_core::rgbd::segment::segment_frame;
+use umesh_core::rgbd::stream::{FrameSource, Poll, TcpSource};
+use umesh_core::rgbd::{ColorImage, Frame};
+use umesh_core::segmentation::Segmentation;
+
+#[derive(Clone, Debug)]
+pub enum ArSource {
+    Recording(PathBuf),
+    Tcp(String),
+}
+
+#[derive(Clone, Debug)]
+pub enum ArCommand {
+    Play(bool),
+    /// Frames forward (positive) or back (negative); recordings only.
+    Step(i64),
+    Seek(usize),
+    /// Redo the rigid alignment on the current frame.
+    Icp,
+    /// Offset of the initial pose: translation in camera axes (mm) and rotation about the
+    /// camera's axes (degrees); the alignment restarts from it.
+    PoseOffset([f64; 3], [f64; 3]),
+    /// Write each overlay to this folder as PNG (None: stop).
+    Record(Option<PathBuf>),
+    ShowPoints(bool),
+    Stop,
+}
+
+pub struct ArFrame {
+    pub index: usize,
+    pub image: ColorImage,
+    pub report: FrameReport,
+    pub received: Instant,
+}
+
+pub enum ArEvent {
+    Opened { label: String, frames: Option<usize>, fps: f64, truth: bool },
+    Frame(Box<ArFrame>),
+    Log(String),
+    Ended(String),
+    Failed(String),
+}
+
+/// A running AR session: its channels and thread.
+pub struct ArSession {
+    tx: Sender<ArCommand>,
+    rx: std::sync::Mutex<Receiver<ArEvent>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ArSession {
+    pub fn start(source: ArSource, seg: std::sync::Arc<Segmentation>, model: ActiveModel) -> Self {
+        let (tx, crx) = channel();
+        let (etx, rx) = channel();
+        let thread = std::thread::Builder::new()
+            .name("ar".into())
+            .spawn(move || {
+                if let Err(e) = worker(source, &seg, &model, crx, &etx) {
+                    let _ = etx.send(ArEvent::Failed(e));
+                }
+            })
+            .ok();
+        Self { tx, rx: std::sync::Mutex::new(rx), thread }
+    }
+
+    pub fn send(&self, c: ArCommand) {
+        let _ = self.tx.send(c);
+    }
+}
+
+impl Drop for ArSession {
+    fn drop(&mut self) {
+        let _ = self.tx.send(ArCommand::Stop);
+        // The worker checks its commands between frames; do not block the UI on it.
+        drop(self.thread.take());
+    }
+}
+
+enum Src {
+    Recording(Recording, usize),
+    Live(TcpSource),
+}
+
+fn pose_with_offset(base: &Matrix4<f64>, t_mm: [f64; 3], r_deg: [f64; 3]) -> Matrix4<f64> {
+    let r = Rotation3::from_euler_angles(r_deg[0].to_radians(), r_deg[1].to_radians(), r_deg[2].to_radians());
+    let mut offset = Matrix4::identity();
+    offset.fixed_view_mut::<3, 3>(0, 0).copy_from(r.matrix());
+    offset.fixed_view_mut::<3, 1>(0, 3).copy_from(&Vector3::from(t_mm));
+    // world_from_camera * offset: the offset is expressed in the camera's frame.
+    base * offset
+}
+
+/// Tint every fourth segmented pixel: the observed organ points.
+fn draw_points(img: &mut ColorImage, frame: &Frame, settings: &RegisterSettings) {
+    let Ok(keep) = segment_frame(frame, &settings.segment) else { return };
+    let w = frame.depth.width;
+    for (i, &k) in keep.iter().enumerate() {
+        let (u, v) = (i % w, i / w);
+        if k && u % 4 == 0 && v % 4 == 0 && frame.depth.depth_mm[i] > 0.0 {
+            img.blend(u, v, [0, 230, 255], 0.9);
+        }
+    }
+}
+
+fn worker(
+    source: ArSource,
+    seg: &Segmentation,
+    am: &ActiveModel,
+    rx: Receiver<ArCommand>,
+    tx: &Sender<ArEvent>,
+) -> Result<(), String> {
+    let log = |s: String| {
+        let _ = tx.send(ArEvent::Log(s));
+    };
+    let mut net = umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
+    let config = crate::cli::input::model_dataset_config(Some(&net.info), seg);
+    let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
+    net.info
+        .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
+        .map_err(|e| format!("the model {} does not fit {}: {e}", am.dir.display(), seg.source.display()))?;
+    let ctx = RegistrationContext::new(dctx, seg)?;
+    let (mut src, base_pose, truth, label, fps) = match &source {
+        ArSource::Recording(dir) => {
+            let rec = Recording::open(dir, None).map_err(|e| e.to_string())?;
+            for w in &rec.warnings {
+                log(format!("warning: {w}"));
+            }
+            if rec.is_empty() {
+                return Err(format!("{}: the recording holds no frame", dir.display()));
+            }
+            let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| {
+                format!("{}: no trajectory.log, so no initial camera pose; the AR view needs one to start the alignment", dir.display())
+            })?;
+            let gt_path = dir.join("ground_truth.json");
+            let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
+            // The recording's rate from its timestamps (30 fps when they are missing).
+            let fps = rec_fps(&rec).unwrap_or(30.0);
+            (Src::Recording(rec, 0), pose, truth, dir.display().to_string(), fps)
+        }
+        ArSource::Tcp(addr) => {
+            let s = TcpSource::connect(addr, Duration::from_secs(5)).map_err(|e| format!("{addr}: {e}"))?;
+            // A live camera has no recorded pose: start from the phantom's training camera.
+            (Src::Live(s), default_pose(&ctx), None, format!("tcp://{addr}"), 30.0)
+        }
+    };
+    let frames = match &src {
+        Src::Recording(r, _) => Some(r.len()),
+        Src::Live(_) => None,
+    };
+    let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
+    let settings = RegisterSettings { overlay: true, ..Default::default() };
+    let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
+    let true_pose = truth.as_ref().map(|g| g.pose());
+    let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
+    let (mut playing, mut record, mut show_points) = (false, None::<PathBuf>, true);
+    let mut offset = ([0.0; 3], [0.0; 3]);
+    let mut next_due = Instant::now();
+    let mut want: Option<usize> = Some(0); // frame to (re)process now
+    let mut last_index: Option<usize> = None;
+    loop {
+        // Commands: block briefly when idle, so a paused session costs nothing.
+        let cmd = if playing || want.is_some() { rx.try_recv().map_err(Some) } else { rx.recv_timeout(Duration::from_millis(50)).map_err(|_| None) };
+        match cmd {
+            Ok(ArCommand::Stop) | Err(Some(TryRecvError::Disconnected)) => return Ok(()),
+            Ok(ArCommand::Play(p)) => {
+                playing = p;
+                next_due = Instant::now();
+            }
+            Ok(ArCommand::Step(d)) => {
+                playing = false;
+                if let (Src::Recording(r, i), Some(cur)) = (&src, last_index.or(Some(0))) {
+                    let _ = i;
+                    want = Some((cur as i64 + d).clamp(0, r.len() as i64 - 1) as usize);
+                }
+            }
+            Ok(ArCommand::Seek(f)) => {
+                if let Src::Recording(r, _) = &src {
+                    want = Some(f.min(r.len() - 1));
+                }
+            }
+            Ok(ArCommand::Icp) => {
+                reg.reset(reg.world_from_camera);
+                want = last_index;
+                log("rigid alignment (ICP) requested".into());
+            }
+            Ok(ArCommand::PoseOffset(t, r)) => {
+                offset = (t, r);
+                reg.reset(pose_with_offset(&base_pose, t, r));
+                want = last_index;
+            }
+            Ok(ArCommand::Record(dir)) => {
+                if let Some(d) = &dir {
+                    std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
+                }
+                record = dir;
+            }
+            Ok(ArCommand::ShowPoints(s)) => {
+                show_points = s;
+                want = last_index;
+            }
+            Err(_) => {}
+        }
+        let _ = offset;
+        // The frame to process now, if any.
+        let frame: Option<Frame> = match &mut src {
+            Src::Recording(rec, pos) => {
+                let idx = if let Some(w) = want.take() {
+                    Some(w)
+                } else if playing && Instant::now() >= next_due {
+                    // Keep the recording's rate: when processing is slower, skip frames.
+                    let late = next_due.elapsed().as_secs_f64();
+                    let skip = (late * fps).floor() as usize;
+                    let n = last_index.map(|i| i + 1 + skip).unwrap_or(0);
+                    next_due += Duration::from_secs_f64((1 + skip) as f64 / fps);
+                    if n >= rec.len() {
+                        playing = false;
+                        let _ = tx.send(ArEvent::Ended("end of the recording".into()));
+                        None
+                    } else {
+                        Some(n)
+                    }
+                } else {
+                    if playing {
+                        std::thread::sleep(next_due.saturating_duration_since(Instant::now()).min(Duration::from_millis(20)));
+                    }
+                    None
+                };
+                match idx {
+                    Some(i) => {
+                        *pos = i;
+                        match rec.read_frame(i) {
+                            Ok(f) => Some(f),
+                            Err(e) => {
+                                log(format!("frame {i} skipped: {e}"));
+                                last_index = Some(i);
+                                None
+                            }
+                        }
+                    }
+                    None => None,
+                }
+            }
+            Src::Live(s) => {
+                want = None;
+                if !playing {
+                    None
+                } else {
+                    match s.poll(Duration::from_millis(100)) {
+                        Poll::Frame(f) => Some(*f),
+                        Poll::Pending => None,
+                        Poll::Ended(reason) => {
+                            for l in s.take_log() {
+                                log(l);
+                            }
+                            let _ = tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
+                            playing = false;
+                            None
+                        }
+                    }
+                }
+            }
+        };
+        let Some(frame) = frame else { continue };
+        let index = frame.index;
+        last_index = Some(match &src {
+            Src::Recording(_, p) => *p,
+            Src::Live(_) => index,
+        });
+        let gt = truth.as_ref().and_then(|g| g.markers_mm.get(index)).map(|v| v.as_slice());
+        match reg.process(&frame, &mut net, gt, rest, true_pose.as_ref()) {
+            Ok(out) => {
+                let Some(mut image) = out.overlay else { continue };
+                if show_points {
+                    draw_points(&mut image, &frame, &settings);
+                }
+                if let Some(dir) = &record {
+                    let p = dir.join(format!("{index:05}.png"));
+                    match image.encode_png() {
+                        Ok(bytes) => {
+                            if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
+                                log(format!("{}: {e}; recording stopped", p.display()));
+                                record = None;
+                            }
+                        }
+                        Err(e) => log(format!("{}: {e}", p.display())),
+                    }
+                }
+                let report = out.report;
+                let _ = tx.send(ArEvent::Frame(Box::new(ArFrame { index: last_index.unwrap_or(index), image, report, received: Instant::now() })));
+            }
+            Err(e) => log(format!("frame {index} skipped: {e}")),
+        }
+    }
+}
+
+fn rec_fps(rec: &Recording) -> Option<f64> {
+    let n = rec.len();
+    if n < 2 {
+        return None;
+    }
+    let (a, b) = (rec.read_frame(0).ok()?.timestamp_s, rec.read_frame(n - 1).ok()?.timestamp_s);
+    let fps = (n - 1) as f64 / (b - a);
+    (fps.is_finite() && fps > 0.1 && fps < 1000.0).then_some(fps)
+}
+
+/// A camera 400 mm in front of the organ's anterior side, looking at it (RAS: from +y).
+fn default_pose(ctx: &RegistrationContext) -> Matrix4<f64> {
+    let (lo, hi) = ctx.surface.bounds().unwrap_or_default();
+    let c = (lo + hi) * 0.5;
+    let eye = c + Vector3::new(0.0, 400.0, 0.0);
+    let z = (c - eye).normalize();
+    let x = Vector3::new(1.0, 0.0, 0.0);
+    let y = z.cross(&x);
+    let mut m = Matrix4::identity();
+    m.fixed_view_mut::<3, 1>(0, 0).copy_from(&x);
+    m.fixed_view_mut::<3, 1>(0, 1).copy_from(&y);
+    m.fixed_view_mut::<3, 1>(0, 2).copy_from(&z);
+    m.fixed_view_mut::<3, 1>(0, 3).copy_from(&eye);
+    m
+}
+
+/// The AR view's state in the app.
+#[derive(Resource, Default)]
+pub struct Ar {
+    pub session: Option<ArSession>,
+    pub source_text: String,
+    pub live_text: String,
+    pub label: String,
+    pub frames: Option<usize>,
+    pub fps: f64,
+    pub has_truth: bool,
+    pub playing: bool,
+    pub scrub: usize,
+    pub last: Option<ArFrame>,
+    /// New image to upload to the UI texture.
+    pub image_dirty: bool,
+    pub log: Vec<String>,
+    /// Display intervals between frames (s), for the shown frame rate.
+    pub intervals: std::collections::VecDeque<f64>,
+    pub offset_t_mm: [f64; 3],
+    pub offset_r_deg: [f64; 3],
+    pub record: bool,
+    pub record_dir: String,
+    pub show_points: bool,
+    pub generation: u64,
+}
+
+impl Ar {
+    pub fn displayed_fps(&self) -> Option<f64> {
+        (self.intervals.len() >= 2).then(|| self.intervals.len() as f64 / self.intervals.iter().sum::<f64>())
+    }
+}
+
+fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<super::state::UiMessages>) {
+    let Some(s) = &ar.session else { return };
+    let events: Vec<ArEvent> = s.rx.lock().map(|r| r.try_iter().collect()).unwrap_or_default();
+    for e in events {
+        match e {
+            ArEvent::Opened { label, frames, fps, truth } => {
+                messages.info(format!("AR: {label} opened ({} frames at {fps:.1} fps{})", frames.map(|n| n.to_string()).unwrap_or("live".into()), if truth { ", with ground truth" } else { "" }));
+                ar.label = label;
+                ar.frames = frames;
+                ar.fps = fps;
+                ar.has_truth = truth;
+            }
+            ArEvent::Frame(f) => {
+                if let Some(prev) = &ar.last {
+                    let dt = f.received.duration_since(prev.received).as_secs_f64();
+                    ar.intervals.push_back(dt);
+                    if ar.intervals.len() > 30 {
+                        ar.intervals.pop_front();
+                    }
+                }
+                ar.scrub = f.index;
+                ar.last = Some(*f);
+                ar.image_dirty = true;
+                ar.generation += 1;
+            }
+            ArEvent::Log(l) => {
+                ar.log.push(l);
+                let n = ar.log.len();
+                if n > 200 {
+                    ar.log.drain(..n - 200);
+                }
+            }
+            ArEvent::Ended(m) => {
+                ar.playing = false;
+                messages.info(format!("AR: {m}"));
+            }
+            ArEvent::Failed(e) => {
+                ar.playing = false;
+                ar.session = None;
+                messages.error(format!("AR: {e}"));
+                break;
+            }
+        }
+    }
+}
+
+pub struct ArPlugin;
+
+impl Plugin for ArPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<Ar>().add_systems(Update, poll_ar);
+    }
+}

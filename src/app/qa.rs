@@ -1,0 +1,383 @@
+//! Dataset QA browser: open a dataset made for the loaded organ, step through its samples,
+//! see the probes, the network input u_s and the FE volume displacement, compare with the
+//! active model's prediction (per-sample TRE), and flag samples: the flags are written back
+//! into the manifest, and training skips flagged samples.
+
+use super::state::{ActiveModel, Organ, UiMessages};
+use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
+use nalgebra::Vector3;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use umesh_core::dataset::{DatasetContext, Manifest, SampleRecord};
+use umesh_core::mesh::TriMesh;
+use umesh_core::npz::{ArrayData, Npz};
+use umesh_core::register::{RegistrationContext, displacement_at, virtual_markers};
+use umesh_net::inference::Predictor;
+
+/// An opened dataset: its manifest and the registration context of its grid (rebuilt from
+/// the loaded organ and checked against the dataset's grid hash).
+pub struct QaDataset {
+    pub dir: PathBuf,
+    pub ctx: RegistrationContext,
+    /// Markers for the per-sample TRE (fixed: every sample uses the same ones).
+    pub markers: Vec<umesh_core::grid::Embedding>,
+}
+
+/// One sample, ready to show.
+pub struct QaSample {
+    pub index: usize,
+    pub probes_mm: Vec<Vector3<f64>>,
+    pub forces_n: Vec<Vector3<f64>>,
+    /// Visible nodes with a nonzero input displacement: (node position, u_s) in mm.
+    pub u_s_arrows: Vec<(Vector3<f64>, Vector3<f64>)>,
+    pub truth_surface: TriMesh,
+    pub truth_magnitude_mm: Vec<f32>,
+    pub truth_structures: Vec<(TriMesh, [u8; 3])>,
+    pub max_mm: f32,
+    /// With a model: the predicted surface, its error per vertex (mm) and the sample's TRE.
+    pub predicted: Option<(TriMesh, Vec<f32>, Vec<(TriMesh, [u8; 3])>)>,
+    pub tre_mm: Option<f64>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum QaSort {
+    #[default]
+    Index,
+    LargestDisplacement,
+    MostIterations,
+    LargestError,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum QaFilter {
+    #[default]
+    Accepted,
+    Flagged,
+    Rejected,
+    All,
+}
+
+#[derive(Resource, Default)]
+pub struct Qa {
+    pub dataset: Option<Arc<QaDataset>>,
+    pub manifest: Option<Manifest>,
+    pub path_text: String,
+    pub sort: QaSort,
+    pub filter: QaFilter,
+    /// Manifest positions in display order.
+    pub order: Vec<usize>,
+    pub cursor: usize,
+    pub sample: Option<Arc<QaSample>>,
+    pub predictor: Option<Arc<Mutex<Predictor>>>,
+    /// Per-sample TRE (mm) by sample index, from "evaluate all" or browsing.
+    pub tre: BTreeMap<usize, f64>,
+    pub generation: u64,
+    pub show_u_s: bool,
+    pub show_prediction: bool,
+    opening: Option<Task<Result<(QaDataset, Manifest, Option<Predictor>), String>>>,
+    loading: Option<(usize, Task<Result<QaSample, String>>)>,
+    evaluating: Option<Task<Result<BTreeMap<usize, f64>, String>>>,
+    requested: Option<usize>,
+}
+
+impl Qa {
+    pub fn busy(&self) -> Option<&'static str> {
+        if self.opening.is_some() {
+            Some("opening the dataset")
+        } else if self.evaluating.is_some() {
+            Some("evaluating every sample")
+        } else if self.loading.is_some() {
+            Some("loading the sample")
+        } else {
+            None
+        }
+    }
+
+    /// Recompute the display order after a sort, a filter or a flag change.
+    pub fn reorder(&mut self) {
+        let Some(m) = &self.manifest else { return };
+        let current = self.order.get(self.cursor).copied();
+        let mut v: Vec<usize> = (0..m.samples.len())
+            .filter(|&i| {
+                let s = &m.samples[i];
+                match self.filter {
+                    QaFilter::Accepted => s.accepted && !s.flagged,
+                    QaFilter::Flagged => s.flagged,
+                    QaFilter::Rejected => !s.accepted,
+                    QaFilter::All => true,
+                }
+            })
+            .collect();
+        let key = |i: &usize| -> f64 {
+            let s = &m.samples[*i];
+            match self.sort {
+                QaSort::Index => s.index as f64,
+                QaSort::LargestDisplacement => -s.max_displacement_mm,
+                QaSort::MostIterations => -(s.newton_iterations as f64),
+                QaSort::LargestError => -self.tre.get(&s.index).copied().unwrap_or(f64::NEG_INFINITY),
+            }
+        };
+        v.sort_by(|a, b| key(a).total_cmp(&key(b)));
+        self.cursor = current.and_then(|c| v.iter().position(|&i| i == c)).unwrap_or(0);
+        self.order = v;
+        self.request_current();
+    }
+
+    pub fn current_record(&self) -> Option<&SampleRecord> {
+        self.manifest.as_ref()?.samples.get(*self.order.get(self.cursor)?)
+    }
+
+    pub fn step(&mut self, delta: i64) {
+        if self.order.is_empty() {
+            return;
+        }
+        self.cursor = (self.cursor as i64 + delta).clamp(0, self.order.len() as i64 - 1) as usize;
+        self.request_current();
+    }
+
+    fn request_current(&mut self) {
+        self.requested = self.current_record().filter(|r| r.accepted).map(|r| r.index);
+    }
+
+    /// Flip the flag of the current sample and write the manifest (atomically).
+    pub fn toggle_flag(&mut self) -> Result<String, String> {
+        let (Some(ds), Some(pos)) = (&self.dataset, self.order.get(self.cursor).copied()) else { return Err("no sample".into()) };
+        let dir = ds.dir.clone();
+        let m = self.manifest.as_mut().ok_or("no dataset")?;
+        // Re-read first: another process (a CLI run) may have changed the manifest since.
+        let mut fresh = Manifest::read(&dir).map_err(|e| e.to_string())?;
+        let index = m.samples[pos].index;
+        let s = fresh.samples.iter_mut().find(|s| s.index == index).ok_or_else(|| format!("sample {index} is no longer in the manifest"))?;
+        s.flagged = !s.flagged;
+        let flagged = s.flagged;
+        fresh.write(&dir).map_err(|e| e.to_string())?;
+        *m = fresh;
+        let msg = format!("sample {index} {} in {}", if flagged { "flagged (training skips it)" } else { "unflagged" }, dir.display());
+        self.reorder();
+        Ok(msg)
+    }
+
+    pub fn open(&mut self, dir: PathBuf, organ: &Organ, model: &ActiveModel) -> Result<(), String> {
+        let data = organ.data.clone().ok_or("load the organ the dataset was made from first")?;
+        let model = model.clone();
+        self.opening = Some(AsyncComputeTaskPool::get().spawn(async move { open_dataset(&dir, &data.seg, Some(&model)) }));
+        Ok(())
+    }
+
+    pub fn evaluate_all(&mut self) {
+        let (Some(ds), Some(m), Some(p)) = (self.dataset.clone(), self.manifest.clone(), self.predictor.clone()) else { return };
+        self.evaluating = Some(AsyncComputeTaskPool::get().spawn(async move { evaluate_all(&ds, &m, &p) }));
+    }
+}
+
+/// Open a dataset for the segmentation `seg`; with `model`, also load the active model,
+/// which must fit the dataset's grid.
+pub fn open_dataset(
+    dir: &Path,
+    seg: &umesh_core::segmentation::Segmentation,
+    model: Option<&ActiveModel>,
+) -> Result<(QaDataset, Manifest, Option<Predictor>), String> {
+    let ds = umesh_core::dataset::Dataset::open(dir).map_err(|e| e.to_string())?;
+    let m = ds.manifest;
+    let seg_hash = umesh_core::dataset::segmentation_hash(seg);
+    if m.segmentation_hash != seg_hash {
+        return Err(format!(
+            "{}: made from another segmentation ({}); open that segmentation first (File > Open)",
+            dir.display(),
+            m.segmentation
+        ));
+    }
+    let dctx = DatasetContext::prepare(seg, &m.config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
+    if dctx.grid_hash() != m.grid_hash {
+        return Err(format!("{}: made on another grid than this program builds from its settings (grid hash differs)", dir.display()));
+    }
+    let ctx = RegistrationContext::new(dctx, seg)?;
+    let markers = virtual_markers(&ctx, 10, 0).iter().filter_map(|p| ctx.grid.embed(p)).collect();
+    let predictor = match model {
+        Some(am) => {
+            let p = Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
+            p.info.check_grid(&m.grid_hash, m.padded_shape).map_err(|e| format!("model {}: {e}", am.dir.display()))?;
+            Some(p)
+        }
+        None => None,
+    };
+    Ok((QaDataset { dir: dir.into(), ctx, markers }, m, predictor))
+}
+
+fn f32s(npz: &Npz, name: &str, path: &Path) -> Result<Vec<f32>, String> {
+    match &npz.get(name).map_err(|e| e.to_string())?.data {
+        ArrayData::F32(v) => Ok(v.clone()),
+        _ => Err(format!("{}: '{name}' is not float32", path.display())),
+    }
+}
+
+/// (u_s, u_v, probes, forces) of sample `index` from its shard.
+fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>), String> {
+    let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
+    let path = ds.dir.join(&rec.shard);
+    let npz = Npz::read(&path).map_err(|e| e.to_string())?;
+    let idx: Vec<i64> = match &npz.get("index").map_err(|e| e.to_string())?.data {
+        ArrayData::I64(v) => v.clone(),
+        _ => return Err(format!("{}: 'index' is not int64", path.display())),
+    };
+    let k = idx.iter().position(|&i| i as usize == index).ok_or_else(|| format!("{}: sample {index} missing", path.display()))?;
+    let a = idx.len();
+    let (u_s, u_v, pr, fo) = (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?, f32s(&npz, "probes_mm", &path)?, f32s(&npz, "forces_n", &path)?);
+    let n = u_s.len() / a.max(1);
+    let p = pr.len() / a.max(1);
+    Ok((u_s[k * n..(k + 1) * n].to_vec(), u_v[k * n..(k + 1) * n].to_vec(), pr[k * p..(k + 1) * p].to_vec(), fo[k * p..(k + 1) * p].to_vec()))
+}
+
+fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {
+    let e: Vec<f64> =
+        ds.markers.iter().map(|e| (displacement_at(&ds.ctx.grid, pred, e) - displacement_at(&ds.ctx.grid, truth, e)).norm()).collect();
+    e.iter().sum::<f64>() / e.len().max(1) as f64
+}
+
+pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> Result<QaSample, String> {
+    let (u_s, u_v, pr, fo) = read_sample(ds, m, index)?;
+    let ctx = &ds.ctx;
+    let g = &ctx.grid;
+    let v3 = |v: &[f32]| -> Vec<Vector3<f64>> { v.chunks_exact(3).map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect() };
+    let cells = u_s.len() / 3;
+    let u_s_arrows = ctx
+        .visible_nodes
+        .iter()
+        .filter_map(|&n| {
+            let d = g.dense_index(n);
+            let u = Vector3::new(u_s[d] as f64, u_s[cells + d] as f64, u_s[2 * cells + d] as f64);
+            (u.norm() > 1e-3).then(|| (g.node_position(n), u))
+        })
+        .collect();
+    let truth_surface = ctx.deformed_surface(&u_v);
+    let truth_magnitude_mm: Vec<f32> =
+        truth_surface.positions.iter().zip(&ctx.surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
+    let max_mm = truth_magnitude_mm.iter().copied().fold(0.0, f32::max);
+    let truth_structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &u_v), s.color)).collect();
+    let (predicted, tre_mm) = match predictor {
+        Some(p) => {
+            let mut p = p.lock().map_err(|_| "the model is poisoned")?;
+            let pred = p.predict(&u_s, g.padded_shape()).map_err(|e| e.to_string())?.to_vec();
+            let surface = ctx.deformed_surface(&pred);
+            let err: Vec<f32> = surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
+            let structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &pred), s.color)).collect();
+            let tre = sample_tre(ds, &pred, &u_v);
+            (Some((surface, err, structures)), Some(tre))
+        }
+        None => (None, None),
+    };
+    Ok(QaSample {
+        index,
+        probes_mm: v3(&pr),
+        forces_n: v3(&fo),
+        u_s_arrows,
+        truth_surface,
+        truth_magnitude_mm,
+        truth_structures,
+        max_mm,
+        predicted,
+        tre_mm,
+    })
+}
+
+fn evaluate_all(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> Result<BTreeMap<usize, f64>, String> {
+    let mut out = BTreeMap::new();
+    let mut p = p.lock().map_err(|_| "the model is poisoned")?;
+    let shape = ds.ctx.grid.padded_shape();
+    let mut shards: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    for s in m.accepted() {
+        shards.entry(s.shard.as_str()).or_default().push(s.index);
+    }
+    for (shard, _) in shards {
+        let path = ds.dir.join(shard);
+        let npz = Npz::read(&path).map_err(|e| e.to_string())?;
+        let idx: Vec<i64> = match &npz.get("index").map_err(|e| e.to_string())?.data {
+            ArrayData::I64(v) => v.clone(),
+            _ => return Err(format!("{}: 'index' is not int64", path.display())),
+        };
+        let (u_s, u_v) = (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?);
+        let n = u_s.len() / idx.len().max(1);
+        for (k, &i) in idx.iter().enumerate() {
+            let pred = p.predict(&u_s[k * n..(k + 1) * n], shape).map_err(|e| e.to_string())?.to_vec();
+            out.insert(i as usize, sample_tre(ds, &pred, &u_v[k * n..(k + 1) * n]));
+        }
+    }
+    Ok(out)
+}
+
+/// Poll the QA tasks; start loading the requested sample.
+fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
+    if let Some(t) = &mut qa.opening
+        && let Some(r) = check_ready(t)
+    {
+        qa.opening = None;
+        match r {
+            Ok((ds, m, p)) => {
+                messages.info(format!(
+                    "dataset {}: {} samples, {} accepted, {} flagged{}",
+                    ds.dir.display(),
+                    m.samples.len(),
+                    m.accepted().count(),
+                    m.samples.iter().filter(|s| s.flagged).count(),
+                    if p.is_some() { "; model loaded for comparison" } else { "" }
+                ));
+                qa.dataset = Some(Arc::new(ds));
+                qa.manifest = Some(m);
+                qa.predictor = p.map(|p| Arc::new(Mutex::new(p)));
+                qa.tre.clear();
+                qa.sample = None;
+                qa.cursor = 0;
+                qa.order.clear();
+                qa.reorder();
+            }
+            Err(e) => messages.error(e),
+        }
+    }
+    if let Some(t) = &mut qa.evaluating
+        && let Some(r) = check_ready(t)
+    {
+        qa.evaluating = None;
+        match r {
+            Ok(tre) => {
+                let mean = tre.values().sum::<f64>() / tre.len().max(1) as f64;
+                messages.info(format!("evaluated {} samples: TRE {mean:.2} mm mean", tre.len()));
+                qa.tre = tre;
+                qa.reorder();
+            }
+            Err(e) => messages.error(format!("evaluation failed: {e}")),
+        }
+    }
+    if let Some((_, t)) = &mut qa.loading
+        && let Some(r) = check_ready(t)
+    {
+        qa.loading = None;
+        match r {
+            Ok(s) => {
+                if let Some(t) = s.tre_mm {
+                    qa.tre.insert(s.index, t);
+                }
+                qa.sample = Some(Arc::new(s));
+                qa.generation += 1;
+            }
+            Err(e) => messages.error(format!("sample: {e}")),
+        }
+    }
+    if qa.loading.is_none()
+        && let Some(index) = qa.requested.take()
+        && qa.sample.as_ref().is_none_or(|s| s.index != index)
+        && let (Some(ds), Some(m)) = (qa.dataset.clone(), qa.manifest.clone())
+    {
+        let p = qa.predictor.clone();
+        qa.loading = Some((index, AsyncComputeTaskPool::get().spawn(async move { load_sample(&ds, &m, index, p.as_deref()) })));
+    }
+}
+
+pub struct QaPlugin;
+
+impl Plugin for QaPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<Qa>().add_systems(Update, poll_qa);
+    }
+}

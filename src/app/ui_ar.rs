@@ -1,0 +1,227 @@
+//! Panels of the AR view: the source and playback controls, the alignment controls and
+//! recording (left); latency, TRE and log (right); the overlay image (centre).
+
+use super::ar::{Ar, ArCommand, ArSession, ArSource};
+use super::state::{ActiveModel, Organ, UiMessages};
+use bevy_egui::egui;
+use std::path::PathBuf;
+
+/// Default recording folder of the synthetic sequence the AR view offers to generate.
+pub fn synthetic_recording_dir() -> PathBuf {
+    PathBuf::from("out/ar-synthetic")
+}
+
+pub fn left_panel(ui: &mut egui::Ui, ar: &mut Ar, organ: &Organ, model: &ActiveModel, messages: &mut UiMessages) -> bool {
+    let mut want_synth = false;
+    ui.heading("AR view");
+    if ar.source_text.is_empty() {
+        ar.source_text = synthetic_recording_dir().display().to_string();
+    }
+    if ar.live_text.is_empty() {
+        ar.live_text = "127.0.0.1:5599".into();
+    }
+    if ar.record_dir.is_empty() {
+        ar.record_dir = "out/ar-overlay".into();
+    }
+    ui.horizontal(|ui| {
+        ui.label("recording");
+        ui.add(egui::TextEdit::singleline(&mut ar.source_text).desired_width(150.0));
+    });
+    let mut start = None;
+    ui.horizontal(|ui| {
+        if ui.button("Open recording").clicked() {
+            start = Some(ArSource::Recording(PathBuf::from(ar.source_text.trim())));
+        }
+        if ui.button("Make a synthetic one").on_hover_text("umesh rgbd synth on the bundled phantom, into out/ar-synthetic").clicked() {
+            want_synth = true;
+        }
+    });
+    ui.horizontal(|ui| {
+        ui.label("live (TCP)");
+        ui.add(egui::TextEdit::singleline(&mut ar.live_text).desired_width(110.0));
+        if ui.button("Connect").clicked() {
+            start = Some(ArSource::Tcp(ar.live_text.trim().to_string()));
+        }
+    });
+    if let Some(src) = start {
+        match &organ.data {
+            Some(o) => {
+                ar.session = Some(ArSession::start(src.clone(), o.seg.clone(), model.clone()));
+                ar.last = None;
+                ar.frames = None;
+                ar.intervals.clear();
+                ar.playing = matches!(src, ArSource::Tcp(_));
+                if ar.playing && let Some(s) = &ar.session {
+                    s.send(ArCommand::Play(true));
+                }
+            }
+            None => messages.error("load the organ (segmentation) the recording shows first"),
+        }
+    }
+    ui.weak(format!("model: {} ({})", super::state::short_path(&model.dir), model.checkpoint));
+    let Some(s) = &ar.session else {
+        ui.label("Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.");
+        return want_synth;
+    };
+    ui.separator();
+    ui.label(&ar.label);
+    ui.horizontal(|ui| {
+        let play = if ar.playing { "⏸ Pause" } else { "▶ Play" };
+        if ui.button(play).clicked() {
+            ar.playing = !ar.playing;
+            s.send(ArCommand::Play(ar.playing));
+        }
+        if ar.frames.is_some() {
+            if ui.button("◀ step").clicked() {
+                ar.playing = false;
+                s.send(ArCommand::Step(-1));
+            }
+            if ui.button("step ▶").clicked() {
+                ar.playing = false;
+                s.send(ArCommand::Step(1));
+            }
+        }
+    });
+    if let Some(n) = ar.frames {
+        let mut f = ar.scrub;
+        if ui.add(egui::Slider::new(&mut f, 0..=n.saturating_sub(1)).text("frame")).changed() {
+            ar.scrub = f;
+            s.send(ArCommand::Seek(f));
+        }
+        ui.weak(format!("recorded at {:.1} fps", ar.fps));
+    }
+    ui.separator();
+    ui.strong("Rigid alignment");
+    if ui.button("ICP on this frame").clicked() {
+        s.send(ArCommand::Icp);
+    }
+    if let Some(icp) = ar.last.as_ref().and_then(|f| f.report.icp.as_ref()) {
+        ui.label(format!("last ICP: fitness {:.2}, RMS {:.2} mm, {} iterations", icp.fitness, icp.rms_mm, icp.iterations));
+    }
+    ui.label("initial pose offset (drag the values; camera axes):");
+    let mut changed = false;
+    egui::Grid::new("pose").num_columns(4).show(ui, |ui| {
+        ui.label("mm");
+        for v in &mut ar.offset_t_mm {
+            changed |= ui.add(egui::DragValue::new(v).speed(0.5).range(-200.0..=200.0)).changed();
+        }
+        ui.end_row();
+        ui.label("deg");
+        for v in &mut ar.offset_r_deg {
+            changed |= ui.add(egui::DragValue::new(v).speed(0.2).range(-90.0..=90.0)).changed();
+        }
+        ui.end_row();
+    });
+    if ui.button("reset offset").clicked() {
+        ar.offset_t_mm = [0.0; 3];
+        ar.offset_r_deg = [0.0; 3];
+        changed = true;
+    }
+    if changed {
+        s.send(ArCommand::PoseOffset(ar.offset_t_mm, ar.offset_r_deg));
+    }
+    ui.separator();
+    if ui.checkbox(&mut ar.show_points, "observed organ points").changed() {
+        s.send(ArCommand::ShowPoints(ar.show_points));
+    }
+    ui.horizontal(|ui| {
+        if ui.checkbox(&mut ar.record, "record overlays to").changed() {
+            s.send(ArCommand::Record(ar.record.then(|| PathBuf::from(ar.record_dir.trim()))));
+        }
+        ui.add(egui::TextEdit::singleline(&mut ar.record_dir).desired_width(110.0));
+    });
+    if ui.button("Close").clicked() {
+        ar.session = None;
+        ar.playing = false;
+    }
+    want_synth
+}
+
+pub fn right_panel(ui: &mut egui::Ui, ar: &Ar) {
+    ui.heading("Frame");
+    let Some(f) = &ar.last else {
+        ui.label("No frame yet.");
+        return;
+    };
+    let r = &f.report;
+    let l = &r.latency;
+    egui::Grid::new("latency").num_columns(2).show(ui, |ui| {
+        ui.label("frame");
+        ui.label(f.index.to_string());
+        ui.end_row();
+        ui.label("organ points");
+        ui.label(r.observed_points.to_string());
+        ui.end_row();
+        for (k, v) in [
+            ("points (ms)", l.points_ms),
+            ("ICP (ms)", l.icp_ms),
+            ("u_s (ms)", l.surface_ms),
+            ("network (ms)", l.predict_ms),
+            ("overlay (ms)", l.overlay_ms),
+            ("total (ms)", l.total_ms),
+        ] {
+            ui.label(k);
+            ui.label(format!("{v:.1}"));
+            ui.end_row();
+        }
+        if let Some(fps) = ar.displayed_fps() {
+            ui.label("shown");
+            ui.label(format!("{fps:.1} frames/s"));
+            ui.end_row();
+        }
+        if let (Some(t), Some(m)) = (r.tre_mean_mm, r.tre_max_mm) {
+            ui.label("TRE");
+            ui.strong(format!("{t:.2} mm (max {m:.2})"));
+            ui.end_row();
+        }
+        if let Some(t) = r.tre_rigid_mean_mm {
+            ui.label("TRE, rigid only");
+            ui.label(format!("{t:.2} mm"));
+            ui.end_row();
+        }
+        if let Some(d) = r.marker_displacement_mean_mm {
+            ui.label("markers moved");
+            ui.label(format!("{d:.2} mm"));
+            ui.end_row();
+        }
+    });
+    if !ar.has_truth {
+        ui.weak("No ground truth: TRE needs ground_truth.json in the recording.");
+    }
+    ui.separator();
+    ui.strong("Log");
+    for l in ar.log.iter().rev().take(10) {
+        ui.label(egui::RichText::new(l).small());
+    }
+}
+
+/// The overlay, fitted into the central area.
+pub fn central(ui: &mut egui::Ui, ar: &mut Ar, texture: &mut Option<egui::TextureHandle>) {
+    if ar.image_dirty
+        && let Some(f) = &ar.last
+    {
+        let img = egui::ColorImage::from_rgb([f.image.width, f.image.height], &f.image.rgb);
+        match texture {
+            Some(t) => t.set(img, egui::TextureOptions::LINEAR),
+            None => *texture = Some(ui.ctx().load_texture("ar-overlay", img, egui::TextureOptions::LINEAR)),
+        }
+        ar.image_dirty = false;
+    }
+    let rect = ui.available_rect_before_wrap();
+    match (texture.as_ref(), ar.last.as_ref()) {
+        (Some(t), Some(f)) => {
+            let aspect = f.image.width as f32 / f.image.height.max(1) as f32;
+            let mut size = rect.size();
+            if size.x / size.y > aspect {
+                size.x = size.y * aspect;
+            } else {
+                size.y = size.x / aspect;
+            }
+            let r = egui::Rect::from_center_size(rect.center(), size);
+            ui.painter().image(t.id(), r, egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)), egui::Color32::WHITE);
+        }
+        _ => {
+            ui.centered_and_justified(|ui| ui.label(if ar.session.is_some() { "waiting for the first frame..." } else { "no source" }));
+        }
+    }
+}

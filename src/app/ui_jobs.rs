@@ -1,0 +1,379 @@
+//! Panels of the jobs view: the dataset and training forms (the CLI's settings), the queue
+//! with progress, rate, ETA, log and cancel, and the training dashboard.
+
+use super::state::{ActiveModel, Organ, UiMessages};
+use super::workflow::{WorkKind, WorkQueue, WorkStatus, read_metrics};
+use bevy::prelude::*;
+use bevy_egui::egui;
+use egui_plot::{Legend, Line, Plot, PlotPoints};
+use std::path::PathBuf;
+use umesh_core::dataset::DatasetConfig;
+use umesh_core::fem::MaterialParams;
+use umesh_core::loads::ForceSettings;
+use umesh_net::UNetConfig;
+use umesh_net::training::{EpochMetrics, TrainSettings};
+
+#[derive(Clone, Debug)]
+pub struct DatasetForm {
+    pub out: String,
+    pub samples: usize,
+    pub seed: u64,
+    pub shard_size: usize,
+    pub probes: usize,
+    pub target_displacement_mm: f64,
+    pub visible_fraction: f64,
+    pub young_pa: f64,
+    pub poisson: f64,
+    pub cell_size_mm: f64,
+    pub subdivisions: u32,
+}
+
+impl Default for DatasetForm {
+    fn default() -> Self {
+        let f = ForceSettings::default();
+        let m = MaterialParams::default();
+        let g = umesh_core::grid::GridSettings::default();
+        Self {
+            out: "out/gui-dataset".into(),
+            samples: 40,
+            seed: 0,
+            shard_size: 10,
+            probes: f.probes,
+            target_displacement_mm: f.target_displacement_mm,
+            visible_fraction: 0.5,
+            young_pa: m.young_pa,
+            poisson: m.poisson,
+            cell_size_mm: g.cell_size_mm,
+            subdivisions: g.subdivisions,
+        }
+    }
+}
+
+impl DatasetForm {
+    /// The configuration `umesh dataset generate` builds from the same values.
+    pub fn config(&self, seg: &umesh_core::segmentation::Segmentation) -> DatasetConfig {
+        let mut c = DatasetConfig::paper(crate::cli::dataset::default_fixed(seg, None, 6.0));
+        c.samples = self.samples.max(1);
+        c.seed = self.seed;
+        c.shard_size = self.shard_size.max(1);
+        c.grid = umesh_core::grid::GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, ..Default::default() };
+        c.forces = ForceSettings { probes: self.probes, target_displacement_mm: self.target_displacement_mm, ..Default::default() };
+        c.visibility.max_fraction = self.visible_fraction;
+        c.material = MaterialParams { young_pa: self.young_pa, poisson: self.poisson, ..Default::default() };
+        c
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct TrainForm {
+    pub dataset: String,
+    pub out: String,
+    pub paper_preset: bool,
+    pub epochs: usize,
+    pub batch_size: usize,
+    pub learning_rate: f64,
+    pub seed: u64,
+    pub resume: bool,
+}
+
+impl Default for TrainForm {
+    fn default() -> Self {
+        let t = TrainSettings::default();
+        Self {
+            dataset: "out/gui-dataset".into(),
+            out: "out/gui-model".into(),
+            paper_preset: false,
+            epochs: 5,
+            batch_size: t.batch_size,
+            learning_rate: t.learning_rate,
+            seed: 0,
+            resume: false,
+        }
+    }
+}
+
+impl TrainForm {
+    pub fn settings(&self) -> TrainSettings {
+        TrainSettings {
+            model: if self.paper_preset { UNetConfig::paper() } else { UNetConfig::cpu() },
+            epochs: self.epochs.max(1),
+            batch_size: self.batch_size.max(1),
+            learning_rate: self.learning_rate,
+            seed: self.seed,
+            ..Default::default()
+        }
+    }
+}
+
+/// What the dashboard plots: a training job of the queue, or a model folder.
+#[derive(Clone, Debug, PartialEq)]
+pub enum DashSource {
+    Job(u64),
+    Folder(PathBuf),
+}
+
+#[derive(Resource, Default)]
+pub struct JobsUi {
+    pub dataset: DatasetForm,
+    pub train: TrainForm,
+    pub dash: Option<DashSource>,
+    pub folder_text: String,
+    /// Metrics read from a folder (re-read every second while shown).
+    folder_metrics: Option<(Vec<EpochMetrics>, f64)>,
+    pub use_last_checkpoint: bool,
+    pub expanded: Option<u64>,
+}
+
+fn path_field(ui: &mut egui::Ui, label: &str, s: &mut String) {
+    ui.horizontal(|ui| {
+        ui.label(label);
+        ui.add(egui::TextEdit::singleline(s).desired_width(170.0));
+    });
+}
+
+/// Left panel: the two forms.
+pub fn forms_panel(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, organ: &Organ, messages: &mut UiMessages) {
+    ui.heading("Dataset generation");
+    let d = &mut f.dataset;
+    egui::Grid::new("dataset_form").num_columns(2).show(ui, |ui| {
+        ui.label("samples");
+        ui.add(egui::DragValue::new(&mut d.samples).range(1..=100_000));
+        ui.end_row();
+        ui.label("seed");
+        ui.add(egui::DragValue::new(&mut d.seed));
+        ui.end_row();
+        ui.label("shard size");
+        ui.add(egui::DragValue::new(&mut d.shard_size).range(1..=1000));
+        ui.end_row();
+        ui.label("probes per sample");
+        ui.add(egui::DragValue::new(&mut d.probes).range(1..=1000));
+        ui.end_row();
+        ui.label("target displacement (mm)");
+        ui.add(egui::DragValue::new(&mut d.target_displacement_mm).range(0.1..=50.0).speed(0.1));
+        ui.end_row();
+        ui.label("visible fraction");
+        ui.add(egui::DragValue::new(&mut d.visible_fraction).range(0.05..=1.0).speed(0.01));
+        ui.end_row();
+        ui.label("Young's modulus (Pa)");
+        ui.add(egui::DragValue::new(&mut d.young_pa).range(100.0..=1e7).speed(100.0));
+        ui.end_row();
+        ui.label("Poisson ratio");
+        ui.add(egui::DragValue::new(&mut d.poisson).range(0.0..=0.499).speed(0.001));
+        ui.end_row();
+        ui.label("cell size (mm)");
+        ui.add(egui::DragValue::new(&mut d.cell_size_mm).range(2.0..=30.0).speed(0.1));
+        ui.end_row();
+        ui.label("boundary subdivisions");
+        ui.add(egui::DragValue::new(&mut d.subdivisions).range(0..=3));
+        ui.end_row();
+    });
+    path_field(ui, "output folder", &mut d.out);
+    let organ_name = organ.data.as_ref().map(|o| o.source.clone());
+    ui.weak(format!("organ: {}", organ_name.as_deref().unwrap_or("none loaded")));
+    if ui.add_enabled(organ.data.is_some(), egui::Button::new("Queue dataset generation")).clicked()
+        && let Some(o) = &organ.data
+    {
+        let config = d.config(&o.seg);
+        match q.submit(WorkKind::Dataset { seg: o.seg.clone(), config }, PathBuf::from(d.out.trim())) {
+            Ok(id) => {
+                messages.info(format!("dataset job #{id} queued"));
+                f.train.dataset = d.out.clone();
+            }
+            Err(e) => messages.error(e),
+        }
+    }
+    ui.separator();
+    ui.heading("Training");
+    let t = &mut f.train;
+    path_field(ui, "dataset folder", &mut t.dataset);
+    path_field(ui, "model folder", &mut t.out);
+    egui::Grid::new("train_form").num_columns(2).show(ui, |ui| {
+        ui.label("network");
+        ui.horizontal(|ui| {
+            ui.radio_value(&mut t.paper_preset, false, "cpu");
+            ui.radio_value(&mut t.paper_preset, true, "paper");
+        });
+        ui.end_row();
+        ui.label("epochs");
+        ui.add(egui::DragValue::new(&mut t.epochs).range(1..=10_000));
+        ui.end_row();
+        ui.label("batch size");
+        ui.add(egui::DragValue::new(&mut t.batch_size).range(1..=256));
+        ui.end_row();
+        ui.label("learning rate");
+        ui.add(egui::DragValue::new(&mut t.learning_rate).range(1e-6..=1.0).speed(1e-4));
+        ui.end_row();
+        ui.label("seed");
+        ui.add(egui::DragValue::new(&mut t.seed));
+        ui.end_row();
+    });
+    ui.checkbox(&mut t.resume, "resume from last.safetensors");
+    if ui.button("Queue training").clicked() {
+        let kind = WorkKind::Train { dataset: PathBuf::from(t.dataset.trim()), settings: t.settings(), resume: t.resume };
+        match q.submit(kind, PathBuf::from(t.out.trim())) {
+            Ok(id) => {
+                messages.info(format!("training job #{id} queued"));
+                f.dash = Some(DashSource::Job(id));
+            }
+            Err(e) => messages.error(e),
+        }
+    }
+}
+
+fn fmt_secs(s: f64) -> String {
+    if s >= 3600.0 {
+        format!("{:.0} h {:02.0} min", (s / 3600.0).floor(), (s % 3600.0) / 60.0)
+    } else if s >= 60.0 {
+        format!("{:.0} min {:02.0} s", (s / 60.0).floor(), s % 60.0)
+    } else {
+        format!("{s:.0} s")
+    }
+}
+
+/// Central area: the queue, then the dashboard. Returns a model to load: (folder, checkpoint file).
+pub fn queue_and_dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, active: &ActiveModel) -> Option<(PathBuf, String)> {
+    ui.heading("Jobs");
+    if q.items.is_empty() {
+        ui.label("No jobs yet: queue a dataset generation or a training on the left.");
+    }
+    let mut cancel = None;
+    egui::ScrollArea::vertical().id_salt("queue").max_height(ui.available_height() * 0.42).show(ui, |ui| {
+        for item in q.items.iter().rev() {
+            ui.horizontal(|ui| {
+                let open = f.expanded == Some(item.id);
+                if ui.small_button(if open { "▾" } else { "▸" }).clicked() {
+                    f.expanded = if open { None } else { Some(item.id) };
+                }
+                ui.strong(format!("#{} {}", item.id, item.label));
+                ui.label(item.out.display().to_string());
+                match &item.status {
+                    WorkStatus::Queued => {
+                        ui.weak("queued");
+                    }
+                    WorkStatus::Running => {
+                        let (frac, rate, eta) = item.rate();
+                        let msg = item.progress.lock().map(|p| p.message.clone()).unwrap_or_default();
+                        let unit = if item.label == "training" { "batches" } else { "samples" };
+                        let mut text = msg;
+                        if let Some(r) = rate {
+                            text += &format!(" · {:.2} {unit}/s", r);
+                        }
+                        if let Some(e) = eta {
+                            text += &format!(" · ETA {}", fmt_secs(e));
+                        }
+                        ui.add(egui::ProgressBar::new(frac).desired_width(300.0).text(text));
+                    }
+                    WorkStatus::Done(m) => {
+                        ui.colored_label(egui::Color32::LIGHT_GREEN, format!("done in {}: {m}", fmt_secs(item.seconds.unwrap_or(0.0))));
+                    }
+                    WorkStatus::Failed(e) => {
+                        ui.colored_label(egui::Color32::LIGHT_RED, format!("failed: {e}"));
+                    }
+                    WorkStatus::Cancelled => {
+                        ui.weak("cancelled");
+                    }
+                }
+                if item.status.is_active() && ui.button("Cancel").clicked() {
+                    cancel = Some(item.id);
+                }
+                if item.label == "training" && ui.small_button("plot").clicked() {
+                    f.dash = Some(DashSource::Job(item.id));
+                }
+            });
+            if f.expanded == Some(item.id) {
+                ui.indent(item.id, |ui| {
+                    ui.label(egui::RichText::new(&item.command).monospace().small());
+                    if let Ok(log) = item.log.lock() {
+                        for l in log.iter().rev().take(12).rev() {
+                            ui.label(egui::RichText::new(l).small());
+                        }
+                    }
+                });
+            }
+        }
+    });
+    if let Some(id) = cancel {
+        q.cancel(id);
+    }
+    ui.separator();
+    dashboard(ui, f, q, active)
+}
+
+fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveModel) -> Option<(PathBuf, String)> {
+    ui.horizontal(|ui| {
+        ui.heading("Training dashboard");
+        ui.label("model folder:");
+        ui.add(egui::TextEdit::singleline(&mut f.folder_text).desired_width(200.0));
+        if ui.button("Show").clicked() {
+            f.dash = Some(DashSource::Folder(PathBuf::from(f.folder_text.trim())));
+            f.folder_metrics = None;
+        }
+    });
+    let (metrics, folder): (Vec<EpochMetrics>, Option<PathBuf>) = match &f.dash {
+        None => {
+            ui.label("Queue a training, or type a model folder (for example assets/model) and press Show.");
+            return None;
+        }
+        Some(DashSource::Job(id)) => match q.items.iter().find(|i| i.id == *id) {
+            Some(item) => (item.metrics.lock().map(|m| m.clone()).unwrap_or_default(), Some(item.out.clone())),
+            None => (Vec::new(), None),
+        },
+        Some(DashSource::Folder(dir)) => {
+            let now = ui.ctx().input(|i| i.time);
+            let stale = f.folder_metrics.as_ref().is_none_or(|(_, t)| now - t > 1.0);
+            if stale {
+                match read_metrics(dir) {
+                    Ok(m) => f.folder_metrics = Some((m, now)),
+                    Err(e) => {
+                        ui.colored_label(egui::Color32::LIGHT_RED, e);
+                        return None;
+                    }
+                }
+            }
+            (f.folder_metrics.as_ref().map(|m| m.0.clone()).unwrap_or_default(), Some(dir.clone()))
+        }
+    };
+    if metrics.is_empty() {
+        ui.label("No epoch finished yet.");
+    } else if let Some(last) = metrics.last() {
+        let best = metrics.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|m| m.epoch).unwrap_or(0);
+        ui.label(format!(
+            "{} epochs; last: val TRE {:.2} mm (max {:.2}), {:.1} samples/s; best validation loss at epoch {best}",
+            metrics.len(),
+            last.val_tre_mean_mm,
+            last.val_tre_max_mm,
+            last.train_samples_per_s
+        ));
+    }
+    let pts = |g: &dyn Fn(&EpochMetrics) -> f64| -> PlotPoints { metrics.iter().map(|m| [m.epoch as f64, g(m)]).collect() };
+    let h = (ui.available_height() - 40.0).max(120.0);
+    let w = ui.available_width() / 2.0 - 8.0;
+    ui.horizontal(|ui| {
+        Plot::new("loss").width(w).height(h).legend(Legend::default()).x_axis_label("epoch").y_axis_label("log10 loss").show(ui, |p| {
+            p.line(Line::new("train loss", pts(&|m| m.train_loss.max(1e-12).log10())));
+            p.line(Line::new("validation loss", pts(&|m| m.val_loss.max(1e-12).log10())));
+        });
+        Plot::new("tre").width(w).height(h).legend(Legend::default()).x_axis_label("epoch").y_axis_label("validation TRE (mm)").show(
+            ui,
+            |p| {
+                p.line(Line::new("mean", pts(&|m| m.val_tre_mean_mm)));
+                p.line(Line::new("max", pts(&|m| m.val_tre_max_mm)));
+            },
+        );
+    });
+    let mut load = None;
+    if let Some(dir) = folder {
+        ui.horizontal(|ui| {
+            ui.label("checkpoint:");
+            ui.radio_value(&mut f.use_last_checkpoint, false, "best (model.safetensors)");
+            ui.radio_value(&mut f.use_last_checkpoint, true, "last (last.safetensors)");
+            let file = if f.use_last_checkpoint { "last.safetensors" } else { "model.safetensors" };
+            let exists = dir.join(file).is_file() && dir.join("model.json").is_file();
+            if ui.add_enabled(exists, egui::Button::new("Load as the active model")).on_disabled_hover_text("no such checkpoint yet").clicked() {
+                load = Some((dir.clone(), file.to_string()));
+            }
+            ui.weak(format!("active: {} ({})", super::state::short_path(&active.dir), active.checkpoint));
+        });
+    }
+    load
+}

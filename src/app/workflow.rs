@@ -1,0 +1,321 @@
+//! Dataset generation and training as queued background jobs, with the CLI's settings and
+//! the CLI's output files. One job runs at a time (the solver and the trainer each use every
+//! core they get); the others wait in the queue. Two jobs may not write the same folder.
+
+use super::jobs::{JobProgress, lower_thread_priority};
+use super::state::UiMessages;
+use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate};
+use umesh_core::segmentation::Segmentation;
+use umesh_core::{Cancel, Progress};
+use umesh_net::training::{EpochMetrics, TrainSettings, run_train};
+
+pub enum WorkKind {
+    Dataset { seg: Arc<Segmentation>, config: DatasetConfig },
+    Train { dataset: PathBuf, settings: TrainSettings, resume: bool },
+}
+
+impl WorkKind {
+    pub fn label(&self) -> &'static str {
+        match self {
+            WorkKind::Dataset { .. } => "dataset",
+            WorkKind::Train { .. } => "training",
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum WorkStatus {
+    Queued,
+    Running,
+    Done(String),
+    Failed(String),
+    Cancelled,
+}
+
+impl WorkStatus {
+    pub fn is_active(&self) -> bool {
+        matches!(self, WorkStatus::Queued | WorkStatus::Running)
+    }
+}
+
+pub struct WorkItem {
+    pub id: u64,
+    pub label: &'static str,
+    pub out: PathBuf,
+    /// The settings as saved beside the outputs (`umesh-job.json`).
+    pub settings: serde_json::Value,
+    /// The equivalent command line.
+    pub command: String,
+    pub status: WorkStatus,
+    pub progress: Arc<Mutex<JobProgress>>,
+    pub log: Arc<Mutex<Vec<String>>>,
+    /// Training only: one entry per finished epoch, as they come.
+    pub metrics: Arc<Mutex<Vec<EpochMetrics>>>,
+    pub cancel: Cancel,
+    pub started: Option<Instant>,
+    pub seconds: Option<f64>,
+    kind: Option<WorkKind>,
+    task: Option<Task<Result<String, String>>>,
+}
+
+impl WorkItem {
+    /// (fraction done, items per second, seconds left) of a running job.
+    pub fn rate(&self) -> (f32, Option<f64>, Option<f64>) {
+        let p = self.progress.lock().map(|p| p.clone()).unwrap_or_default();
+        let frac = if p.total > 0 { p.done as f32 / p.total as f32 } else { 0.0 };
+        let Some(t0) = self.started else { return (frac, None, None) };
+        let secs = t0.elapsed().as_secs_f64();
+        if p.done == 0 || secs <= 0.0 {
+            return (frac, None, None);
+        }
+        let rate = p.done as f64 / secs;
+        (frac, Some(rate), (p.total > p.done).then(|| (p.total - p.done) as f64 / rate))
+    }
+}
+
+#[derive(Resource, Default)]
+pub struct WorkQueue {
+    pub items: Vec<WorkItem>,
+    next_id: u64,
+}
+
+/// A folder path made comparable: absolute, and canonical where it exists.
+pub fn normalize(p: &Path) -> PathBuf {
+    let abs = if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.into()) };
+    // Canonicalise the longest existing ancestor, keep the rest as written.
+    let mut head = abs.clone();
+    let mut tail = Vec::new();
+    while !head.exists() {
+        match (head.file_name().map(|s| s.to_os_string()), head.parent()) {
+            (Some(name), Some(parent)) => {
+                tail.push(name);
+                head = parent.to_path_buf();
+            }
+            _ => return abs,
+        }
+    }
+    let mut out = head.canonicalize().unwrap_or(head);
+    for t in tail.into_iter().rev() {
+        out.push(t);
+    }
+    out
+}
+
+impl WorkQueue {
+    /// Queue a job writing into `out`. Refused when a queued or running job writes there.
+    pub fn submit(&mut self, kind: WorkKind, out: PathBuf) -> Result<u64, String> {
+        if out.as_os_str().is_empty() {
+            return Err("choose an output folder".into());
+        }
+        let norm = normalize(&out);
+        if let Some(other) = self.items.iter().find(|i| i.status.is_active() && normalize(&i.out) == norm) {
+            return Err(format!("{}: job #{} ({}) already writes there; wait for it or choose another folder", out.display(), other.id, other.label));
+        }
+        if let WorkKind::Train { dataset, .. } = &kind
+            && normalize(dataset) == norm
+        {
+            return Err(format!("{}: the model folder must differ from the dataset folder", out.display()));
+        }
+        let (settings, command) = describe(&kind, &out);
+        self.next_id += 1;
+        let id = self.next_id;
+        self.items.push(WorkItem {
+            id,
+            label: kind.label(),
+            out,
+            settings,
+            command,
+            status: WorkStatus::Queued,
+            progress: Default::default(),
+            log: Default::default(),
+            metrics: Default::default(),
+            cancel: Cancel::new(),
+            started: None,
+            seconds: None,
+            kind: Some(kind),
+            task: None,
+        });
+        Ok(id)
+    }
+
+    pub fn cancel(&mut self, id: u64) {
+        if let Some(i) = self.items.iter_mut().find(|i| i.id == id) {
+            match i.status {
+                WorkStatus::Queued => i.status = WorkStatus::Cancelled,
+                WorkStatus::Running => i.cancel.cancel(),
+                _ => {}
+            }
+        }
+    }
+
+    pub fn running(&self) -> Option<&WorkItem> {
+        self.items.iter().find(|i| i.status == WorkStatus::Running)
+    }
+}
+
+/// The settings as JSON and the equivalent CLI command.
+fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
+    match kind {
+        WorkKind::Dataset { seg, config } => {
+            let c = config;
+            let src = seg.source.display().to_string();
+            let input = if src.contains("phantom") && !Path::new(&src).exists() { String::new() } else { format!("{src} ") };
+            let command = format!(
+                "umesh dataset generate {input}--samples {} --seed {} --shard-size {} --probes {} --target-displacement-mm {} \
+                 --visible-fraction {} --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {} --out {}",
+                c.samples,
+                c.seed,
+                c.shard_size,
+                c.forces.probes,
+                c.forces.target_displacement_mm,
+                c.visibility.max_fraction,
+                c.material.young_pa,
+                c.material.poisson,
+                c.grid.cell_size_mm,
+                c.grid.subdivisions,
+                out.display()
+            );
+            (serde_json::json!({ "kind": "dataset", "segmentation": src, "config": c }), command)
+        }
+        WorkKind::Train { dataset, settings, resume } => {
+            let s = settings;
+            let command = format!(
+                "umesh train --dataset {} --out {} --channels {} --steps {} --epochs {} --batch-size {} --learning-rate {} --seed {}{}",
+                dataset.display(),
+                out.display(),
+                s.model.channels,
+                s.model.steps,
+                s.epochs,
+                s.batch_size,
+                s.learning_rate,
+                s.seed,
+                if *resume { " --resume" } else { "" }
+            );
+            (serde_json::json!({ "kind": "training", "dataset": dataset, "settings": s, "resume": resume }), command)
+        }
+    }
+}
+
+fn start(item: &mut WorkItem) {
+    let Some(kind) = item.kind.take() else { return };
+    let (p2, log, metrics, cancel, out) = (item.progress.clone(), item.log.clone(), item.metrics.clone(), item.cancel.clone(), item.out.clone());
+    let record = serde_json::json!({ "settings": item.settings, "command": item.command });
+    item.status = WorkStatus::Running;
+    item.started = Some(Instant::now());
+    item.task = Some(AsyncComputeTaskPool::get().spawn(async move {
+        let push = {
+            let log = log.clone();
+            move |line: String| {
+                if let Ok(mut l) = log.lock() {
+                    l.push(line);
+                    let n = l.len();
+                    if n > 500 {
+                        l.drain(..n - 500);
+                    }
+                }
+            }
+        };
+        let last_msg = Mutex::new(String::new());
+        let sink = Progress::new(move |done, total, msg| {
+            if let Ok(mut p) = p2.lock() {
+                *p = JobProgress { done, total, message: msg.to_string() };
+            }
+            if let Ok(mut m) = last_msg.lock()
+                && *m != msg
+            {
+                *m = msg.to_string();
+                push(msg.to_string());
+            }
+        });
+        std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
+        let job_file = out.join("umesh-job.json");
+        umesh_core::write_atomic(&job_file, serde_json::to_string_pretty(&record).unwrap_or_default().as_bytes())
+            .map_err(|e| format!("{}: {e}", job_file.display()))?;
+        let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .start_handler(|_| lower_thread_priority())
+            .build()
+            .map_err(|e| e.to_string())?;
+        pool.install(|| match kind {
+            WorkKind::Dataset { seg, config } => {
+                let r = run_generate(&seg, &out, &config, ShardSelection::all(), &sink, &cancel).map_err(|e| e.to_string())?;
+                Ok(format!(
+                    "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
+                    r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
+                ))
+            }
+            WorkKind::Train { dataset, settings, resume } => {
+                let on_epoch = |m: &EpochMetrics| {
+                    if let Ok(mut v) = metrics.lock() {
+                        v.push(m.clone());
+                    }
+                    if let Ok(mut l) = log.lock() {
+                        l.push(format!(
+                            "epoch {}: train loss {:.3e}, val loss {:.3e}, val TRE {:.2} mm (max {:.2}), {:.0} s",
+                            m.epoch, m.train_loss, m.val_loss, m.val_tre_mean_mm, m.val_tre_max_mm, m.seconds
+                        ));
+                    }
+                };
+                let r = run_train(&dataset, &out, &settings, resume, &sink, &on_epoch, &cancel).map_err(|e| e.to_string())?;
+                Ok(format!("best epoch {} of {}; {} train / {} validation samples", r.best_epoch, r.epochs.len(), r.train_samples, r.val_samples))
+            }
+        })
+    }));
+}
+
+/// Poll the running job; start the next queued one.
+pub fn run_queue(mut q: ResMut<WorkQueue>, mut messages: ResMut<UiMessages>) {
+    for item in q.items.iter_mut().filter(|i| i.status == WorkStatus::Running) {
+        let Some(task) = &mut item.task else { continue };
+        let Some(result) = check_ready(task) else { continue };
+        item.task = None;
+        item.seconds = item.started.map(|t| t.elapsed().as_secs_f64());
+        item.status = match result {
+            Ok(msg) => {
+                messages.info(format!("{} job #{} finished: {msg}", item.label, item.id));
+                WorkStatus::Done(msg)
+            }
+            Err(_) if item.cancel.is_cancelled() => {
+                messages.info(format!("{} job #{} cancelled (what was written is kept; run it again to resume)", item.label, item.id));
+                WorkStatus::Cancelled
+            }
+            Err(e) => {
+                messages.error(format!("{} job #{} ({}) failed: {e}", item.label, item.id, item.out.display()));
+                WorkStatus::Failed(e)
+            }
+        };
+        if let Ok(mut l) = item.log.lock() {
+            l.push(format!("{:?}", item.status));
+        }
+    }
+    if q.running().is_none()
+        && let Some(next) = q.items.iter_mut().find(|i| i.status == WorkStatus::Queued)
+    {
+        start(next);
+    }
+}
+
+/// Training metrics of a model folder (`metrics.jsonl`), for the dashboard.
+pub fn read_metrics(dir: &Path) -> Result<Vec<EpochMetrics>, String> {
+    let path = dir.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    text.lines()
+        .filter(|l| !l.trim().is_empty())
+        .enumerate()
+        .map(|(i, l)| serde_json::from_str(l).map_err(|e| format!("{} line {}: {e}", path.display(), i + 1)))
+        .collect()
+}
+
+pub struct WorkflowPlugin;
+
+impl Plugin for WorkflowPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<WorkQueue>().add_systems(Update, run_queue);
+    }
+}

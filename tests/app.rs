@@ -139,3 +139,210 @@ fn the_real_totalsegmentator_case_opens_with_liver_and_two_vessels() {
     assert_eq!(names, ["inferior_vena_cava", "portal_vein_and_splenic_vein"]);
     assert!(d.surface.topology().is_watertight());
 }
+
+fn tmp_dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("umesh-apptest-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// Update until the queue holds no queued or running job.
+fn finish_work(app: &mut App, limit: Duration) {
+    use umesh::app::workflow::WorkQueue;
+    let t = Instant::now();
+    loop {
+        app.update();
+        if !app.world().resource::<WorkQueue>().items.iter().any(|i| i.status.is_active()) {
+            return;
+        }
+        assert!(t.elapsed() < limit, "work still running after {limit:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
+    use umesh::app::workflow::{WorkKind, WorkQueue};
+    let organ = phantom();
+    let mut q = WorkQueue::default();
+    let dir = tmp_dir("queue");
+    let kind = || WorkKind::Dataset { seg: organ.seg.clone(), config: umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg) };
+    q.submit(kind(), dir.clone()).unwrap();
+    // The same folder spelled differently.
+    let err = q.submit(kind(), dir.join("x").join("..")).unwrap_err();
+    assert!(err.contains("already writes there"), "{err}");
+    let train = WorkKind::Train { dataset: dir.clone(), settings: Default::default(), resume: false };
+    assert!(q.submit(train, dir.clone()).is_err(), "a training may not write into a queued job's folder");
+    // Cancelling a queued job frees its folder.
+    let id = q.items[0].id;
+    q.cancel(id);
+    q.submit(kind(), dir).unwrap();
+}
+
+#[test]
+fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
+    use umesh::app::qa::Qa;
+    use umesh::app::ui_jobs::{DatasetForm, TrainForm};
+    use umesh::app::workflow::{WorkKind, WorkQueue, WorkStatus};
+    let mut app = app();
+    let organ = phantom();
+    app.world_mut().resource_mut::<Organ>().set(organ.clone());
+    let data_dir = tmp_dir("gui-dataset");
+    let model_dir = tmp_dir("gui-model");
+    // A small, coarse dataset: what a user tries first.
+    let form = DatasetForm { samples: 8, shard_size: 4, cell_size_mm: 10.0, ..Default::default() };
+    let config = form.config(&organ.seg);
+    let train = TrainForm { epochs: 2, batch_size: 2, ..Default::default() };
+    {
+        let mut q = app.world_mut().resource_mut::<WorkQueue>();
+        q.submit(WorkKind::Dataset { seg: organ.seg.clone(), config }, data_dir.clone()).unwrap();
+    }
+    finish_work(&mut app, Duration::from_secs(900));
+    let q = app.world().resource::<WorkQueue>();
+    assert!(matches!(q.items[0].status, WorkStatus::Done(_)), "{:?}", q.items[0].status);
+    assert!(q.items[0].log.lock().unwrap().iter().any(|l| l.contains("samples")), "progress messages are logged");
+    // The CLI's files, and the job's settings beside them.
+    let stats = umesh_core::dataset::run_stats(&data_dir).expect("the CLI reads a GUI dataset");
+    assert_eq!(stats.samples, 8);
+    assert!(data_dir.join("umesh-job.json").is_file());
+    let job: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data_dir.join("umesh-job.json")).unwrap()).unwrap();
+    assert!(job["command"].as_str().unwrap().starts_with("umesh dataset generate"));
+    // Browse it and flag the first accepted sample.
+    app.world_mut().insert_resource(Mode::Qa);
+    {
+        let world = app.world_mut();
+        let organ_res = Organ { data: Some(organ.clone()), ..Default::default() };
+        let am = ActiveModel::default();
+        world.resource_mut::<Qa>().open(data_dir.clone(), &organ_res, &am).unwrap();
+    }
+    let t = Instant::now();
+    while app.world().resource::<Qa>().manifest.is_none() || app.world().resource::<Qa>().sample.is_none() {
+        app.update();
+        let last = app.world().resource::<UiMessages>().last().cloned();
+        if let Some((Level::Error, m)) = &last {
+            // The bundled model was trained on the 7 mm grid: this 10 mm dataset must be refused
+            // for comparison, with a message naming the model.
+            assert!(m.contains("model"), "{m}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "the dataset did not open");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Without a matching model, open without one.
+    if app.world().resource::<Qa>().manifest.is_none() {
+        let (ds, m, p) = umesh::app::qa::open_dataset(&data_dir, &organ.seg, None).unwrap();
+        assert!(p.is_none());
+        let first = m.accepted().next().unwrap().index;
+        let sample = umesh::app::qa::load_sample(&ds, &m, first, None).unwrap();
+        assert!(sample.max_mm > 0.1 && !sample.u_s_arrows.is_empty() && sample.probes_mm.len() == sample.forces_n.len());
+        let mut qa = app.world_mut().resource_mut::<Qa>();
+        qa.dataset = Some(std::sync::Arc::new(ds));
+        qa.manifest = Some(m);
+        qa.reorder();
+    }
+    let flagged_index = {
+        let mut qa = app.world_mut().resource_mut::<Qa>();
+        let i = qa.current_record().unwrap().index;
+        qa.toggle_flag().unwrap();
+        i
+    };
+    let m = umesh_core::dataset::Manifest::read(&data_dir).unwrap();
+    assert!(m.samples.iter().any(|s| s.index == flagged_index && s.flagged), "the flag is in the manifest on disk");
+    // Train on it from the queue; the flagged sample is skipped.
+    {
+        let mut q = app.world_mut().resource_mut::<WorkQueue>();
+        q.submit(WorkKind::Train { dataset: data_dir.clone(), settings: train.settings(), resume: false }, model_dir.clone()).unwrap();
+    }
+    finish_work(&mut app, Duration::from_secs(900));
+    let q = app.world().resource::<WorkQueue>();
+    let item = q.items.last().unwrap();
+    assert!(matches!(item.status, WorkStatus::Done(_)), "{:?}", item.status);
+    assert_eq!(item.metrics.lock().unwrap().len(), 2, "the dashboard saw both epochs");
+    let metrics = umesh::app::workflow::read_metrics(&model_dir).unwrap();
+    assert_eq!(metrics.len(), 2);
+    let info = umesh_net::ModelInfo::read(&model_dir).unwrap();
+    let used: Vec<usize> = info.train_indices.iter().chain(&info.val_indices).copied().collect();
+    assert!(!used.contains(&flagged_index), "training skipped the flagged sample");
+    assert_eq!(used.len(), m.accepted().count() - 1);
+    // The checkpoint loads as a model for the same organ.
+    umesh::app::probes::RehearsalModel::load_checkpoint(&model_dir, "last.safetensors", &organ).unwrap();
+    let _ = std::fs::remove_dir_all(&data_dir);
+    let _ = std::fs::remove_dir_all(&model_dir);
+}
+
+#[test]
+fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
+    // A dataset of the phantom opened with another organ: the real case or, without it, a
+    // sphere segmentation.
+    let organ = phantom();
+    let data_dir = tmp_dir("qa-other");
+    let form = umesh::app::ui_jobs::DatasetForm { samples: 1, shard_size: 1, cell_size_mm: 12.0, ..Default::default() };
+    umesh_core::dataset::run_generate(
+        &organ.seg,
+        &data_dir,
+        &form.config(&organ.seg),
+        umesh_core::dataset::ShardSelection::all(),
+        &Default::default(),
+        &Default::default(),
+    )
+    .unwrap();
+    let mut other = (*organ.seg).clone();
+    other.organ_labels = vec![umesh_core::phantom::VENA_CAVA];
+    let err = umesh::app::qa::open_dataset(&data_dir, &other, None).err().expect("refused");
+    assert!(err.contains("another segmentation") && err.contains(&data_dir.display().to_string()), "{err}");
+    // A folder that is no dataset.
+    let err = umesh::app::qa::open_dataset(&std::env::temp_dir().join("umesh-no-such-dataset"), &organ.seg, None).err().unwrap();
+    assert!(err.contains("umesh-no-such-dataset"), "{err}");
+    let _ = std::fs::remove_dir_all(&data_dir);
+}
+
+fn wait_for_error(app: &mut App, limit: Duration) -> String {
+    let t = Instant::now();
+    loop {
+        app.update();
+        if let Some((Level::Error, m)) = app.world().resource::<UiMessages>().last() {
+            return m.clone();
+        }
+        assert!(t.elapsed() < limit, "no error shown within {limit:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn the_ar_view_reports_a_recording_without_intrinsics_and_a_dropped_stream() {
+    use umesh::app::ar::{Ar, ArCommand, ArSession, ArSource};
+    let mut app = app();
+    let organ = phantom();
+    let dir = tmp_dir("ar-no-intrinsics");
+    std::fs::create_dir_all(dir.join("color")).unwrap();
+    std::fs::create_dir_all(dir.join("depth")).unwrap();
+    app.world_mut().resource_mut::<Ar>().session =
+        Some(ArSession::start(ArSource::Recording(dir.clone()), organ.seg.clone(), ActiveModel::default()));
+    let m = wait_for_error(&mut app, Duration::from_secs(120));
+    assert!(m.contains(&dir.display().to_string()) && m.to_lowercase().contains("intrinsics"), "{m}");
+    assert!(app.world().resource::<Ar>().session.is_none(), "the failed session is closed");
+    // A live source that sends garbage then hangs up.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let server = std::thread::spawn(move || {
+        use std::io::Write;
+        let (mut s, _) = listener.accept().unwrap();
+        let _ = s.write_all(b"UMRGBD01 this is not a frame header at all");
+    });
+    app.world_mut().resource_mut::<UiMessages>().list.clear();
+    let s = ArSession::start(ArSource::Tcp(addr), organ.seg.clone(), ActiveModel::default());
+    s.send(ArCommand::Play(true));
+    app.world_mut().resource_mut::<Ar>().session = Some(s);
+    let t = Instant::now();
+    loop {
+        app.update();
+        let msgs = &app.world().resource::<UiMessages>().list;
+        if msgs.iter().any(|(_, m)| m.contains("live stream ended")) {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "the dropped stream was not reported: {msgs:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    server.join().unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+}

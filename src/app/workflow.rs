@@ -86,7 +86,18 @@ pub struct WorkQueue {
 
 /// A folder path made comparable: absolute, and canonical where it exists.
 pub fn normalize(p: &Path) -> PathBuf {
-    let abs = if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.into()) };
+    let joined = if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.into()) };
+    // Lexically first: "a/x/.." is "a" even when "a/x" does not exist.
+    let mut abs = PathBuf::new();
+    for c in joined.components() {
+        match c {
+            std::path::Component::ParentDir => {
+                abs.pop();
+            }
+            std::path::Component::CurDir => {}
+            c => abs.push(c),
+        }
+    }
     // Canonicalise the longest existing ancestor, keep the rest as written.
     let mut head = abs.clone();
     let mut tail = Vec::new();

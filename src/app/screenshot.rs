@@ -279,6 +279,97 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
     Ok((times, idle, t0.elapsed().as_secs_f64() * 1e3))
 }
 
+/// Frame times (ms) of the app in `mode` while a training job runs (3 epochs on a 12-sample
+/// dataset of the bundled configuration, generated once into the temporary folder).
+pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Result<(Vec<f64>, f64), String> {
+    let (mut app, _) = headless_app("phantom", width, height)?;
+    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
+    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir).map_err(|e| e.to_string())?;
+    let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
+    config.samples = 12;
+    config.shard_size = 6;
+    let data = scene_cache("bench-dataset");
+    umesh_core::dataset::run_generate(&organ.seg, &data, &config, umesh_core::dataset::ShardSelection::all(), &Progress::none(), &Cancel::new())
+        .map_err(|e| e.to_string())?;
+    let model = scene_cache("bench-model");
+    let _ = std::fs::remove_dir_all(&model);
+    app.world_mut().insert_resource(mode);
+    let settings = umesh_net::training::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
+    let id = app
+        .world_mut()
+        .resource_mut::<super::workflow::WorkQueue>()
+        .submit(super::workflow::WorkKind::Train { dataset: data, settings, resume: false }, model)?;
+    {
+        let mut j = app.world_mut().resource_mut::<super::ui_jobs::JobsUi>();
+        j.dash = Some(super::ui_jobs::DashSource::Job(id));
+    }
+    for _ in 0..5 {
+        app.update();
+    }
+    let t0 = std::time::Instant::now();
+    let mut times = Vec::new();
+    while app.world().resource::<super::workflow::WorkQueue>().items.iter().any(|i| i.status.is_active()) {
+        let t = std::time::Instant::now();
+        app.update();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if t0.elapsed().as_secs() > 900 {
+            return Err("the training did not finish within 15 minutes".into());
+        }
+    }
+    if let Some(super::workflow::WorkStatus::Failed(e)) = app.world().resource::<super::workflow::WorkQueue>().items.last().map(|i| i.status.clone()) {
+        return Err(format!("training failed: {e}"));
+    }
+    Ok((times, t0.elapsed().as_secs_f64() * 1e3))
+}
+
+/// The AR view playing a synthetic recording (20 frames at 20 fps, 640x480): UI frame
+/// times (ms), the rate frames were shown at (per second) and the recording's rate.
+pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize), String> {
+    let (mut app, _) = headless_app("phantom", width, height)?;
+    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
+    let model = ActiveModel::default();
+    let dir = scene_cache("bench-recording");
+    if !dir.join("trajectory.log").is_file() {
+        run(jobs::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
+    }
+    app.world_mut().insert_resource(Mode::Ar);
+    let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model);
+    app.world_mut().resource_mut::<super::ar::Ar>().session = Some(s);
+    // The first frame (with ICP) before playing.
+    let t0 = std::time::Instant::now();
+    while app.world().resource::<super::ar::Ar>().last.is_none() {
+        app.update();
+        if t0.elapsed().as_secs() > 120 || app.world().resource::<super::ar::Ar>().session.is_none() {
+            return Err("the AR view showed no frame".into());
+        }
+    }
+    let fps = app.world().resource::<super::ar::Ar>().fps;
+    let frames = app.world().resource::<super::ar::Ar>().frames.unwrap_or(0);
+    if let Some(s) = &app.world().resource::<super::ar::Ar>().session {
+        s.send(super::ar::ArCommand::Play(true));
+    }
+    let (mut times, mut shown) = (Vec::new(), std::collections::BTreeSet::new());
+    let start = std::time::Instant::now();
+    let mut last_new = start;
+    loop {
+        let t = std::time::Instant::now();
+        app.update();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if let Some(f) = &app.world().resource::<super::ar::Ar>().last
+            && shown.insert(f.index)
+        {
+            last_new = std::time::Instant::now();
+        }
+        let ar = app.world().resource::<super::ar::Ar>();
+        if shown.contains(&(frames.saturating_sub(1))) || !ar.playing && start.elapsed().as_secs() > 1 || start.elapsed().as_secs() > 120 {
+            break;
+        }
+    }
+    let secs = last_new.duration_since(start).as_secs_f64().max(1e-3);
+    // Frames after the first shown, over the time they took: the display rate.
+    Ok((times, (shown.len().saturating_sub(1)) as f64 / secs, fps, shown.len()))
+}
+
 /// Compare two images: the fraction of pixels whose largest channel difference exceeds
 /// `threshold` (0-255). Sizes must match.
 pub fn image_difference(a: &image::RgbaImage, b: &image::RgbaImage, threshold: u8) -> Result<f64, String> {

@@ -247,15 +247,27 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
 }
 
 /// The app's frame time (offscreen, 1280x800, egui panels) while an SVK solve runs in the
-/// background.
+/// background, while a training job runs, and the AR view's playback rate.
 fn bench_ui() -> Result<serde_json::Value> {
-    let (mut t, mut idle, solve_ms) = crate::app::screenshot::frame_times_during_solve(1280, 800).map_err(anyhow::Error::msg)?;
-    idle.sort_by(f64::total_cmp);
+    use crate::app::screenshot::{ar_playback, frame_times_during_solve, frame_times_during_training};
+    use crate::app::state::Mode;
+    let stats = |mut t: Vec<f64>| -> serde_json::Value {
+        t.sort_by(f64::total_cmp);
+        if t.is_empty() {
+            return serde_json::json!(null);
+        }
+        let p95 = t[((t.len() - 1) as f64 * 0.95).round() as usize];
+        serde_json::json!({ "frames": t.len(), "median_ms": t[t.len() / 2], "p95_ms": p95, "max_ms": t[t.len() - 1] })
+    };
+    let (t, idle, solve_ms) = frame_times_during_solve(1280, 800).map_err(anyhow::Error::msg)?;
     anyhow::ensure!(!t.is_empty(), "the solve finished before the first frame");
-    t.sort_by(f64::total_cmp);
-    let p95 = t[((t.len() - 1) as f64 * 0.95).round() as usize];
+    let (train_jobs, train_ms) = frame_times_during_training(1280, 800, Mode::Jobs).map_err(anyhow::Error::msg)?;
+    let (train_model, _) = frame_times_during_training(1280, 800, Mode::Model).map_err(anyhow::Error::msg)?;
+    let (ar_times, shown_fps, rec_fps, shown) = ar_playback(1280, 800).map_err(anyhow::Error::msg)?;
     Ok(serde_json::json!({
-        "frames": t.len(), "frame_ms_median": t[t.len() / 2], "frame_ms_p95": p95, "frame_ms_max": t[t.len() - 1],
-        "idle_frame_ms_median": idle[idle.len() / 2], "solve_ms": solve_ms, "backend": std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "default".into()),
+        "backend": std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "default".into()),
+        "during_solve": stats(t), "idle": stats(idle), "solve_ms": solve_ms,
+        "during_training_jobs_view": stats(train_jobs), "during_training_model_view": stats(train_model), "training_ms": train_ms,
+        "ar_ui": stats(ar_times), "ar_shown_fps": shown_fps, "ar_recording_fps": rec_fps, "ar_frames_shown": shown,
     }))
 }

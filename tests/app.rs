@@ -166,7 +166,8 @@ fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
     let organ = phantom();
     let mut q = WorkQueue::default();
     let dir = tmp_dir("queue");
-    let kind = || WorkKind::Dataset { seg: organ.seg.clone(), config: umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg) };
+    let kind =
+        || WorkKind::Dataset { seg: organ.seg.clone(), config: Box::new(umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg)) };
     q.submit(kind(), dir.clone()).unwrap();
     // The same folder spelled differently.
     let err = q.submit(kind(), dir.join("x").join("..")).unwrap_err();
@@ -195,7 +196,7 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let train = TrainForm { epochs: 2, batch_size: 2, ..Default::default() };
     {
         let mut q = app.world_mut().resource_mut::<WorkQueue>();
-        q.submit(WorkKind::Dataset { seg: organ.seg.clone(), config }, data_dir.clone()).unwrap();
+        q.submit(WorkKind::Dataset { seg: organ.seg.clone(), config: Box::new(config) }, data_dir.clone()).unwrap();
     }
     finish_work(&mut app, Duration::from_secs(900));
     let q = app.world().resource::<WorkQueue>();

@@ -116,17 +116,12 @@ fn draw_points(img: &mut ColorImage, frame: &Frame, settings: &RegisterSettings)
     }
 }
 
-fn worker(
-    source: ArSource,
-    seg: &Segmentation,
-    am: &ActiveModel,
-    rx: Receiver<ArCommand>,
-    tx: &Sender<ArEvent>,
-) -> Result<(), String> {
+fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &Sender<ArEvent>) -> Result<(), String> {
     let log = |s: String| {
         let _ = tx.send(ArEvent::Log(s));
     };
-    let mut net = umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
+    let mut net =
+        umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
     let config = crate::cli::input::model_dataset_config(Some(&net.info), seg);
     let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
     net.info
@@ -173,7 +168,11 @@ fn worker(
     let mut last_index: Option<usize> = None;
     loop {
         // Commands: block briefly when idle, so a paused session costs nothing.
-        let cmd = if playing || want.is_some() { rx.try_recv().map_err(Some) } else { rx.recv_timeout(Duration::from_millis(50)).map_err(|_| None) };
+        let cmd = if playing || want.is_some() {
+            rx.try_recv().map_err(Some)
+        } else {
+            rx.recv_timeout(Duration::from_millis(50)).map_err(|_| None)
+        };
         match cmd {
             Ok(ArCommand::Stop) | Err(Some(TryRecvError::Disconnected)) => return Ok(()),
             Ok(ArCommand::Play(p)) => {
@@ -266,7 +265,8 @@ fn worker(
                             for l in s.take_log() {
                                 log(l);
                             }
-                            let _ = tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
+                            let _ =
+                                tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
                             playing = false;
                             None
                         }
@@ -300,7 +300,12 @@ fn worker(
                     }
                 }
                 let report = out.report;
-                let _ = tx.send(ArEvent::Frame(Box::new(ArFrame { index: last_index.unwrap_or(index), image, report, received: Instant::now() })));
+                let _ = tx.send(ArEvent::Frame(Box::new(ArFrame {
+                    index: last_index.unwrap_or(index),
+                    image,
+                    report,
+                    received: Instant::now(),
+                })));
             }
             Err(e) => log(format!("frame {index} skipped: {e}")),
         }
@@ -371,7 +376,11 @@ fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<super::state::UiMessages>) {
     for e in events {
         match e {
             ArEvent::Opened { label, frames, fps, truth } => {
-                messages.info(format!("AR: {label} opened ({} frames at {fps:.1} fps{})", frames.map(|n| n.to_string()).unwrap_or("live".into()), if truth { ", with ground truth" } else { "" }));
+                messages.info(format!(
+                    "AR: {label} opened ({} frames at {fps:.1} fps{})",
+                    frames.map(|n| n.to_string()).unwrap_or("live".into()),
+                    if truth { ", with ground truth" } else { "" }
+                ));
                 ar.label = label;
                 ar.frames = frames;
                 ar.fps = fps;

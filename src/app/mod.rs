@@ -1,10 +1,10 @@
 //! The desktop app (Bevy + egui): one plugin per feature, egui panels apart from the state
 //! they show, heavy work in background tasks. Also renders named scenes headless to PNG.
 
+pub mod ar;
 pub mod camera;
 pub mod convert;
 pub mod grid_preview;
-pub mod ar;
 pub mod jobs;
 pub mod probes;
 pub mod qa;

@@ -149,7 +149,8 @@ impl Qa {
         // Re-read first: another process (a CLI run) may have changed the manifest since.
         let mut fresh = Manifest::read(&dir).map_err(|e| e.to_string())?;
         let index = m.samples[pos].index;
-        let s = fresh.samples.iter_mut().find(|s| s.index == index).ok_or_else(|| format!("sample {index} is no longer in the manifest"))?;
+        let s =
+            fresh.samples.iter_mut().find(|s| s.index == index).ok_or_else(|| format!("sample {index} is no longer in the manifest"))?;
         s.flagged = !s.flagged;
         let flagged = s.flagged;
         fresh.write(&dir).map_err(|e| e.to_string())?;
@@ -224,10 +225,16 @@ fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, 
     };
     let k = idx.iter().position(|&i| i as usize == index).ok_or_else(|| format!("{}: sample {index} missing", path.display()))?;
     let a = idx.len();
-    let (u_s, u_v, pr, fo) = (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?, f32s(&npz, "probes_mm", &path)?, f32s(&npz, "forces_n", &path)?);
+    let (u_s, u_v, pr, fo) =
+        (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?, f32s(&npz, "probes_mm", &path)?, f32s(&npz, "forces_n", &path)?);
     let n = u_s.len() / a.max(1);
     let p = pr.len() / a.max(1);
-    Ok((u_s[k * n..(k + 1) * n].to_vec(), u_v[k * n..(k + 1) * n].to_vec(), pr[k * p..(k + 1) * p].to_vec(), fo[k * p..(k + 1) * p].to_vec()))
+    Ok((
+        u_s[k * n..(k + 1) * n].to_vec(),
+        u_v[k * n..(k + 1) * n].to_vec(),
+        pr[k * p..(k + 1) * p].to_vec(),
+        fo[k * p..(k + 1) * p].to_vec(),
+    ))
 }
 
 fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {

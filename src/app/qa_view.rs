@@ -35,15 +35,23 @@ fn sync(
         commands.entity(e).despawn();
     }
     let (Some(s), true) = (&qa.sample, want.1) else { return };
-    let organ_mat =
-        || StandardMaterial { base_color: Color::WHITE.with_alpha(0.55), alpha_mode: AlphaMode::Blend, perceptual_roughness: 0.7, ..default() };
+    let organ_mat = || StandardMaterial {
+        base_color: Color::WHITE.with_alpha(0.55),
+        alpha_mode: AlphaMode::Blend,
+        perceptual_roughness: 0.7,
+        ..default()
+    };
     let mut add = |mesh: Mesh, mat: StandardMaterial, commands: &mut Commands| {
         commands.spawn((Mesh3d(meshes.add(mesh)), MeshMaterial3d(materials.add(mat)), QaMesh));
     };
     let max = s.max_mm.max(1e-3);
     add(mesh_from_trimesh(&s.truth_surface, Some(displacement_colors(&s.truth_magnitude_mm, max))), organ_mat(), &mut commands);
     for (m, c) in &s.truth_structures {
-        add(mesh_from_trimesh(m, None), StandardMaterial { base_color: color_u8(*c), perceptual_roughness: 0.5, ..default() }, &mut commands);
+        add(
+            mesh_from_trimesh(m, None),
+            StandardMaterial { base_color: color_u8(*c), perceptual_roughness: 0.5, ..default() },
+            &mut commands,
+        );
     }
     if let (Some((surface, err, structures)), true) = (&s.predicted, qa.show_prediction) {
         let off = prediction_offset_mm(&qa);
@@ -55,7 +63,11 @@ fn sync(
         // Error on the same colour scale as the displacement: comparable at a glance.
         add(mesh_from_trimesh(&shift(surface), Some(displacement_colors(err, max))), organ_mat(), &mut commands);
         for (m, c) in structures {
-            add(mesh_from_trimesh(&shift(m), None), StandardMaterial { base_color: color_u8(*c), perceptual_roughness: 0.5, ..default() }, &mut commands);
+            add(
+                mesh_from_trimesh(&shift(m), None),
+                StandardMaterial { base_color: color_u8(*c), perceptual_roughness: 0.5, ..default() },
+                &mut commands,
+            );
         }
     }
 }

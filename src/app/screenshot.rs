@@ -289,8 +289,15 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
     config.samples = 12;
     config.shard_size = 6;
     let data = scene_cache("bench-dataset");
-    umesh_core::dataset::run_generate(&organ.seg, &data, &config, umesh_core::dataset::ShardSelection::all(), &Progress::none(), &Cancel::new())
-        .map_err(|e| e.to_string())?;
+    umesh_core::dataset::run_generate(
+        &organ.seg,
+        &data,
+        &config,
+        umesh_core::dataset::ShardSelection::all(),
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .map_err(|e| e.to_string())?;
     let model = scene_cache("bench-model");
     let _ = std::fs::remove_dir_all(&model);
     app.world_mut().insert_resource(mode);
@@ -316,7 +323,9 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
             return Err("the training did not finish within 15 minutes".into());
         }
     }
-    if let Some(super::workflow::WorkStatus::Failed(e)) = app.world().resource::<super::workflow::WorkQueue>().items.last().map(|i| i.status.clone()) {
+    if let Some(super::workflow::WorkStatus::Failed(e)) =
+        app.world().resource::<super::workflow::WorkQueue>().items.last().map(|i| i.status.clone())
+    {
         return Err(format!("training failed: {e}"));
     }
     Ok((times, t0.elapsed().as_secs_f64() * 1e3))

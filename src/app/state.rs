@@ -262,7 +262,8 @@ pub enum Mode {
 }
 
 impl Mode {
-    pub const ALL: [(Mode, &'static str); 4] = [(Mode::Model, "Model"), (Mode::Jobs, "Jobs"), (Mode::Qa, "Dataset QA"), (Mode::Ar, "AR view")];
+    pub const ALL: [(Mode, &'static str); 4] =
+        [(Mode::Model, "Model"), (Mode::Jobs, "Jobs"), (Mode::Qa, "Dataset QA"), (Mode::Ar, "AR view")];
     /// Whether the 3-D view is shown (the jobs and AR views are pure UI).
     pub fn shows_3d(self) -> bool {
         matches!(self, Mode::Model | Mode::Qa)
@@ -272,5 +273,8 @@ impl Mode {
 /// A path relative to the working directory when it lies inside it (shorter to read, and
 /// the same on every checkout).
 pub fn short_path(p: &std::path::Path) -> String {
-    std::env::current_dir().ok().and_then(|d| p.strip_prefix(d).ok().map(|r| r.display().to_string())).unwrap_or_else(|| p.display().to_string())
+    std::env::current_dir()
+        .ok()
+        .and_then(|d| p.strip_prefix(d).ok().map(|r| r.display().to_string()))
+        .unwrap_or_else(|| p.display().to_string())
 }

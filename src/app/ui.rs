@@ -363,7 +363,8 @@ pub fn ui_system(
             egui::Panel::left("jobs_left").default_size(300.0).show(&mut root, |ui| {
                 egui::ScrollArea::vertical().show(ui, |ui| super::ui_jobs::forms_panel(ui, jobs_ui, queue, &st.organ, &mut st.messages));
             });
-            let load = egui::CentralPanel::default().show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active)).inner;
+            let load =
+                egui::CentralPanel::default().show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active)).inner;
             if let Some((dir, file)) = load {
                 **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
                 if let Some(d) = &st.organ.data {

@@ -51,7 +51,9 @@ pub fn left_panel(ui: &mut egui::Ui, ar: &mut Ar, organ: &Organ, model: &ActiveM
                 ar.frames = None;
                 ar.intervals.clear();
                 ar.playing = matches!(src, ArSource::Tcp(_));
-                if ar.playing && let Some(s) = &ar.session {
+                if ar.playing
+                    && let Some(s) = &ar.session
+                {
                     s.send(ArCommand::Play(true));
                 }
             }

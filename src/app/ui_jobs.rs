@@ -174,7 +174,7 @@ pub fn forms_panel(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, organ: 
         && let Some(o) = &organ.data
     {
         let config = d.config(&o.seg);
-        match q.submit(WorkKind::Dataset { seg: o.seg.clone(), config }, PathBuf::from(d.out.trim())) {
+        match q.submit(WorkKind::Dataset { seg: o.seg.clone(), config: Box::new(config) }, PathBuf::from(d.out.trim())) {
             Ok(id) => {
                 messages.info(format!("dataset job #{id} queued"));
                 f.train.dataset = d.out.clone();
@@ -369,7 +369,11 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
             ui.radio_value(&mut f.use_last_checkpoint, true, "last (last.safetensors)");
             let file = if f.use_last_checkpoint { "last.safetensors" } else { "model.safetensors" };
             let exists = dir.join(file).is_file() && dir.join("model.json").is_file();
-            if ui.add_enabled(exists, egui::Button::new("Load as the active model")).on_disabled_hover_text("no such checkpoint yet").clicked() {
+            if ui
+                .add_enabled(exists, egui::Button::new("Load as the active model"))
+                .on_disabled_hover_text("no such checkpoint yet")
+                .clicked()
+            {
                 load = Some((dir.clone(), file.to_string()));
             }
             ui.weak(format!("active: {} ({})", super::state::short_path(&active.dir), active.checkpoint));

@@ -110,7 +110,12 @@ fn histogram(ui: &mut egui::Ui, id: &str, title: &str, values: &[f64], bins: usi
     }
     ui.label(title);
     let bars: Vec<Bar> = counts.iter().enumerate().map(|(i, &c)| Bar::new(lo + (i as f64 + 0.5) * w, c as f64).width(w * 0.9)).collect();
-    Plot::new(id).height(90.0).allow_drag(false).allow_zoom(false).allow_scroll(false).show(ui, |p| p.bar_chart(BarChart::new(title, bars)));
+    Plot::new(id)
+        .height(90.0)
+        .allow_drag(false)
+        .allow_zoom(false)
+        .allow_scroll(false)
+        .show(ui, |p| p.bar_chart(BarChart::new(title, bars)));
 }
 
 pub fn right_panel(ui: &mut egui::Ui, qa: &Qa) {

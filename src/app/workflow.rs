@@ -15,7 +15,7 @@ use umesh_core::{Cancel, Progress};
 use umesh_net::training::{EpochMetrics, TrainSettings, run_train};
 
 pub enum WorkKind {
-    Dataset { seg: Arc<Segmentation>, config: DatasetConfig },
+    Dataset { seg: Arc<Segmentation>, config: Box<DatasetConfig> },
     Train { dataset: PathBuf, settings: TrainSettings, resume: bool },
 }
 
@@ -125,7 +125,12 @@ impl WorkQueue {
         }
         let norm = normalize(&out);
         if let Some(other) = self.items.iter().find(|i| i.status.is_active() && normalize(&i.out) == norm) {
-            return Err(format!("{}: job #{} ({}) already writes there; wait for it or choose another folder", out.display(), other.id, other.label));
+            return Err(format!(
+                "{}: job #{} ({}) already writes there; wait for it or choose another folder",
+                out.display(),
+                other.id,
+                other.label
+            ));
         }
         if let WorkKind::Train { dataset, .. } = &kind
             && normalize(dataset) == norm
@@ -214,7 +219,8 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
 
 fn start(item: &mut WorkItem) {
     let Some(kind) = item.kind.take() else { return };
-    let (p2, log, metrics, cancel, out) = (item.progress.clone(), item.log.clone(), item.metrics.clone(), item.cancel.clone(), item.out.clone());
+    let (p2, log, metrics, cancel, out) =
+        (item.progress.clone(), item.log.clone(), item.metrics.clone(), item.cancel.clone(), item.out.clone());
     let record = serde_json::json!({ "settings": item.settings, "command": item.command });
     item.status = WorkStatus::Running;
     item.started = Some(Instant::now());
@@ -274,7 +280,13 @@ fn start(item: &mut WorkItem) {
                     }
                 };
                 let r = run_train(&dataset, &out, &settings, resume, &sink, &on_epoch, &cancel).map_err(|e| e.to_string())?;
-                Ok(format!("best epoch {} of {}; {} train / {} validation samples", r.best_epoch, r.epochs.len(), r.train_samples, r.val_samples))
+                Ok(format!(
+                    "best epoch {} of {}; {} train / {} validation samples",
+                    r.best_epoch,
+                    r.epochs.len(),
+                    r.train_samples,
+                    r.val_samples
+                ))
             }
         })
     }));

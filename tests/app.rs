@@ -318,7 +318,7 @@ fn the_ar_view_reports_a_recording_without_intrinsics_and_a_dropped_stream() {
     std::fs::create_dir_all(dir.join("color")).unwrap();
     std::fs::create_dir_all(dir.join("depth")).unwrap();
     app.world_mut().resource_mut::<Ar>().session =
-        Some(ArSession::start(ArSource::Recording(dir.clone()), organ.seg.clone(), ActiveModel::default()));
+        Some(ArSession::start(ArSource::Recording(dir.clone()), organ.seg.clone(), ActiveModel::default(), None));
     let m = wait_for_error(&mut app, Duration::from_secs(120));
     assert!(m.contains(&dir.display().to_string()) && m.to_lowercase().contains("intrinsics"), "{m}");
     assert!(app.world().resource::<Ar>().session.is_none(), "the failed session is closed");
@@ -331,7 +331,7 @@ fn the_ar_view_reports_a_recording_without_intrinsics_and_a_dropped_stream() {
         let _ = s.write_all(b"UMRGBD01 this is not a frame header at all");
     });
     app.world_mut().resource_mut::<UiMessages>().list.clear();
-    let s = ArSession::start(ArSource::Tcp(addr), organ.seg.clone(), ActiveModel::default());
+    let s = ArSession::start(ArSource::Tcp(addr), organ.seg.clone(), ActiveModel::default(), None);
     s.send(ArCommand::Play(true));
     app.world_mut().resource_mut::<Ar>().session = Some(s);
     let t = Instant::now();

@@ -47,6 +47,24 @@ pub struct ArFrame {
     pub received: Instant,
 }
 
+/// Wakes the UI's event loop from another thread.
+pub type Waker = Box<dyn Fn() + Send>;
+
+struct EventSender {
+    tx: Sender<ArEvent>,
+    wake: Option<Waker>,
+}
+
+impl EventSender {
+    fn send(&self, e: ArEvent) -> Result<(), std::sync::mpsc::SendError<ArEvent>> {
+        let r = self.tx.send(e);
+        if let Some(w) = &self.wake {
+            w();
+        }
+        r
+    }
+}
+
 pub enum ArEvent {
     Opened { label: String, frames: Option<usize>, fps: f64, truth: bool },
     Frame(Box<ArFrame>),
@@ -63,9 +81,11 @@ pub struct ArSession {
 }
 
 impl ArSession {
-    pub fn start(source: ArSource, seg: std::sync::Arc<Segmentation>, model: ActiveModel) -> Self {
+    /// `wake` is called after each event: the window, updating only on demand, wakes up.
+    pub fn start(source: ArSource, seg: std::sync::Arc<Segmentation>, model: ActiveModel, wake: Option<Waker>) -> Self {
         let (tx, crx) = channel();
         let (etx, rx) = channel();
+        let etx = EventSender { tx: etx, wake };
         let thread = std::thread::Builder::new()
             .name("ar".into())
             .spawn(move || {
@@ -116,7 +136,7 @@ fn draw_points(img: &mut ColorImage, frame: &Frame, settings: &RegisterSettings)
     }
 }
 
-fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &Sender<ArEvent>) -> Result<(), String> {
+fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &EventSender) -> Result<(), String> {
     let log = |s: String| {
         let _ = tx.send(ArEvent::Log(s));
     };
@@ -424,6 +444,6 @@ pub struct ArPlugin;
 
 impl Plugin for ArPlugin {
     fn build(&self, app: &mut App) {
-        app.init_resource::<Ar>().add_systems(Update, poll_ar);
+        app.insert_resource(Ar { show_points: true, ..Default::default() }).add_systems(Update, poll_ar);
     }
 }

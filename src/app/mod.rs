@@ -105,6 +105,27 @@ fn auto_grid(organ: Res<state::Organ>, grid: Res<state::GridState>, mut jobs: Re
     }
 }
 
+/// Ask for another frame right away when shown state changed (a job finished, a sample or an
+/// AR frame arrived, the rehearsal deformed the organ), or while a probe is dragged.
+fn request_redraws(
+    organ: Res<state::Organ>,
+    sim: Res<state::Simulation>,
+    grid: Res<state::GridState>,
+    probes: Res<state::Probes>,
+    qa: Res<qa::Qa>,
+    ar: Res<ar::Ar>,
+    jobs: Res<jobs::Jobs>,
+    mut last: Local<[u64; 7]>,
+    mut redraw: MessageWriter<bevy::window::RequestRedraw>,
+) {
+    let now =
+        [organ.generation, sim.generation, grid.generation, probes.generation, qa.generation, ar.generation, jobs.finished.len() as u64];
+    if now != *last || probes.dragging.is_some() {
+        *last = now;
+        redraw.write(bevy::window::RequestRedraw);
+    }
+}
+
 /// Open the app window on the bundled phantom.
 pub fn run_gui() -> AppExit {
     App::new()
@@ -115,6 +136,13 @@ pub fn run_gui() -> AppExit {
         .add_plugins(ViewPlugins)
         .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
         .add_systems(Startup, (spawn_window_cameras, load_phantom_at_start))
-        .add_systems(Update, auto_grid)
+        .add_systems(Update, (auto_grid, request_redraws))
+        // Update on input, on a wake-up (AR frames) and on state changes; otherwise 10 times a
+        // second for progress bars. A software-rendered frame costs a core: drawing only when
+        // something changed leaves the CPU to solves, training and registration.
+        .insert_resource(bevy::winit::WinitSettings {
+            focused_mode: bevy::winit::UpdateMode::reactive(std::time::Duration::from_millis(100)),
+            unfocused_mode: bevy::winit::UpdateMode::reactive_low_power(std::time::Duration::from_millis(500)),
+        })
         .run()
 }

@@ -160,7 +160,8 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             let mut ar = world.resource_mut::<super::ar::Ar>();
             ar.source_text = dir.display().to_string();
             ar.show_points = true;
-            let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model);
+            let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
+            s.send(super::ar::ArCommand::ShowPoints(true));
             s.send(super::ar::ArCommand::Seek(3));
             ar.session = Some(s);
         }
@@ -342,7 +343,7 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
         run(jobs::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }
     app.world_mut().insert_resource(Mode::Ar);
-    let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model);
+    let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
     app.world_mut().resource_mut::<super::ar::Ar>().session = Some(s);
     // The first frame (with ICP) before playing.
     let t0 = std::time::Instant::now();

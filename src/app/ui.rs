@@ -40,6 +40,7 @@ pub struct Views<'w> {
     qa: ResMut<'w, super::qa::Qa>,
     ar: ResMut<'w, super::ar::Ar>,
     active: ResMut<'w, ActiveModel>,
+    proxy: Option<Res<'w, bevy::winit::EventLoopProxyWrapper>>,
 }
 
 fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d, mode: &mut Mode) {
@@ -349,6 +350,12 @@ pub fn ui_system(
     let mut new_mode = mode;
     egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut new_mode));
     egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
+    let waker = views.proxy.as_ref().map(|p| {
+        let p = (**p).clone();
+        Box::new(move || {
+            let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
+        }) as super::ar::Waker
+    });
     let Views { jobs_ui, queue, qa, ar, active, .. } = &mut views;
     match mode {
         Mode::Model => {
@@ -387,7 +394,8 @@ pub fn ui_system(
         Mode::Ar => {
             let mut synth = false;
             egui::Panel::left("ar_left").default_size(290.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| synth = super::ui_ar::left_panel(ui, ar, &st.organ, active, &mut st.messages));
+                egui::ScrollArea::vertical()
+                    .show(ui, |ui| synth = super::ui_ar::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
             });
             egui::Panel::right("ar_right").default_size(250.0).show(&mut root, |ui| {
                 egui::ScrollArea::vertical().show(ui, |ui| super::ui_ar::right_panel(ui, ar));

@@ -11,7 +11,14 @@ pub fn synthetic_recording_dir() -> PathBuf {
     PathBuf::from("out/ar-synthetic")
 }
 
-pub fn left_panel(ui: &mut egui::Ui, ar: &mut Ar, organ: &Organ, model: &ActiveModel, messages: &mut UiMessages) -> bool {
+pub fn left_panel(
+    ui: &mut egui::Ui,
+    ar: &mut Ar,
+    organ: &Organ,
+    model: &ActiveModel,
+    messages: &mut UiMessages,
+    waker: Option<super::ar::Waker>,
+) -> bool {
     let mut want_synth = false;
     ui.heading("AR view");
     if ar.source_text.is_empty() {
@@ -46,7 +53,9 @@ pub fn left_panel(ui: &mut egui::Ui, ar: &mut Ar, organ: &Organ, model: &ActiveM
     if let Some(src) = start {
         match &organ.data {
             Some(o) => {
-                ar.session = Some(ArSession::start(src.clone(), o.seg.clone(), model.clone()));
+                let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
+                s.send(ArCommand::ShowPoints(ar.show_points));
+                ar.session = Some(s);
                 ar.last = None;
                 ar.frames = None;
                 ar.intervals.clear();

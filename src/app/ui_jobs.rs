@@ -241,7 +241,7 @@ pub fn queue_and_dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue,
         for item in q.items.iter().rev() {
             ui.horizontal(|ui| {
                 let open = f.expanded == Some(item.id);
-                if ui.small_button(if open { "▾" } else { "▸" }).clicked() {
+                if ui.small_button(if open { "-" } else { "+" }).clicked() {
                     f.expanded = if open { None } else { Some(item.id) };
                 }
                 ui.strong(format!("#{} {}", item.id, item.label));
@@ -305,8 +305,8 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
         ui.label("model folder:");
         ui.add(egui::TextEdit::singleline(&mut f.folder_text).desired_width(200.0));
         if ui.button("Show").clicked() {
-            f.dash = Some(DashSource::Folder(PathBuf::from(f.folder_text.trim())));
             f.folder_metrics = None;
+            f.dash = (!f.folder_text.trim().is_empty()).then(|| DashSource::Folder(PathBuf::from(f.folder_text.trim())));
         }
     });
     let (metrics, folder): (Vec<EpochMetrics>, Option<PathBuf>) = match &f.dash {

@@ -241,6 +241,8 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
     .insert_resource(EguiGlobalSettings { auto_create_primary_context: false, ..default() });
     app.finish();
     app.cleanup();
+    // The adapter decides the quality and the organ's display surface: before the scene loads.
+    app.world_mut().run_system_cached(super::view3d::detect_adapter).map_err(|e| e.to_string())?;
     prepare_scene(app.world_mut(), scene)?;
     let mut target = Image::new_target_texture(width, height, TextureFormat::Rgba8UnormSrgb, None);
     target.asset_usage = RenderAssetUsages::RENDER_WORLD;

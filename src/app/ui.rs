@@ -67,7 +67,7 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
             ui.add(egui::Slider::new(&mut q.render_scale, 0.25..=1.0).text("3-D resolution"));
             ui.checkbox(&mut q.shadows, "Shadows");
             if let Some((name, software)) = &view.adapter {
-                ui.weak(format!("{name}{}", if *software { " (software: half resolution, no shadows by default)" } else { "" }));
+                ui.weak(format!("{name}{}", if *software { " (software: quarter resolution, no shadows by default)" } else { "" }));
             }
             if q != view.quality {
                 view.quality = q;

@@ -1,7 +1,7 @@
 //! The 3-D view: the main camera renders offscreen into an image, and the UI shows that
 //! image in the space the panels leave. The image can be smaller than the view (a render
 //! scale): on a software rasteriser (llvmpipe, lavapipe) fragment work dominates the frame,
-//! so the view renders there at half resolution and without shadows by default.
+//! so the view renders there at a quarter of the resolution and without shadows by default.
 
 use bevy::asset::RenderAssetUsages;
 use bevy::prelude::*;

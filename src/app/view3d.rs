@@ -58,6 +58,8 @@ impl FromWorld for View3d {
         img.data = None;
         // The old contents are redrawn anyway.
         img.copy_on_resize = false;
+        // Upscaled by the UI: linear filtering, not blocks.
+        img.sampler = bevy::image::ImageSampler::linear();
         let image = world.resource_mut::<Assets<Image>>().add(img);
         // UMESH_QUALITY=full|software overrides the adapter-based choice (benchmarks, tests).
         let forced = match std::env::var("UMESH_QUALITY").as_deref() {

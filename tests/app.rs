@@ -265,8 +265,13 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let used: Vec<usize> = info.train_indices.iter().chain(&info.val_indices).copied().collect();
     assert!(!used.contains(&flagged_index), "training skipped the flagged sample");
     assert_eq!(used.len(), m.accepted().count() - 1);
-    // The checkpoint loads as a model for the same organ.
+    // The checkpoint loads as a model for the same organ, and for the dataset's QA.
     umesh::app::probes::RehearsalModel::load_checkpoint(&model_dir, "last.safetensors", &organ).unwrap();
+    let am = ActiveModel { dir: model_dir.clone(), checkpoint: "model.safetensors".into() };
+    let (ds, m, p) = umesh::app::qa::open_dataset(&data_dir, &organ.seg, Some(&am)).unwrap();
+    let tre = umesh::app::qa::evaluate_dataset(&ds, &m, &std::sync::Mutex::new(p.unwrap())).unwrap();
+    assert_eq!(tre.len(), m.accepted().count());
+    assert!(tre.values().all(|t| t.is_finite() && *t >= 0.0));
     let _ = std::fs::remove_dir_all(&data_dir);
     let _ = std::fs::remove_dir_all(&model_dir);
 }

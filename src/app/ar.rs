@@ -182,7 +182,6 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     let true_pose = truth.as_ref().map(|g| g.pose());
     let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
     let (mut playing, mut record, mut show_points) = (false, None::<PathBuf>, true);
-    let mut offset = ([0.0; 3], [0.0; 3]);
     let mut next_due = Instant::now();
     let mut want: Option<usize> = Some(0); // frame to (re)process now
     let mut last_index: Option<usize> = None;
@@ -201,8 +200,8 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
             }
             Ok(ArCommand::Step(d)) => {
                 playing = false;
-                if let (Src::Recording(r, i), Some(cur)) = (&src, last_index.or(Some(0))) {
-                    let _ = i;
+                if let Src::Recording(r, _) = &src {
+                    let cur = last_index.unwrap_or(0);
                     want = Some((cur as i64 + d).clamp(0, r.len() as i64 - 1) as usize);
                 }
             }
@@ -217,7 +216,6 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 log("rigid alignment (ICP) requested".into());
             }
             Ok(ArCommand::PoseOffset(t, r)) => {
-                offset = (t, r);
                 reg.reset(pose_with_offset(&base_pose, t, r));
                 want = last_index;
             }
@@ -233,7 +231,6 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
             }
             Err(_) => {}
         }
-        let _ = offset;
         // The frame to process now, if any.
         let frame: Option<Frame> = match &mut src {
             Src::Recording(rec, pos) => {

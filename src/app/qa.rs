@@ -169,7 +169,7 @@ impl Qa {
 
     pub fn evaluate_all(&mut self) {
         let (Some(ds), Some(m), Some(p)) = (self.dataset.clone(), self.manifest.clone(), self.predictor.clone()) else { return };
-        self.evaluating = Some(AsyncComputeTaskPool::get().spawn(async move { evaluate_all(&ds, &m, &p) }));
+        self.evaluating = Some(AsyncComputeTaskPool::get().spawn(async move { evaluate_dataset(&ds, &m, &p) }));
     }
 }
 
@@ -289,26 +289,18 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
     })
 }
 
-fn evaluate_all(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> Result<BTreeMap<usize, f64>, String> {
+/// The network's TRE on every accepted sample (by sample index).
+pub fn evaluate_dataset(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> Result<BTreeMap<usize, f64>, String> {
     let mut out = BTreeMap::new();
     let mut p = p.lock().map_err(|_| "the model is poisoned")?;
     let shape = ds.ctx.grid.padded_shape();
-    let mut shards: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
-    for s in m.accepted() {
-        shards.entry(s.shard.as_str()).or_default().push(s.index);
-    }
-    for (shard, _) in shards {
-        let path = ds.dir.join(shard);
-        let npz = Npz::read(&path).map_err(|e| e.to_string())?;
-        let idx: Vec<i64> = match &npz.get("index").map_err(|e| e.to_string())?.data {
-            ArrayData::I64(v) => v.clone(),
-            _ => return Err(format!("{}: 'index' is not int64", path.display())),
-        };
-        let (u_s, u_v) = (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?);
+    let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
+    for shard in &m.shards {
+        let (idx, u_s, u_v) = data.load_shard(shard).map_err(|e| e.to_string())?;
         let n = u_s.len() / idx.len().max(1);
         for (k, &i) in idx.iter().enumerate() {
             let pred = p.predict(&u_s[k * n..(k + 1) * n], shape).map_err(|e| e.to_string())?.to_vec();
-            out.insert(i as usize, sample_tre(ds, &pred, &u_v[k * n..(k + 1) * n]));
+            out.insert(i, sample_tre(ds, &pred, &u_v[k * n..(k + 1) * n]));
         }
     }
     Ok(out)

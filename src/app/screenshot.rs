@@ -47,6 +47,19 @@ fn anterior_probes(organ: &OrganData, offsets: &[(f64, f64)]) -> Vec<Probe> {
         .collect()
 }
 
+/// `samples` samples with the bundled model's configuration, in shards of 4, generated once
+/// into the temporary folder `name` (resumed when complete).
+fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> Result<std::path::PathBuf, String> {
+    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir).map_err(|e| e.to_string())?;
+    let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
+    config.samples = samples;
+    config.shard_size = 4;
+    let dir = scene_cache(name);
+    let all = umesh_core::dataset::ShardSelection::all();
+    umesh_core::dataset::run_generate(&organ.seg, &dir, &config, all, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+    Ok(dir)
+}
+
 /// Compute the state a scene shows (synchronously: a screenshot waits for nothing).
 pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     let JobOutput::Loaded(organ) = run(jobs::load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }))? else {
@@ -111,20 +124,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         "qa" => {
             // Four samples made with the bundled model's configuration, the model beside them.
             let model = ActiveModel::default();
-            let info = umesh_net::ModelInfo::read(&model.dir).map_err(|e| e.to_string())?;
-            let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
-            config.samples = 4;
-            config.shard_size = 4;
-            let dir = scene_cache("qa-dataset");
-            umesh_core::dataset::run_generate(
-                &organ.seg,
-                &dir,
-                &config,
-                umesh_core::dataset::ShardSelection::all(),
-                &Progress::none(),
-                &Cancel::new(),
-            )
-            .map_err(|e| e.to_string())?;
+            let dir = small_dataset(&organ, "qa-dataset", 4)?;
             let (ds, m, p) = super::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
             let p = p.map(|p| Arc::new(Mutex::new(p)));
             let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
@@ -287,20 +287,7 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
 pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Result<(Vec<f64>, f64), String> {
     let (mut app, _) = headless_app("phantom", width, height)?;
     let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
-    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir).map_err(|e| e.to_string())?;
-    let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
-    config.samples = 12;
-    config.shard_size = 6;
-    let data = scene_cache("bench-dataset");
-    umesh_core::dataset::run_generate(
-        &organ.seg,
-        &data,
-        &config,
-        umesh_core::dataset::ShardSelection::all(),
-        &Progress::none(),
-        &Cancel::new(),
-    )
-    .map_err(|e| e.to_string())?;
+    let data = small_dataset(&organ, "bench-dataset", 12)?;
     let model = scene_cache("bench-model");
     let _ = std::fs::remove_dir_all(&model);
     app.world_mut().insert_resource(mode);

@@ -321,3 +321,120 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let (ok, _, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap()]);
     assert!(!ok && err.contains("no intrinsics") && err.contains("synth-rec"), "{err}");
 }
+
+fn shared_data() -> Option<PathBuf> {
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    if d.is_dir() {
+        Some(d)
+    } else {
+        eprintln!("SKIPPED: {} not found; the real-patient prepare checks did not run", d.display());
+        None
+    }
+}
+
+/// A short `prepare` (few samples, one epoch, a 3-frame check): the folder, the report and
+/// the JSON summary.
+fn short_prepare(seg: Option<&str>, out: &std::path::Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec!["prepare"];
+    if let Some(s) = seg {
+        args.push(s);
+    }
+    args.extend(["--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--json", "--out", out.to_str().unwrap()]);
+    args.extend(extra);
+    let (ok, stdout, stderr) = umesh(&args);
+    assert!(ok, "prepare failed: {stderr}");
+    let v = json(&stdout);
+    for f in ["patient.json", "segmentation.nii.gz", "dataset/manifest.json", "model/model.json", "eval.json", "check/register.json", "report.html"] {
+        assert!(out.join(f).is_file(), "{} missing", f);
+    }
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    for needle in ["<svg", "Dataset", "Training", "Registration check", "Fixed region"] {
+        assert!(html.contains(needle), "report.html lacks {needle}");
+    }
+    assert!(!html.contains("http://") || !html.contains("src=\"http"), "report.html loads an external resource");
+    v
+}
+
+#[test]
+fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
+    let out = tmp("patient");
+    let _ = std::fs::remove_dir_all(&out);
+    let v = short_prepare(None, &out, &[]);
+    assert_eq!(v["samples"], 10);
+    assert!(v["accepted"].as_u64().unwrap() >= 9, "{v}");
+    let ratio = v["achieved_over_target"]["mean"].as_f64().unwrap();
+    assert!((0.75..=1.25).contains(&ratio), "achieved / target {ratio}");
+    assert!(v["val_tre_mean_mm"].as_f64().unwrap().is_finite());
+    assert!(v["check"]["summary"]["frames"].as_u64().unwrap() >= 2, "{v}");
+    // Run again: every stage was done, nothing is recomputed.
+    let (ok, stdout, stderr) =
+        umesh(&["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--json", "--out", out.to_str().unwrap()]);
+    assert!(ok, "{stderr}");
+    let again = json(&stdout);
+    assert!(again["seconds"].as_f64().unwrap() < 0.5 * v["seconds"].as_f64().unwrap() + 5.0, "{again}");
+    assert!(again["dataset_samples_per_minute"].is_null(), "samples were recomputed: {again}");
+    // Other settings in the same folder: refused, the folder left as it was.
+    let before = std::fs::read(out.join("patient.json")).unwrap();
+    let (ok, _, stderr) = umesh(&["prepare", "--samples", "12", "--epochs", "1", "--out", out.to_str().unwrap()]);
+    assert!(!ok && stderr.contains("other inputs or settings"), "{stderr}");
+    assert_eq!(before, std::fs::read(out.join("patient.json")).unwrap());
+    // The patient folder drives registration.
+    let reg = tmp("patient-reg");
+    let rec = out.join("check/recording");
+    let (ok, stdout, stderr) = umesh(&[
+        "register",
+        "--patient",
+        out.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--no-overlay",
+        "--json",
+        "--out",
+        reg.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert!(json(&stdout)["frames"].as_u64().unwrap() >= 2);
+}
+
+#[test]
+fn prepare_refuses_bad_input_before_writing_anything() {
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["--organ-label", "77"], "label 77"),
+        (vec!["--fix-box", "9000,9000,9000,9001,9001,9001"], "holds no grid node"),
+        (vec!["--fix-label", "42"], "--fix-label 42"),
+        (vec!["--camera", "sideways"], "unknown camera view"),
+        (vec!["--camera-from", "0,0,0", "--camera-to", "0,0,0"], "same point"),
+        (vec!["--camera-from", "0,5000,0", "--camera-to", "0,9000,0"], "of the organ surface"),
+        (vec!["--target-displacement-mm", "nan"], "target displacement"),
+        (vec!["--samples", "3"], "at least 10"),
+    ];
+    for (extra, needle) in cases {
+        let out = tmp(&format!("bad-patient-{}", needle.len()));
+        let _ = std::fs::remove_dir_all(&out);
+        let mut args = vec!["prepare", "--out", out.to_str().unwrap()];
+        args.extend(&extra);
+        let (ok, _, stderr) = umesh(&args);
+        assert!(!ok, "{extra:?} succeeded");
+        assert!(stderr.contains(needle), "{extra:?}: {stderr}");
+        assert_eq!(stderr.matches("error:").count(), 1, "{stderr}");
+        assert!(!out.exists(), "{extra:?} left {}", out.display());
+    }
+}
+
+#[test]
+fn prepare_on_the_real_ct_and_mr_livers_accepts_the_samples_at_the_target() {
+    let Some(d) = shared_data() else { return };
+    for (file, ivc) in [("totalsegmentator/example_seg.nii.gz", "label 63"), ("totalsegmentator/example_seg_mr.nii.gz", "label 24")] {
+        let out = tmp(&format!("real-{}", file.len()));
+        let _ = std::fs::remove_dir_all(&out);
+        let seg = d.join(file);
+        let v = short_prepare(Some(seg.to_str().unwrap()), &out, &[]);
+        eprintln!("{file}: {v}");
+        assert!(v["accepted"].as_u64().unwrap() >= 9, "{file}: {v}");
+        let ratio = v["achieved_over_target"]["mean"].as_f64().unwrap();
+        assert!((0.75..=1.25).contains(&ratio), "{file}: achieved / target {ratio}");
+        let patient = std::fs::read_to_string(out.join("patient.json")).unwrap();
+        assert!(patient.contains("inferior_vena_cava") && patient.contains(ivc), "{file}: fixed region not the vena cava");
+        assert!(patient.contains("portal_vein_and_splenic_vein"), "{file}: the portal vein is not a structure");
+    }
+}

@@ -225,6 +225,7 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             seg: req.path.clone(),
             organ_labels: req.organ_labels.clone(),
             structure_labels: req.structure_labels.clone(),
+            structure_files: Vec::new(),
             structure_meshes: Vec::new(),
             mesh_scale_mm: 1.0,
             mesh_voxel_mm: 1.0,

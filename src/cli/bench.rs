@@ -110,7 +110,7 @@ pub fn fe_scenario(seed: u64) -> Result<FeScenario> {
     let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new())?.grid;
     let material = MaterialParams::default();
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::default(), &Default::default(), seed)
+    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)
         .map_err(anyhow::Error::msg)?;
     let fixed = vec![loads::default_fixed_region(&grid, Some(umesh_core::phantom::VENA_CAVA), 6.0)];
     let settings = SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
@@ -131,7 +131,7 @@ fn bench_fe(repeat: usize) -> Result<serde_json::Value> {
     let (mut svk, mut lin, mut cor) = (Vec::new(), Vec::new(), Vec::new());
     for seed in 1..=repeat as u64 {
         let forces =
-            loads::visible_random_forces(&organ, &sc.grid, &sc.settings.material, &ForceSettings::default(), &Default::default(), seed)
+            loads::visible_random_forces(&organ, &sc.grid, &sc.settings.material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)
                 .map_err(anyhow::Error::msg)?;
         let settings = SimulationSettings { forces, ..sc.settings.clone() };
         let bc = boundary_conditions(&sc.grid, Some(&sc.seg.volume), &settings)?;

@@ -6,8 +6,11 @@ use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate, run_merge, run_stats};
 use umesh_core::fem::{FixedRegion, MaterialParams};
-use umesh_core::loads::ForceSettings;
+use nalgebra::Vector3;
+use umesh_core::grid::GridSettings;
+use umesh_core::loads::{FixedChoice, ForceSettings, LoadCalibration};
 use umesh_core::segmentation::Segmentation;
+use umesh_core::visible::Camera;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -40,25 +43,8 @@ pub struct GenerateArgs {
     pub shard: Option<String>,
     #[arg(long, default_value_t = 50)]
     pub shard_size: usize,
-    /// Force probes per sample.
-    #[arg(long, default_value_t = ForceSettings::default().probes)]
-    pub probes: usize,
-    /// Scale of the random forces (small-strain displacement they aim at, mm).
-    #[arg(long, default_value_t = ForceSettings::default().target_displacement_mm)]
-    pub target_displacement_mm: f64,
-    /// Largest visible fraction of the organ surface.
-    #[arg(long, default_value_t = 0.5)]
-    pub visible_fraction: f64,
-    #[arg(long, default_value_t = MaterialParams::default().young_pa)]
-    pub young_pa: f64,
-    #[arg(long, default_value_t = MaterialParams::default().poisson)]
-    pub poisson: f64,
-    /// Fix the nodes within --fix-distance-mm of this label (phantom default: 2, the vena cava;
-    /// otherwise the posterior tenth of the organ is fixed).
-    #[arg(long)]
-    pub fix_label: Option<i64>,
-    #[arg(long, default_value_t = 6.0)]
-    pub fix_distance_mm: f64,
+    #[command(flatten)]
+    pub config: ConfigArgs,
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long)]
@@ -83,29 +69,156 @@ pub struct StatsArgs {
     pub json: bool,
 }
 
-pub fn default_fixed(seg: &Segmentation, fix_label: Option<i64>, distance_mm: f64) -> FixedRegion {
-    let label = fix_label.or_else(|| {
-        let phantom = seg.source.to_string_lossy().contains("phantom");
-        (phantom && seg.volume.label_counts().contains_key(&umesh_core::phantom::VENA_CAVA)).then_some(umesh_core::phantom::VENA_CAVA)
-    });
-    if let Some(label) = label {
-        return FixedRegion::Label { label, distance_mm };
+/// The loads, material, fixed region and camera of a dataset (shared by `dataset generate`
+/// and `prepare`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct ConfigArgs {
+    /// Force probes per sample.
+    #[arg(long, default_value_t = ForceSettings::default().probes)]
+    pub probes: usize,
+    /// Mean nodal displacement each sample's forces are calibrated for (mm), by one linear
+    /// solve per sample; each sample's target is this times a factor uniform in
+    /// [1 - spread, 1 + spread].
+    #[arg(long, default_value_t = ForceSettings::default().target_displacement_mm)]
+    pub target_displacement_mm: f64,
+    #[arg(long, default_value_t = ForceSettings::default().target_spread)]
+    pub target_spread: f64,
+    /// How forces are scaled: mean-displacement (calibrated per sample, the default) or
+    /// energy-scale (F = E L D / N, as datasets made before calibration).
+    #[arg(long, default_value = "mean-displacement", value_parser = ["mean-displacement", "energy-scale"])]
+    pub calibration: String,
+    /// Largest visible fraction of the organ surface.
+    #[arg(long, default_value_t = 0.5)]
+    pub visible_fraction: f64,
+    #[arg(long, default_value_t = MaterialParams::default().young_pa)]
+    pub young_pa: f64,
+    #[arg(long, default_value_t = MaterialParams::default().poisson)]
+    pub poisson: f64,
+    /// Fix the nodes within --fix-distance-mm of this label. Default: the inferior vena cava
+    /// or hepatic veins when the segmentation names them (TotalSegmentator's 63 next to its
+    /// liver 5), else the posterior fifth of the organ.
+    #[arg(long)]
+    pub fix_label: Option<i64>,
+    #[arg(long, default_value_t = 6.0)]
+    pub fix_distance_mm: f64,
+    /// Fix the nodes inside a box: xmin,ymin,zmin,xmax,ymax,zmax (world mm).
+    #[arg(long, value_delimiter = ',', num_args = 6, allow_hyphen_values = true)]
+    pub fix_box: Vec<f64>,
+    /// Fix the nodes on the negative side of a plane: nx,ny,nz,offset_mm,thickness_mm.
+    #[arg(long, value_delimiter = ',', num_args = 5, allow_hyphen_values = true)]
+    pub fix_plane: Vec<f64>,
+    /// Laparoscope view: anterior, posterior, right, left, superior, inferior, or two joined by
+    /// '-' (anterior-inferior); from 2.5 organ sizes away, looking at the organ's centre.
+    #[arg(long, conflicts_with = "camera_from")]
+    pub camera: Option<String>,
+    /// Camera position x,y,z (world mm), with --camera-to.
+    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true, requires = "camera_to")]
+    pub camera_from: Vec<f64>,
+    /// Point the camera looks at, x,y,z (world mm).
+    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true, requires = "camera_from")]
+    pub camera_to: Vec<f64>,
+    #[arg(long, default_value_t = 50.0)]
+    pub fov_deg: f64,
+    /// Newton iterations a sample may take over all its load increments before it is
+    /// rejected (a sample that keeps cutting its load is about to invert).
+    #[arg(long, default_value_t = DatasetConfig::paper(FixedRegion::Nodes { nodes: vec![] }).solver.max_total_iterations.unwrap_or(24))]
+    pub max_newton_iterations: usize,
+}
+
+impl ConfigArgs {
+    /// The fixed region: the options given, else core's default for this segmentation.
+    pub fn fixed(&self, seg: &Segmentation) -> Result<FixedChoice> {
+        let finite = |v: &[f64], opt: &str| -> Result<()> {
+            anyhow::ensure!(v.iter().all(|x| x.is_finite()), "{opt}: every number must be finite");
+            Ok(())
+        };
+        if !self.fix_box.is_empty() {
+            finite(&self.fix_box, "--fix-box")?;
+            let b = &self.fix_box;
+            anyhow::ensure!((0..3).all(|a| b[a] < b[a + 3]), "--fix-box: each minimum must be below its maximum");
+            return Ok(FixedChoice {
+                region: FixedRegion::Box { min_mm: [b[0], b[1], b[2]], max_mm: [b[3], b[4], b[5]] },
+                description: format!("nodes in the box {:?}..{:?} mm (chosen)", &b[..3], &b[3..]),
+            });
+        }
+        if !self.fix_plane.is_empty() {
+            finite(&self.fix_plane, "--fix-plane")?;
+            let p = &self.fix_plane;
+            anyhow::ensure!(p[4] >= 0.0, "--fix-plane: the thickness must be >= 0");
+            return Ok(FixedChoice {
+                region: FixedRegion::Plane { normal: [p[0], p[1], p[2]], offset_mm: p[3], thickness_mm: p[4] },
+                description: format!("nodes with n.x < {} mm for n = {:?} (chosen)", p[3] + p[4], &p[..3]),
+            });
+        }
+        anyhow::ensure!(
+            self.fix_distance_mm > 0.0 && self.fix_distance_mm < 1000.0,
+            "--fix-distance-mm {}: must be positive and below 1 m",
+            self.fix_distance_mm
+        );
+        if let Some(l) = self.fix_label {
+            anyhow::ensure!(
+                seg.volume.label_counts().contains_key(&l),
+                "--fix-label {l}: {} has no voxel of that label",
+                seg.source.display()
+            );
+        }
+        Ok(umesh_core::loads::default_fixed(seg, self.fix_label, self.fix_distance_mm))
     }
-    let (lo, hi) = seg.organ_mask().world_bounds().unwrap_or_default();
-    FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: 0.1 * (hi.y - lo.y) }
+
+    pub fn camera(&self, seg: &Segmentation) -> Result<Option<Camera>> {
+        anyhow::ensure!(self.fov_deg > 0.0 && self.fov_deg < 170.0, "--fov-deg {}: must lie in (0, 170)", self.fov_deg);
+        if !self.camera_from.is_empty() {
+            let (f, t) = (Vector3::from_column_slice(&self.camera_from), Vector3::from_column_slice(&self.camera_to));
+            anyhow::ensure!(f.iter().chain(t.iter()).all(|v| v.is_finite()), "--camera-from/--camera-to: numbers must be finite");
+            anyhow::ensure!((f - t).norm() > 1e-6, "--camera-from and --camera-to are the same point");
+            return Ok(Some(Camera::look_at(&f, &t, self.fov_deg)));
+        }
+        let Some(view) = &self.camera else { return Ok(None) };
+        let (lo, hi) = seg.organ_mask().world_bounds().context("the organ mask is empty")?;
+        let mut c = Camera::named(view, &lo, &hi).map_err(|e| anyhow::anyhow!("--camera: {e}"))?;
+        c.fov_deg = self.fov_deg;
+        Ok(Some(c))
+    }
+
+    /// The dataset configuration (paper protocol) with these options.
+    pub fn config(&self, seg: &Segmentation, grid: GridSettings, samples: usize, seed: u64, shard_size: usize) -> Result<(DatasetConfig, FixedChoice)> {
+        let fixed = self.fixed(seg)?;
+        let mut c = DatasetConfig::paper(fixed.region.clone());
+        c.samples = samples;
+        c.seed = seed;
+        c.shard_size = shard_size.max(1);
+        c.grid = grid;
+        c.forces = ForceSettings {
+            probes: self.probes,
+            target_displacement_mm: self.target_displacement_mm,
+            target_spread: self.target_spread,
+            calibration: if self.calibration == "energy-scale" { LoadCalibration::EnergyScale } else { LoadCalibration::MeanDisplacement },
+            ..Default::default()
+        };
+        c.forces.validate().map_err(|e| anyhow::anyhow!("--probes/--target-displacement-mm/--target-spread: {e}"))?;
+        anyhow::ensure!(
+            self.visible_fraction > 0.0 && self.visible_fraction <= 1.0,
+            "--visible-fraction {}: must lie in (0, 1]",
+            self.visible_fraction
+        );
+        c.visibility.max_fraction = self.visible_fraction;
+        c.visibility.camera = self.camera(seg)?;
+        c.material = MaterialParams { young_pa: self.young_pa, poisson: self.poisson, ..Default::default() };
+        anyhow::ensure!(self.max_newton_iterations >= 1, "--max-newton-iterations must be at least 1");
+        c.solver.max_total_iterations = Some(self.max_newton_iterations);
+        c.material.validate().map_err(|e| anyhow::anyhow!("--young-pa/--poisson: {e}"))?;
+        Ok((c, fixed))
+    }
+}
+
+/// The default fixed region of a segmentation (core's rule), for callers without options.
+pub fn default_fixed(seg: &Segmentation, fix_label: Option<i64>, distance_mm: f64) -> FixedRegion {
+    umesh_core::loads::default_fixed(seg, fix_label, distance_mm).region
 }
 
 impl GenerateArgs {
-    pub fn config(&self, seg: &Segmentation) -> DatasetConfig {
-        let mut c = DatasetConfig::paper(default_fixed(seg, self.fix_label, self.fix_distance_mm));
-        c.samples = self.samples;
-        c.seed = self.seed;
-        c.shard_size = self.shard_size.max(1);
-        c.grid = self.grid.settings();
-        c.forces = ForceSettings { probes: self.probes, target_displacement_mm: self.target_displacement_mm, ..Default::default() };
-        c.visibility.max_fraction = self.visible_fraction;
-        c.material = MaterialParams { young_pa: self.young_pa, poisson: self.poisson, ..Default::default() };
-        c
+    pub fn config(&self, seg: &Segmentation) -> Result<(DatasetConfig, FixedChoice)> {
+        self.config.config(seg, self.grid.settings(), self.samples, self.seed, self.shard_size)
     }
 }
 
@@ -146,9 +259,11 @@ pub fn run(a: Args) -> Result<()> {
                 println!("  rejected ({why}): {n}");
             }
             println!("  {:24} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}", "", "min", "p5", "median", "mean", "p95", "max");
+            println!("  target mean displacement {} mm ({:?})", st.target_displacement_mm, st.calibration);
             for (name, d) in [
                 ("max displacement (mm)", &st.max_displacement_mm),
                 ("mean displacement (mm)", &st.mean_displacement_mm),
+                ("achieved / target", &st.achieved_over_target),
                 ("Newton iterations", &st.newton_iterations),
                 ("solve time (ms)", &st.solve_ms),
             ] {
@@ -174,7 +289,10 @@ fn generate(a: GenerateArgs) -> Result<()> {
     };
     anyhow::ensure!(a.samples > 0, "--samples must be positive");
     let seg = a.input.load()?;
-    let config = a.config(&seg);
+    let (config, fixed) = a.config(&seg)?;
+    if !a.json {
+        eprintln!("fixed region: {}", fixed.description);
+    }
     let (pb, progress) = super::progress_bar("samples");
     pb.set_style(
         indicatif::ProgressStyle::with_template("{spinner} {msg} [{bar:30}] {pos}/{len} ({per_sec}, eta {eta})")
@@ -184,6 +302,7 @@ fn generate(a: GenerateArgs) -> Result<()> {
     let report = run_generate(&seg, &a.out, &config, selection, &progress, &super::cancel());
     pb.finish_and_clear();
     let report = report.with_context(|| format!("generating the dataset in {}", a.out.display()))?;
+    let stats = run_stats(&a.out).ok();
     if a.json {
         super::print_json(&serde_json::to_value(&report)?);
     } else {
@@ -197,6 +316,12 @@ fn generate(a: GenerateArgs) -> Result<()> {
             report.samples_per_minute,
             report.complete
         );
+        if let Some(m) = stats.as_ref().and_then(|s| s.mean_displacement_mm.clone()) {
+            println!(
+                "mean nodal displacement {:.2} mm on average (p5 {:.2}, p95 {:.2}) for a target of {} mm",
+                m.mean, m.p5, m.p95, config.forces.target_displacement_mm
+            );
+        }
     }
     Ok(())
 }

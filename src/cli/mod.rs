@@ -7,6 +7,7 @@ mod grid;
 mod gui;
 pub mod input;
 mod phantom;
+mod prepare;
 mod register;
 mod rgbd;
 mod screenshot;
@@ -48,6 +49,9 @@ enum Command {
     Dataset(dataset::Args),
     /// Train the U-Net on a dataset (Adam, MSE; checkpoints, resume, metrics).
     Train(Box<train::Args>),
+    /// One patient from segmentation to checked model: grid, dataset, training, evaluation,
+    /// registration check and report.html in one resumable job.
+    Prepare(Box<prepare::Args>),
     /// Target registration error of a model on a dataset's validation split.
     Eval(train::EvalArgs),
     /// Benchmarks: grid construction, FE solves, dataset generation.
@@ -72,6 +76,7 @@ pub fn main() -> ExitCode {
         Command::Dataset(a) => dataset::run(a),
         Command::Train(a) => train::run(*a),
         Command::Eval(a) => train::eval(a),
+        Command::Prepare(a) => prepare::run(*a),
         Command::Bench(a) => bench::run(a),
         Command::Rgbd(a) => rgbd::run(a),
         Command::Register(a) => register::run(*a),

@@ -17,8 +17,11 @@ pub struct Args {
     #[command(flatten)]
     pub input: InputArgs,
     /// Model folder (default: the bundled phantom model).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "patient")]
     pub model: Option<PathBuf>,
+    /// A patient folder from `umesh prepare`: its segmentation and model.
+    #[arg(long, conflicts_with = "seg")]
+    pub patient: Option<PathBuf>,
     /// Recorded RGB-D folder (color/, depth/, intrinsics JSON; see the README).
     #[arg(long, conflicts_with = "source")]
     pub recording: Option<PathBuf>,
@@ -77,10 +80,20 @@ fn open_source(a: &Args) -> Result<(Box<dyn FrameSource>, Option<Matrix4<f64>>, 
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let model_dir = a.model.clone().unwrap_or_else(bundled_model);
+    let (model_dir, seg) = match &a.patient {
+        Some(p) => {
+            let patient = umesh_net::patient::Patient::read(p)?;
+            anyhow::ensure!(
+                patient.done(umesh_net::patient::Stage::Train),
+                "{}: the patient's model is not trained yet (run `umesh prepare` again to finish the job)",
+                p.display()
+            );
+            (umesh_net::patient::model_dir(p), patient.segmentation(p)?)
+        }
+        None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
+    };
     let mut net =
         umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
-    let seg = a.input.load()?;
     let config = model_dataset_config(Some(&net.info), &seg);
     let dctx = DatasetContext::prepare(&seg, &config, &super::cancel())?;
     net.info

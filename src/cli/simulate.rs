@@ -92,7 +92,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Scale of the random forces: the small-strain displacement they aim at (mm).
-    #[arg(long, default_value_t = ForceSettings::default().target_displacement_mm)]
+    #[arg(long, default_value_t = 3.0)]
     pub target_displacement_mm: f64,
     /// Output folder: displacement.npz, result.vtu, deformed structure meshes, history.json.
     #[arg(long, default_value = "out/simulate")]
@@ -137,9 +137,8 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation, grid: &ImmersedGrid) -> Vec<F
         regions.push(FixedRegion::Nodes { nodes: a.fix_nodes.clone() });
     }
     if regions.is_empty() {
-        let phantom_ivc =
-            seg.volume.label_counts().contains_key(&umesh_core::phantom::VENA_CAVA) && seg.source.to_string_lossy().contains("phantom");
-        regions.push(loads::default_fixed_region(grid, phantom_ivc.then_some(umesh_core::phantom::VENA_CAVA), a.fix_distance_mm));
+        let _ = grid;
+        regions.push(loads::default_fixed(seg, None, a.fix_distance_mm).region);
     }
     regions
 }
@@ -163,7 +162,7 @@ pub fn run(a: Args) -> Result<()> {
             &organ,
             &grid,
             &material,
-            &ForceSettings { probes: a.random_forces, target_displacement_mm: a.target_displacement_mm, ..Default::default() },
+            &ForceSettings::energy_scale(a.random_forces, a.target_displacement_mm),
             &Default::default(),
             a.seed,
         )

@@ -9,7 +9,7 @@
 use crate::fem::solver::{FeSolver, FemError, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::{GridError, GridSettings, ImmersedGrid};
-use crate::loads::{self, ForceSettings, PointForce};
+use crate::loads::{self, ForceSettings, LoadCalibration, PointForce};
 use crate::mesh::TriMesh;
 use crate::npz::{Array, ArrayData, Npz, NpzError, encode_npz_with};
 use crate::phantom::SplitMix64;
@@ -25,6 +25,13 @@ use std::time::Instant;
 
 pub const FORMAT: &str = "umesh-dataset";
 pub const FORMAT_VERSION: u32 = 1;
+/// Each calibrated sample's SVK mean nodal displacement lands within this fraction of its target.
+pub const CALIBRATION_TOLERANCE: f64 = 0.2;
+/// The first load factor of the reference solves, relative to the forces whose *linear* mean
+/// is the target: SVK is softer than linear elasticity at these strains.
+const FIRST_LOAD_FACTOR: f64 = 0.8;
+/// A camera that sees less of the organ than this cannot drive a registration.
+pub const MIN_VISIBLE_FRACTION: f64 = 0.02;
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DatasetConfig {
@@ -52,8 +59,15 @@ impl DatasetConfig {
             shard_size: 50,
             grid: GridSettings::default(),
             material: MaterialParams::default(),
-            // A sample that needs many load cuts is rejected early rather than ground through.
-            solver: SolverSettings { max_iterations: 20, max_halvings: 3, ..SolverSettings::default() },
+            // A sample that needs many load cuts is going to invert: it is rejected after a
+            // budget of Newton iterations (about two plain solves) rather than ground through.
+            solver: SolverSettings {
+                max_iterations: 15,
+                max_halvings: 3,
+                max_total_iterations: Some(24),
+                reject_indefinite: true,
+                ..SolverSettings::default()
+            },
             forces: ForceSettings::default(),
             visibility: VisibilitySettings::default(),
             fixed,
@@ -132,12 +146,26 @@ impl DatasetContext {
             return Err(invalid(&seg_path, "samples and shard size must be positive"));
         }
         config.material.validate().map_err(|r| invalid(&seg_path, r))?;
+        config.forces.validate().map_err(|r| invalid(&seg_path, r))?;
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
         let surface = extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });
         let visible = visible_surface(&surface, &config.visibility).map_err(|r| invalid(&seg_path, r))?;
-        if visible.visible_area_mm2 <= 0.0 {
-            return Err(invalid(&seg_path, "the camera sees none of the organ surface"));
+        let eye = nalgebra::Point3::from(Vector3::from(visible.camera.position_mm));
+        if mask.world_sampler().inside(&eye) {
+            return Err(invalid(&seg_path, format!("the camera at {:?} mm is inside the organ", visible.camera.position_mm)));
+        }
+        if visible.fraction() < MIN_VISIBLE_FRACTION {
+            return Err(invalid(
+                &seg_path,
+                format!(
+                    "the camera at {:?} mm looking along {:?} sees {:.1} % of the organ surface (at least {:.0} % needed)",
+                    visible.camera.position_mm,
+                    visible.camera.direction,
+                    visible.fraction() * 100.0,
+                    MIN_VISIBLE_FRACTION * 100.0
+                ),
+            ));
         }
         let mut is_visible = vec![false; grid.node_count()];
         for (t, tri) in surface.triangles.iter().enumerate() {
@@ -164,6 +192,9 @@ impl DatasetContext {
         bc.fix_region(&grid, &config.fixed, label_mask.as_ref()).map_err(|r| invalid(&seg_path, r))?;
         if bc.fixed_count() == 0 {
             return Err(invalid(&seg_path, format!("the fixed region {:?} holds no grid node", config.fixed)));
+        }
+        if bc.fixed_count() == grid.node_count() {
+            return Err(invalid(&seg_path, format!("the fixed region {:?} holds every grid node: nothing can move", config.fixed)));
         }
         let mut grid_arrays = grid.to_npz_arrays();
         let [x, y, z] = grid.padded_shape();
@@ -203,12 +234,38 @@ impl DatasetContext {
         fnv_hex(&self.grid_npz)
     }
 
-    /// Probes and forces of sample `index`: a function of (seed, index) only.
-    pub fn sample_forces(&self, config: &DatasetConfig, index: usize) -> Vec<PointForce> {
+    /// Probes and force pattern of sample `index`, and its target mean displacement (mm):
+    /// a function of (seed, index) only.
+    pub fn sample_forces(&self, config: &DatasetConfig, index: usize) -> (Vec<PointForce>, f64) {
         let mut rng = SplitMix64(config.seed ^ (index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
         rng.next_u64();
         let pts = sample_points(&self.surface, &self.visible.visible, config.forces.probes, &mut rng);
-        loads::random_forces(&pts, loads::organ_size_mm(&self.grid), &config.material, &config.forces, &mut rng)
+        let forces = loads::random_forces(&pts, loads::organ_size_mm(&self.grid), &config.material, &config.forces, &mut rng);
+        (forces, config.forces.sample_target_mm(&mut rng))
+    }
+
+    /// The forces of sample `index` as they are solved: with `mean-displacement` calibration,
+    /// the pattern scaled so that its linear (small-strain) mean nodal displacement is the
+    /// sample's target times `load_scale` (one solve with the cached rest factor). Returns the
+    /// forces and the target (mm; for `energy-scale`, the configured value).
+    pub fn calibrated_forces(
+        &self,
+        solver: &mut FeSolver,
+        config: &DatasetConfig,
+        index: usize,
+        load_scale: f64,
+    ) -> Result<(Vec<PointForce>, f64), String> {
+        let (mut forces, target) = self.sample_forces(config, index);
+        if config.forces.calibration == LoadCalibration::EnergyScale {
+            let _ = loads::scale_forces(&mut forces, 1.0, load_scale);
+            return Ok((forces, config.forces.target_displacement_mm * load_scale));
+        }
+        let mut bc = BoundaryConditions::new(self.grid.node_count());
+        bc.fixed = self.fixed.clone();
+        loads::apply_forces(&self.grid, &mut bc, &forces)?;
+        let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+        loads::scale_forces(&mut forces, lin.mean_displacement_mm(), target * load_scale)?;
+        Ok((forces, target * load_scale))
     }
 }
 
@@ -225,6 +282,8 @@ pub enum Rejection {
 pub struct SampleResult {
     pub index: usize,
     pub forces: Vec<PointForce>,
+    /// The mean nodal displacement the forces were calibrated for (mm).
+    pub target_mm: f64,
     pub displacement_mm: Option<Vec<Vector3<f64>>>,
     pub rejection: Option<(Rejection, String)>,
     pub newton_iterations: usize,
@@ -243,40 +302,143 @@ impl SampleResult {
     }
 }
 
-/// Solve one sample with a solver built for the context's fixed nodes.
+/// A sample's forces as solved, its target, and the outcome.
+#[derive(Clone, Debug)]
+pub struct SolvedLoad {
+    pub forces: Vec<PointForce>,
+    pub target_mm: f64,
+    /// The factor applied to the linearly calibrated forces (1 for `energy-scale`).
+    pub load_factor: f64,
+    pub solution: Result<crate::fem::solver::Solution, (Rejection, String)>,
+}
+
+impl DatasetContext {
+    /// Solve the load of sample `index` (scaled by `load_scale`) on the SVK model. With
+    /// `mean-displacement` calibration the forces are first scaled so that the linear mean
+    /// nodal displacement is the target, then the load factor that gives the target on the
+    /// hyperelastic model (within `CALIBRATION_TOLERANCE`) is found by continuation from
+    /// `first_lambda`: the two responses differ (SVK softens under the probes' compression,
+    /// by a factor 1.1 on a real liver and up to 3 on the phantom).
+    pub fn solve_sample(
+        &self,
+        solver: &mut FeSolver,
+        config: &DatasetConfig,
+        index: usize,
+        load_scale: f64,
+        first_lambda: f64,
+        cancel: &Cancel,
+    ) -> SolvedLoad {
+        let classify = |e: FemError| match e {
+            FemError::NotConverged { reason, .. } if reason.contains("invert") => (Rejection::Inverted, reason),
+            FemError::NotConverged { reason, .. } => (Rejection::NotConverged, reason),
+            other => (Rejection::Failed, other.to_string()),
+        };
+        let (mut forces, target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
+            Ok(x) => x,
+            Err(e) => {
+                let (forces, _) = self.sample_forces(config, index);
+                let target_mm = config.forces.target_displacement_mm * load_scale;
+                let solution = Err((Rejection::Failed, format!("load calibration: {e}")));
+                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+            }
+        };
+        let mut bc = BoundaryConditions::new(self.grid.node_count());
+        bc.fixed = self.fixed.clone();
+        if let Err(e) = loads::apply_forces(&self.grid, &mut bc, &forces) {
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
+        }
+        if config.forces.calibration == LoadCalibration::EnergyScale {
+            let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+        }
+        match solver.solve_to_mean_displacement(&bc, target_mm, CALIBRATION_TOLERANCE, first_lambda, cancel) {
+            Ok((sol, lambda)) => {
+                let _ = loads::scale_forces(&mut forces, 1.0, lambda);
+                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(sol) }
+            }
+            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)) },
+        }
+    }
+
+    /// `solve_sample` with the first load factor from the collapse scale `softening_mm`.
+    pub fn solve_sample_softening(
+        &self,
+        solver: &mut FeSolver,
+        config: &DatasetConfig,
+        index: usize,
+        load_scale: f64,
+        softening_mm: f64,
+        cancel: &Cancel,
+    ) -> SolvedLoad {
+        let target = self.sample_forces(config, index).1 * load_scale;
+        self.solve_sample(solver, config, index, load_scale, first_load_factor(target, softening_mm), cancel)
+    }
+
+    /// How much softer than linear the organ responds at the dataset's target: the collapse
+    /// scale D (mm) of `fem::solver::softening_factor`, the median over three reference
+    /// patterns (not samples of the dataset). Each sample's first load factor is then
+    /// 1 / (1 + target / D), so that most land within the tolerance at the first solve.
+    /// Infinite for `energy-scale` or a response no softer than linear.
+    pub fn reference_softening_mm(&self, config: &DatasetConfig, cancel: &Cancel) -> Result<f64, DatasetError> {
+        if config.forces.calibration == LoadCalibration::EnergyScale {
+            return Ok(f64::INFINITY);
+        }
+        let settings = SolverSettings { max_total_iterations: Some(80), max_halvings: 8, ..config.solver.clone() };
+        let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings).map_err(|e| invalid(Path::new("."), e.to_string()))?;
+        let mut reference = config.clone();
+        reference.forces.target_spread = 0.0;
+        let mut scales = Vec::new();
+        for k in 0..3 {
+            let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
+            if cancel.is_cancelled() {
+                return Err(DatasetError::Cancelled);
+            }
+            if let Ok(sol) = &r.solution {
+                scales.push(crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, sol.mean_displacement_mm()));
+            }
+        }
+        scales.sort_by(f64::total_cmp);
+        // No reference converged: assume strong softening (the continuation corrects it).
+        Ok(scales.get(scales.len() / 2).copied().unwrap_or(config.forces.target_displacement_mm))
+    }
+}
+
+/// The first load factor for a target under a collapse scale D (see `reference_softening_mm`).
+pub fn first_load_factor(target_mm: f64, softening_mm: f64) -> f64 {
+    if softening_mm.is_finite() && softening_mm > 0.0 { 1.0 / (1.0 + target_mm / softening_mm) } else { 1.0 }
+}
+
+/// Sample indices of the reference patterns (far beyond any dataset's samples).
+const REFERENCE_INDEX: usize = 1 << 40;
+
+/// Solve one sample with a solver built for the context's fixed nodes; `softening_mm` from
+/// `DatasetContext::reference_softening_mm`.
 pub fn generate_sample(
     ctx: &DatasetContext,
     solver: &mut FeSolver,
     config: &DatasetConfig,
     index: usize,
+    softening_mm: f64,
     cancel: &Cancel,
 ) -> Result<SampleResult, DatasetError> {
-    let forces = ctx.sample_forces(config, index);
-    let mut bc = BoundaryConditions::new(ctx.grid.node_count());
-    bc.fixed = ctx.fixed.clone();
     let t = Instant::now();
-    let applied = loads::apply_forces(&ctx.grid, &mut bc, &forces);
-    let out = applied.map_err(|e| (Rejection::Failed, e)).and_then(|_| {
-        solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(|e| match e {
-            FemError::NotConverged { reason, .. } if reason.contains("invert") => (Rejection::Inverted, reason),
-            FemError::NotConverged { reason, .. } => (Rejection::NotConverged, reason),
-            other => (Rejection::Failed, other.to_string()),
-        })
-    });
+    let r = ctx.solve_sample_softening(solver, config, index, 1.0, softening_mm, cancel);
     if cancel.is_cancelled() {
         return Err(DatasetError::Cancelled);
     }
     let solve_ms = t.elapsed().as_secs_f64() * 1e3;
-    Ok(match out {
+    let (forces, target_mm) = (r.forces, r.target_mm);
+    Ok(match r.solution {
         Ok(sol) => SampleResult {
             index,
             forces,
+            target_mm,
             newton_iterations: sol.iterations,
             displacement_mm: Some(sol.displacement_mm),
             rejection: None,
             solve_ms,
         },
-        Err(r) => SampleResult { index, forces, displacement_mm: None, rejection: Some(r), newton_iterations: 0, solve_ms },
+        Err(r) => SampleResult { index, forces, target_mm, displacement_mm: None, rejection: Some(r), newton_iterations: 0, solve_ms },
     })
 }
 
@@ -289,6 +451,9 @@ pub struct SampleRecord {
     pub reason: Option<String>,
     pub max_displacement_mm: f64,
     pub mean_displacement_mm: f64,
+    /// The mean displacement the sample's forces were calibrated for (mm).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_displacement_mm: Option<f64>,
     pub newton_iterations: usize,
     /// Wall time of the solve (absent for shards adopted from an interrupted run).
     pub solve_ms: Option<f64>,
@@ -393,6 +558,7 @@ fn encode_shard(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
         ),
         ("max_displacement_mm", Array::f32(vec![n], stats.iter().map(|s| s.0 as f32).collect())),
         ("mean_displacement_mm", Array::f32(vec![n], stats.iter().map(|s| s.1 as f32).collect())),
+        ("target_displacement_mm", Array::f32(vec![n], results.iter().map(|r| r.target_mm as f32).collect())),
         ("newton_iterations", Array::new(vec![n], ArrayData::I32(results.iter().map(|r| r.newton_iterations as i32).collect()))),
         ("index", Array::i64(vec![a], accepted.iter().map(|r| r.index as i64).collect())),
         ("u_s", Array::f32(vec![a, 3, x, y, z], u_s)),
@@ -422,6 +588,7 @@ pub fn read_shard_records(
     let (_, mx) = npz.f64_with_shape("max_displacement_mm", &[Some(n)])?;
     let (_, mean) = npz.f64_with_shape("mean_displacement_mm", &[Some(n)])?;
     let (_, it) = npz.f64_with_shape("newton_iterations", &[Some(n)])?;
+    let target = npz.f64_with_shape("target_displacement_mm", &[Some(n)]).ok().map(|t| t.1);
     let a = acc.iter().filter(|&&v| v == 1.0).count();
     let [x, y, z] = padded;
     npz.f64_with_shape("u_v", &[Some(a), Some(3), Some(x), Some(y), Some(z)])?;
@@ -440,6 +607,7 @@ pub fn read_shard_records(
             reason: None,
             max_displacement_mm: mx[k],
             mean_displacement_mm: mean[k],
+            target_displacement_mm: target.as_ref().map(|t| t[k]),
             newton_iterations: it[k] as usize,
             solve_ms: None,
             shard: file.clone(),
@@ -583,6 +751,7 @@ pub fn run_generate(
     manifest.write(out)?;
 
     let total: usize = todo.iter().map(|&s| config.shard_range(s).len()).sum();
+
     let queue: Vec<usize> = todo.iter().flat_map(|&s| config.shard_range(s)).collect();
     let next = std::sync::atomic::AtomicUsize::new(0);
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -593,6 +762,20 @@ pub fn run_generate(
     // Parallel over samples; each solve single-threaded so results do not depend on scheduling.
     let previous_par = faer::get_global_parallelism();
     faer::set_global_parallelism(faer::Par::Seq);
+    // Single-threaded like the samples, so that every machine finds the same factor.
+    let softening = if todo.is_empty() {
+        Ok(f64::INFINITY)
+    } else {
+        progress.report(0, total as u64, "calibrating the load");
+        ctx.reference_softening_mm(config, cancel)
+    };
+    let softening = match softening {
+        Ok(l) => l,
+        Err(e) => {
+            faer::set_global_parallelism(previous_par);
+            return Err(e);
+        }
+    };
     let threads = rayon::current_num_threads().max(1).min(queue.len().max(1));
     std::thread::scope(|scope| {
         for _ in 0..threads {
@@ -611,7 +794,7 @@ pub fn run_generate(
                         break;
                     }
                     let index = queue[q];
-                    let result = match generate_sample(&ctx, &mut solver, config, index, cancel) {
+                    let result = match generate_sample(&ctx, &mut solver, config, index, softening, cancel) {
                         Ok(r) => r,
                         Err(e) => {
                             if !matches!(e, DatasetError::Cancelled) {
@@ -709,6 +892,7 @@ fn write_shard(
             reason: r.rejection.as_ref().map(|x| x.1.clone()),
             max_displacement_mm: max,
             mean_displacement_mm: mean,
+            target_displacement_mm: Some(r.target_mm),
             newton_iterations: r.newton_iterations,
             solve_ms: Some(r.solve_ms),
             shard: file.clone(),
@@ -845,6 +1029,11 @@ pub struct DatasetStats {
     pub complete: bool,
     pub max_displacement_mm: Option<Distribution>,
     pub mean_displacement_mm: Option<Distribution>,
+    /// The configured target of the mean nodal displacement (mm) and how it was used.
+    pub target_displacement_mm: f64,
+    pub calibration: LoadCalibration,
+    /// Per accepted sample: achieved mean displacement / its calibrated target.
+    pub achieved_over_target: Option<Distribution>,
     pub newton_iterations: Option<Distribution>,
     pub solve_ms: Option<Distribution>,
     /// (index, why) of samples far from the rest.
@@ -881,6 +1070,11 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
         complete: m.complete,
         max_displacement_mm: max_d,
         mean_displacement_mm: Distribution::of(acc.iter().map(|s| s.mean_displacement_mm).collect()),
+        target_displacement_mm: m.config.forces.target_displacement_mm,
+        calibration: m.config.forces.calibration,
+        achieved_over_target: Distribution::of(
+            acc.iter().filter_map(|s| s.target_displacement_mm.filter(|t| *t > 0.0).map(|t| s.mean_displacement_mm / t)).collect(),
+        ),
         newton_iterations: its,
         solve_ms: Distribution::of(acc.iter().filter_map(|s| s.solve_ms).collect()),
         outliers,

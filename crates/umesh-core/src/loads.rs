@@ -4,24 +4,106 @@ use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::mesh::TriMesh;
 use crate::phantom::SplitMix64;
+use crate::segmentation::Segmentation;
 use nalgebra::Vector3;
 
 /// How random forces are drawn. Amplitudes are uniform in [0, 2 mean]; directions are the
 /// inward normal tilted by a random vector of length `direction_spread` (0: pure pressing,
-/// large: nearly isotropic). The mean amplitude is set so that the whole load would
-/// displace a cube of the organ's size by about `target_displacement_mm` in small strain:
-/// total force ~ E * L * target (N), shared between the probes.
+/// large: nearly isotropic).
+///
+/// The scale depends on `calibration`:
+/// - `mean-displacement` (the default): each sample's forces are scaled after one linear
+///   solve so that the small-strain mean nodal displacement equals the sample's target,
+///   `target_displacement_mm` times a factor uniform in [1 - spread, 1 + spread]. The SVK
+///   solve then lands near it on any organ (the achieved value is what the manifest records).
+/// - `energy-scale` (datasets made before calibration existed): the whole load is
+///   E * L * target (N) with L the cube root of the organ volume, shared between the probes;
+///   what it displaces depends on the organ's shape and fixed region.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ForceSettings {
     pub probes: usize,
     pub target_displacement_mm: f64,
     pub direction_spread: f64,
+    #[serde(default = "LoadCalibration::legacy")]
+    pub calibration: LoadCalibration,
+    /// Relative half-width of the uniform spread of each sample's target (0.5: 0.5-1.5 x).
+    #[serde(default)]
+    pub target_spread: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LoadCalibration {
+    MeanDisplacement,
+    EnergyScale,
+}
+
+impl LoadCalibration {
+    fn legacy() -> Self {
+        Self::EnergyScale
+    }
 }
 
 impl Default for ForceSettings {
     fn default() -> Self {
-        Self { probes: 100, target_displacement_mm: 3.0, direction_spread: 0.8 }
+        Self {
+            probes: 100,
+            target_displacement_mm: 10.0,
+            direction_spread: 0.8,
+            calibration: LoadCalibration::MeanDisplacement,
+            target_spread: 0.5,
+        }
     }
+}
+
+impl ForceSettings {
+    /// The uncalibrated scale F = E L D / N (one-off solves and the FE benchmark).
+    pub fn energy_scale(probes: usize, target_displacement_mm: f64) -> Self {
+        Self {
+            probes,
+            target_displacement_mm,
+            calibration: LoadCalibration::EnergyScale,
+            target_spread: 0.0,
+            ..Self::default()
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.probes == 0 || self.probes > 100_000 {
+            return Err(format!("{} probes: between 1 and 100000", self.probes));
+        }
+        if !(self.target_displacement_mm > 0.0 && self.target_displacement_mm < 1e4) {
+            return Err(format!("target displacement {} mm: must be positive and below 10 m", self.target_displacement_mm));
+        }
+        if !(self.direction_spread >= 0.0 && self.direction_spread.is_finite()) {
+            return Err(format!("direction spread {}: must be finite and >= 0", self.direction_spread));
+        }
+        if !(0.0..1.0).contains(&self.target_spread) {
+            return Err(format!("target spread {}: must lie in [0, 1)", self.target_spread));
+        }
+        Ok(())
+    }
+
+    /// The target mean displacement of one sample: the configured target times a factor
+    /// uniform in [1 - spread, 1 + spread], drawn from `rng`.
+    pub fn sample_target_mm(&self, rng: &mut SplitMix64) -> f64 {
+        self.target_displacement_mm * (1.0 + self.target_spread * (2.0 * rng.next_f64() - 1.0))
+    }
+}
+
+/// Scale forces in place so that their small-strain mean nodal displacement, `linear_mean_mm`
+/// for the forces as given, becomes `target_mm`. Errors when the pattern moves nothing.
+pub fn scale_forces(forces: &mut [PointForce], linear_mean_mm: f64, target_mm: f64) -> Result<f64, String> {
+    if !(linear_mean_mm > 1e-12) || !linear_mean_mm.is_finite() {
+        return Err(format!("the force pattern displaces the organ by {linear_mean_mm:e} mm: nothing to calibrate"));
+    }
+    let s = target_mm / linear_mean_mm;
+    for f in forces {
+        for c in &mut f.force_n {
+            *c *= s;
+        }
+    }
+    Ok(s)
 }
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -62,15 +144,79 @@ pub fn organ_size_mm(grid: &ImmersedGrid) -> f64 {
     grid.volume_mm3().cbrt()
 }
 
-/// The default fixed region: nodes within `distance_mm` of a vessel label when there is one,
-/// else the posterior tenth of the organ (smallest y in RAS).
+/// Label names (lower case, `_` for spaces) of the veins that hold the liver in place: the
+/// inferior vena cava and the hepatic veins (TotalSegmentator, 3D Slicer and the phantom).
+const ANCHOR_NAMES: [&str; 5] = ["inferior_vena_cava", "vena_cava", "ivc", "hepatic_vein", "hepatic_veins"];
+/// TotalSegmentator's `total` task: 5 = liver, 63 = inferior vena cava (files without names).
+const TOTALSEGMENTATOR_LIVER: i64 = 5;
+const TOTALSEGMENTATOR_IVC: i64 = 63;
+/// Depth of the fallback region, as a fraction of the organ's antero-posterior extent.
+pub const POSTERIOR_FRACTION: f64 = 0.2;
+
+/// The fixed region chosen for an organ and why, as printed and stored.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FixedChoice {
+    pub region: FixedRegion,
+    pub description: String,
+}
+
+/// The label of the vein that anchors the organ, if the segmentation has one: by name
+/// (inferior vena cava, hepatic veins), else TotalSegmentator's number 63 next to its liver 5.
+pub fn anchor_label(seg: &Segmentation) -> Option<(i64, String)> {
+    let counts = seg.volume.label_counts();
+    let norm = |s: &str| s.trim().to_lowercase().replace([' ', '-'], "_");
+    let mut named: Vec<(usize, i64, String)> = seg
+        .volume
+        .label_names
+        .iter()
+        .filter(|(l, n)| counts.contains_key(*l) && !seg.organ_labels.contains(l) && ANCHOR_NAMES.iter().any(|a| norm(n) == *a || norm(n).ends_with(&format!("_{a}"))))
+        .map(|(l, n)| (ANCHOR_NAMES.iter().position(|a| norm(n).ends_with(a)).unwrap_or(9), *l, n.clone()))
+        .collect();
+    named.sort();
+    if let Some((_, l, n)) = named.into_iter().next() {
+        return Some((l, n));
+    }
+    (seg.volume.label_names.is_empty() && seg.organ_labels.contains(&TOTALSEGMENTATOR_LIVER) && counts.contains_key(&TOTALSEGMENTATOR_IVC))
+        .then(|| (TOTALSEGMENTATOR_IVC, "inferior vena cava (TotalSegmentator label 63)".to_string()))
+}
+
+/// The default fixed region: nodes within `distance_mm` of the label given, else of the
+/// organ's anchoring vein (`anchor_label`), else the posterior fifth of the organ (smallest y
+/// in RAS; deep enough that the organ cannot swing about a thin strip).
+pub fn default_fixed(seg: &Segmentation, fix_label: Option<i64>, distance_mm: f64) -> FixedChoice {
+    if let Some(label) = fix_label {
+        return FixedChoice {
+            region: FixedRegion::Label { label, distance_mm },
+            description: format!("nodes within {distance_mm} mm of {} (label {label}, chosen)", seg.label_name(label)),
+        };
+    }
+    if let Some((label, name)) = anchor_label(seg) {
+        return FixedChoice {
+            region: FixedRegion::Label { label, distance_mm },
+            description: format!("nodes within {distance_mm} mm of the {name} (label {label}, found by name)"),
+        };
+    }
+    let (lo, hi) = seg.organ_mask().world_bounds().unwrap_or_default();
+    let depth = POSTERIOR_FRACTION * (hi.y - lo.y);
+    FixedChoice {
+        region: FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: depth },
+        description: format!(
+            "the posterior {:.0} % of the organ (y < {:.1} mm, {depth:.1} mm deep): no vena cava or hepatic vein label found",
+            POSTERIOR_FRACTION * 100.0,
+            lo.y + depth
+        ),
+    }
+}
+
+/// The default fixed region of a grid alone (no segmentation): the posterior fifth, or the
+/// nodes near a vessel label.
 pub fn default_fixed_region(grid: &ImmersedGrid, fix_label: Option<i64>, distance_mm: f64) -> FixedRegion {
     if let Some(label) = fix_label {
         return FixedRegion::Label { label, distance_mm };
     }
     let ys: Vec<f64> = (0..grid.node_count()).map(|n| grid.node_position(n).y).collect();
     let (lo, hi) = ys.iter().fold((f64::MAX, f64::MIN), |(a, b), &y| (a.min(y), b.max(y)));
-    FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo, thickness_mm: 0.1 * (hi - lo) }
+    FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo, thickness_mm: POSTERIOR_FRACTION * (hi - lo) }
 }
 
 /// Apply point forces to boundary conditions.

@@ -76,6 +76,31 @@ pub fn load_nifti(
     Ok(seg)
 }
 
+/// Load a NIfTI label volume; labels not chosen are taken by name (`labels_by_name`), else
+/// the organ is label 1 with no structures.
+pub fn load_nifti_labels(
+    path: &Path,
+    organ_labels: &[i64],
+    structure_labels: &[i64],
+    options: &ReadOptions,
+) -> Result<Segmentation, SegmentationError> {
+    let volume = read_volume(path, options)?;
+    let by_name = labels_by_name(&volume);
+    let organ = if !organ_labels.is_empty() {
+        organ_labels.to_vec()
+    } else {
+        by_name.as_ref().map(|b| b.0.clone()).unwrap_or_else(|| vec![1])
+    };
+    let structures = if !structure_labels.is_empty() || !organ_labels.is_empty() {
+        structure_labels.to_vec()
+    } else {
+        by_name.map(|b| b.1).unwrap_or_default()
+    };
+    let seg = Segmentation { source: path.into(), volume, organ_labels: organ, structure_labels: structures };
+    seg.validate()?;
+    Ok(seg)
+}
+
 /// The bundled phantom with its default labels.
 pub fn bundled_phantom(bytes: &[u8]) -> Result<Segmentation, SegmentationError> {
     let path = PathBuf::from(BUNDLED_PHANTOM_NAME);
@@ -148,4 +173,190 @@ fn file_stem(p: &Path) -> String {
 /// Is this path a mesh file (by extension)?
 pub fn is_mesh_path(p: &Path) -> bool {
     matches!(p.extension().map(|e| e.to_string_lossy().to_lowercase()).as_deref(), Some("obj" | "ply" | "stl"))
+}
+
+/// Names (lower case) that mark a label as the organ, as a vein that anchors it, or as an
+/// internal structure drawn in the overlay: TotalSegmentator's and 3D Slicer's usual names.
+pub fn name_role(name: &str) -> Option<Role> {
+    let n = name.trim().to_lowercase().replace([' ', '-'], "_");
+    let n = n.strip_suffix(".nii.gz").or_else(|| n.strip_suffix(".nii")).unwrap_or(&n).to_string();
+    if n == "liver" {
+        return Some(Role::Organ);
+    }
+    if ["inferior_vena_cava", "vena_cava", "ivc", "hepatic_vein", "hepatic_veins"].iter().any(|a| n == *a) {
+        return Some(Role::Anchor);
+    }
+    let structure = ["portal_vein", "hepatic_vessel", "liver_vessel", "tumor", "tumour", "lesion", "hepatic_artery"];
+    structure.iter().any(|s| n.contains(s)).then_some(Role::Structure)
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    Organ,
+    Anchor,
+    Structure,
+}
+
+/// Organ and structure labels of a named multi-label volume when none are chosen: the label
+/// named "liver", and the vessels and tumours named as such. None without a "liver" label.
+pub fn labels_by_name(volume: &Volume) -> Option<(Vec<i64>, Vec<i64>)> {
+    let counts = volume.label_counts();
+    let present = |l: &i64| counts.contains_key(l);
+    let organ: Vec<i64> = volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Organ)).map(|x| *x.0).collect();
+    if organ.is_empty() {
+        return None;
+    }
+    let structures =
+        volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Structure)).map(|x| *x.0).collect();
+    Some((organ, structures))
+}
+
+/// One mask file of a multi-file segmentation and what it is.
+#[derive(Clone, Debug)]
+pub struct MaskFile {
+    pub name: String,
+    pub path: PathBuf,
+    pub role: Role,
+}
+
+/// What assembling per-structure masks did, for the user to read.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct AssemblyNotes {
+    /// Files whose lattice differs from the organ's (resampled, nearest voxel).
+    pub resampled: Vec<String>,
+    /// Files in a folder that were not used (not a known organ, vein or structure name).
+    pub ignored: Vec<String>,
+}
+
+/// The mask files of a folder of per-structure NIfTI masks (TotalSegmentator's default
+/// output): `liver.nii.gz` is the organ; the vena cava and hepatic veins anchor it; portal
+/// vein, hepatic vessels and tumours are structures. Other files are listed as ignored.
+pub fn mask_folder(dir: &Path) -> Result<(Vec<MaskFile>, Vec<String>), SegmentationError> {
+    let bad = |reason: String| SegmentationError::Invalid { path: dir.into(), reason };
+    let entries = std::fs::read_dir(dir).map_err(|e| bad(format!("cannot list the folder: {e}")))?;
+    let mut files = Vec::new();
+    let mut ignored = Vec::new();
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(stem) = name.strip_suffix(".nii.gz").or_else(|| name.strip_suffix(".nii")) else { continue };
+        match name_role(stem) {
+            Some(role) => files.push(MaskFile { name: stem.to_string(), path: e.path(), role }),
+            None => ignored.push(name),
+        }
+    }
+    files.sort_by(|a, b| a.name.cmp(&b.name));
+    ignored.sort();
+    if !files.iter().any(|f| f.role == Role::Organ) {
+        return Err(bad("no liver.nii.gz (or liver.nii) mask in the folder".into()));
+    }
+    Ok((files, ignored))
+}
+
+/// Per-structure binary masks (any non-zero voxel is inside) assembled into one label volume
+/// on the organ mask's lattice: organ = 1, then the other files 2, 3, ... in the order given,
+/// named after them. Masks on other lattices are resampled (nearest voxel) and reported; a
+/// mask with voxels but none on the organ's lattice is an error. Structures enclosed by the
+/// organ (most voxels around them are organ) become part of it, as tumours and vessels in the
+/// phantom; anchors and other structures never take voxels from the organ.
+pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segmentation, AssemblyNotes), SegmentationError> {
+    let organ_file = files
+        .iter()
+        .find(|f| f.role == Role::Organ)
+        .ok_or_else(|| SegmentationError::Invalid { path: PathBuf::from("."), reason: "no organ mask given".into() })?;
+    let organ = read_volume(&organ_file.path, options)?;
+    let mut volume = Volume::new(organ.dims, organ.world_from_voxel);
+    let mut organ_count = 0;
+    for (v, &o) in volume.data.iter_mut().zip(&organ.data) {
+        if o.round() != 0.0 {
+            *v = 1.0;
+            organ_count += 1;
+        }
+    }
+    if organ_count == 0 {
+        return Err(SegmentationError::EmptyMask { path: organ_file.path.clone() });
+    }
+    volume.label_names.insert(1, organ_file.name.clone());
+    let mut notes = AssemblyNotes::default();
+    let mut organ_labels = vec![1];
+    let mut structure_labels = Vec::new();
+    let mut next = 2i64;
+    let to_index = volume.world_from_voxel;
+    for f in files.iter().filter(|f| f.role != Role::Organ) {
+        let m = read_volume(&f.path, options)?;
+        let mask = Mask { dims: m.dims, data: m.data.iter().map(|v| v.round() != 0.0).collect(), world_from_voxel: m.world_from_voxel };
+        if mask.count() == 0 {
+            return Err(SegmentationError::EmptyMask { path: f.path.clone() });
+        }
+        let same = m.dims == volume.dims && (m.world_from_voxel - volume.world_from_voxel).abs().max() < 1e-4;
+        let label = next;
+        next += 1;
+        let sampler = mask.world_sampler();
+        let [nx, ny, nz] = volume.dims;
+        let hits: Vec<bool> = (0..volume.data.len())
+            .map(|idx| {
+                if same {
+                    mask.data[idx]
+                } else {
+                    let p = to_index.transform_point(&nalgebra::Point3::new(
+                        (idx % nx) as f64,
+                        ((idx / nx) % ny) as f64,
+                        (idx / (nx * ny)) as f64,
+                    ));
+                    sampler.inside(&p)
+                }
+            })
+            .collect();
+        let count = hits.iter().filter(|&&h| h).count();
+        // Enclosed by the organ: most of the voxels bordering the structure are organ voxels
+        // (a tumour or an intrahepatic vessel), not background (the extrahepatic portal vein).
+        let (mut border, mut border_organ) = (0usize, 0usize);
+        for (idx, &h) in hits.iter().enumerate() {
+            if !h {
+                continue;
+            }
+            let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
+            for (di, dj, dk) in [(-1i64, 0i64, 0i64), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)] {
+                let (a, b, c) = (i as i64 + di, j as i64 + dj, k as i64 + dk);
+                if a < 0 || b < 0 || c < 0 || a >= nx as i64 || b >= ny as i64 || c >= nz as i64 {
+                    border += 1;
+                    continue;
+                }
+                let n = a as usize + nx * (b as usize + ny * c as usize);
+                if !hits[n] {
+                    border += 1;
+                    border_organ += (volume.data[n] != 0.0 && volume.data[n] != label as f32 && organ_labels.contains(&(volume.data[n] as i64))) as usize;
+                }
+            }
+        }
+        let enclosed = f.role == Role::Structure && border_organ * 2 > border;
+        let mut written = 0usize;
+        for (idx, &h) in hits.iter().enumerate() {
+            // Only an enclosed structure takes voxels from the organ (and becomes part of it);
+            // an anchor vein or an extrahepatic structure never carves the organ.
+            if h && (enclosed || volume.data[idx] != 1.0) {
+                volume.data[idx] = label as f32;
+                written += 1;
+            }
+        }
+        if count == 0 {
+            return Err(SegmentationError::Invalid {
+                path: f.path.clone(),
+                reason: format!("its {} voxels do not overlap the lattice of {}", mask.count(), organ_file.path.display()),
+            });
+        }
+        if !same {
+            notes.resampled.push(format!("{} (resampled onto the organ's lattice, nearest voxel)", f.path.display()));
+        }
+        volume.label_names.insert(label, f.name.clone());
+        if f.role == Role::Structure {
+            structure_labels.push(label);
+            if enclosed {
+                organ_labels.push(label);
+            }
+        }
+        let _ = written;
+    }
+    let seg = Segmentation { source: organ_file.path.clone(), volume, organ_labels, structure_labels };
+    seg.validate()?;
+    Ok((seg, notes))
 }

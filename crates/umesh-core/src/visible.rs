@@ -21,6 +21,41 @@ impl Camera {
         Self { position_mm: [c.x, c.y + 2.5 * size, c.z], direction: [0.0, -1.0, 0.0], fov_deg: 50.0 }
     }
 
+    /// The laparoscope views by name, from 2.5 organ sizes away: `anterior` (from +y, RAS),
+    /// `posterior`, `right` (from +x), `left`, `superior` (from +z), `inferior`, or two of them
+    /// joined by `-` for an oblique view (`anterior-inferior`). `lo`, `hi`: the organ's bounds.
+    pub fn named(view: &str, lo: &Vector3<f64>, hi: &Vector3<f64>) -> Result<Self, String> {
+        let axis = |name: &str| -> Option<Vector3<f64>> {
+            Some(match name {
+                "anterior" => Vector3::y(),
+                "posterior" => -Vector3::y(),
+                "right" => Vector3::x(),
+                "left" => -Vector3::x(),
+                "superior" => Vector3::z(),
+                "inferior" => -Vector3::z(),
+                _ => return None,
+            })
+        };
+        let mut from = Vector3::zeros();
+        for part in view.trim().to_lowercase().split('-') {
+            from += axis(part).ok_or_else(|| {
+                format!("unknown camera view {view:?}: anterior, posterior, right, left, superior, inferior, or two joined by '-'")
+            })?;
+        }
+        if from.norm() < 1e-9 {
+            return Err(format!("camera view {view:?}: opposite directions cancel"));
+        }
+        let c = (lo + hi) * 0.5;
+        let size = (hi - lo).max().max(1.0);
+        let eye = c + from.normalize() * 2.5 * size;
+        Ok(Self::look_at(&eye, &c, 50.0))
+    }
+
+    pub fn look_at(from_mm: &Vector3<f64>, to_mm: &Vector3<f64>, fov_deg: f64) -> Self {
+        let d = to_mm - from_mm;
+        Self { position_mm: (*from_mm).into(), direction: d.into(), fov_deg }
+    }
+
     /// Rotation whose rows are the camera's right, up and forward axes.
     fn frame(&self) -> Option<Matrix3<f64>> {
         let f = Vector3::from(self.direction);

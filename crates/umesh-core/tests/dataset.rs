@@ -195,3 +195,175 @@ fn corrupted_or_truncated_shards_are_detected_on_load() {
     std::fs::write(dir.join("manifest.json"), "{").unwrap();
     assert!(Dataset::open(&dir).unwrap_err().to_string().contains("manifest.json"));
 }
+
+#[test]
+fn calibrated_loads_land_within_a_quarter_of_each_samples_target() {
+    let seg = phantom();
+    let mut config = small_config(6);
+    config.grid.cell_size_mm = 10.0;
+    config.forces.probes = 40;
+    config.forces.target_displacement_mm = 8.0;
+    let dir = tmp("calibrated");
+    let r = run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert_eq!(r.accepted, 6, "{r:?}");
+    let m = umesh_core::dataset::Manifest::read(&dir).unwrap();
+    for s in &m.samples {
+        let t = s.target_displacement_mm.expect("target recorded");
+        // The spread: target x U[0.5, 1.5].
+        assert!((4.0..=12.0).contains(&t), "sample {}: target {t}", s.index);
+        let ratio = s.mean_displacement_mm / t;
+        assert!((0.75..=1.25).contains(&ratio), "sample {}: {:.2} mm for a {t:.2} mm target", s.index, s.mean_displacement_mm);
+    }
+    let st = umesh_core::dataset::run_stats(&dir).unwrap();
+    let a = st.achieved_over_target.unwrap();
+    assert!(a.min >= 0.75 && a.max <= 1.25, "{a:?}");
+    assert_eq!(st.target_displacement_mm, 8.0);
+}
+
+#[test]
+fn default_fixed_region_is_the_vena_cava_by_name_or_number_else_a_deep_posterior_slab() {
+    use umesh_core::loads::default_fixed;
+    let seg = phantom();
+    let c = default_fixed(&seg, None, 6.0);
+    assert_eq!(c.region, FixedRegion::Label { label: 2, distance_mm: 6.0 }, "{}", c.description);
+    assert!(c.description.contains("inferior_vena_cava"), "{}", c.description);
+    // TotalSegmentator numbers without names: liver 5, vena cava 63.
+    let mut ts = seg.clone();
+    ts.volume.label_names.clear();
+    for v in &mut ts.volume.data {
+        *v = match *v as i64 {
+            1 => 5.0,
+            2 => 63.0,
+            _ => *v,
+        };
+    }
+    ts.organ_labels = vec![5];
+    ts.structure_labels = vec![];
+    assert_eq!(default_fixed(&ts, None, 6.0).region, FixedRegion::Label { label: 63, distance_mm: 6.0 });
+    // No vein: the posterior fifth, deep enough to hold the organ.
+    let mut plain = ts.clone();
+    for v in &mut plain.volume.data {
+        if *v == 63.0 {
+            *v = 0.0;
+        }
+    }
+    let c = default_fixed(&plain, None, 6.0);
+    let (lo, hi) = plain.organ_mask().world_bounds().unwrap();
+    match c.region {
+        FixedRegion::Plane { normal, offset_mm, thickness_mm } => {
+            assert_eq!(normal, [0.0, 1.0, 0.0]);
+            assert!((offset_mm - lo.y).abs() < 1e-9);
+            assert!((thickness_mm - 0.2 * (hi.y - lo.y)).abs() < 1e-9, "{thickness_mm}");
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(c.description.contains("no vena cava"), "{}", c.description);
+}
+
+#[test]
+fn a_camera_inside_the_organ_or_seeing_nothing_and_an_empty_fixed_region_are_refused() {
+    use umesh_core::dataset::DatasetContext;
+    let seg = phantom();
+    let (lo, hi) = seg.organ_mask().world_bounds().unwrap();
+    let c = (lo + hi) / 2.0;
+    let mut config = small_config(2);
+    let mask = seg.organ_mask();
+    let [nx, ny, _] = mask.dims;
+    let deep = (0..mask.data.len())
+        .map(|i| ((i % nx) as i64, ((i / nx) % ny) as i64, (i / (nx * ny)) as i64))
+        .find(|&(i, j, k)| (-3..=3).all(|d| mask.get(i + d, j, k) && mask.get(i, j + d, k) && mask.get(i, j, k + d)))
+        .unwrap();
+    let eye = mask.world_from_voxel.transform_point(&nalgebra::Point3::new(deep.0 as f64, deep.1 as f64, deep.2 as f64)).coords;
+    config.visibility.camera = Some(Camera::look_at(&eye, &(eye + Vector3::y()), 50.0));
+    let e = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap_err().to_string();
+    assert!(e.contains("inside the organ"), "{e}");
+    // Looking away from the organ.
+    config.visibility.camera = Some(Camera::look_at(&(c + Vector3::new(0.0, 500.0, 0.0)), &(c + Vector3::new(0.0, 1000.0, 0.0)), 50.0));
+    let e = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap_err().to_string();
+    assert!(e.contains("sees 0.0 %") || e.contains("sees none"), "{e}");
+    let mut config = small_config(2);
+    config.fixed = FixedRegion::Box { min_mm: [1e5, 1e5, 1e5], max_mm: [1e5 + 1.0, 1e5 + 1.0, 1e5 + 1.0] };
+    let e = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap_err().to_string();
+    assert!(e.contains("holds no grid node"), "{e}");
+}
+
+#[test]
+fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file() {
+    use umesh_core::nifti_io::{ReadOptions, WriteType, write_volume};
+    use umesh_core::segmentation::{assemble_masks, mask_folder};
+    let seg = phantom();
+    let dir = tmp("masks");
+    std::fs::create_dir_all(&dir).unwrap();
+    for (&label, name) in &seg.volume.label_names {
+        let mut v = seg.volume.clone();
+        v.label_names.clear();
+        for x in &mut v.data {
+            *x = (x.round() as i64 == label) as u8 as f32;
+        }
+        write_volume(&dir.join(format!("{name}.nii.gz")), &v, WriteType::U8).unwrap();
+    }
+    // A file TotalSegmentator also writes, that is no part of the liver model.
+    let mut other = seg.volume.clone();
+    other.data.iter_mut().for_each(|x| *x = 0.0);
+    other.data[0] = 1.0;
+    write_volume(&dir.join("spleen.nii.gz"), &other, WriteType::U8).unwrap();
+    let (files, ignored) = mask_folder(&dir).unwrap();
+    assert_eq!(ignored, vec!["spleen.nii.gz".to_string()]);
+    let (folder, notes) = assemble_masks(&files, &ReadOptions::default()).unwrap();
+    assert!(notes.resampled.is_empty());
+    let settings = GridSettings::default();
+    let g1 = umesh_core::grid::run_grid(&seg, &settings, &Progress::none(), &Cancel::new()).unwrap();
+    let g2 = umesh_core::grid::run_grid(&folder, &settings, &Progress::none(), &Cancel::new()).unwrap();
+    assert_eq!((g1.stats.cells, g1.stats.nodes, g1.stats.padded_shape), (g2.stats.cells, g2.stats.nodes, g2.stats.padded_shape));
+    assert!((g1.stats.grid_volume_mm3 - g2.stats.grid_volume_mm3).abs() < 1e-6 * g1.stats.grid_volume_mm3);
+    let names = |s: &Segmentation| {
+        let mut v: Vec<String> = s.structure_labels.iter().map(|&l| s.label_name(l)).collect();
+        v.sort();
+        v
+    };
+    assert_eq!(names(&seg), names(&folder));
+    // The vena cava anchors the organ in both.
+    let a = umesh_core::loads::default_fixed(&folder, None, 6.0);
+    assert!(a.description.contains("inferior_vena_cava"), "{}", a.description);
+    for s in &folder.structure_labels {
+        assert_eq!(
+            folder.volume.mask(&[*s]).count(),
+            seg.volume.mask(&[*seg.volume.label_names.iter().find(|(_, n)| **n == folder.label_name(*s)).unwrap().0]).count()
+        );
+    }
+}
+
+#[test]
+fn masks_on_other_lattices_are_resampled_and_disjoint_ones_refused() {
+    use umesh_core::nifti_io::{ReadOptions, WriteType, write_volume};
+    use umesh_core::segmentation::{MaskFile, Role, assemble_masks};
+    let seg = phantom();
+    let dir = tmp("lattices");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut liver = seg.volume.clone();
+    liver.label_names.clear();
+    for x in &mut liver.data {
+        *x = (seg.organ_labels.contains(&(x.round() as i64))) as u8 as f32;
+    }
+    write_volume(&dir.join("liver.nii.gz"), &liver, WriteType::U8).unwrap();
+    // The portal vein on a lattice shifted by half a voxel.
+    let mut pv = seg.volume.clone();
+    pv.label_names.clear();
+    for x in &mut pv.data {
+        *x = (x.round() as i64 == umesh_core::phantom::PORTAL_VEIN) as u8 as f32;
+    }
+    let mut shifted = pv.clone();
+    shifted.world_from_voxel[(0, 3)] += 0.5 * shifted.world_from_voxel[(0, 0)];
+    write_volume(&dir.join("pv.nii.gz"), &shifted, WriteType::U8).unwrap();
+    let mut far = pv.clone();
+    far.world_from_voxel[(2, 3)] += 1e4;
+    write_volume(&dir.join("far.nii.gz"), &far, WriteType::U8).unwrap();
+    let f = |name: &str, role| MaskFile { name: name.into(), path: dir.join(format!("{name}.nii.gz")), role };
+    let (s, notes) = assemble_masks(&[f("liver", Role::Organ), f("pv", Role::Structure)], &ReadOptions::default()).unwrap();
+    assert_eq!(notes.resampled.len(), 1, "{notes:?}");
+    let n = s.volume.mask(&s.structure_labels).count() as f64;
+    let n0 = pv.data.iter().filter(|v| **v != 0.0).count() as f64;
+    assert!((n - n0).abs() < 0.5 * n0, "{n} vs {n0}");
+    let e = assemble_masks(&[f("liver", Role::Organ), f("far", Role::Structure)], &ReadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("far.nii.gz") && e.contains("do not overlap"), "{e}");
+}

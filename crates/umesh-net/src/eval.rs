@@ -5,7 +5,7 @@ use crate::inference::Predictor;
 use crate::{NetError, tre};
 use std::path::Path;
 
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct EvalReport {
     pub samples: usize,
     pub markers_per_sample: usize,
@@ -14,6 +14,9 @@ pub struct EvalReport {
     pub tre_max_mm: f64,
     pub marker_displacement_mean_mm: f64,
     pub per_sample_tre_mm: Vec<(usize, f64)>,
+    /// Every marker's error (mm), for histograms.
+    #[serde(default)]
+    pub per_marker_tre_mm: Vec<f64>,
 }
 
 pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> Result<EvalReport, NetError> {
@@ -38,7 +41,13 @@ pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> 
         all.extend(e);
         moved.extend(d);
     }
+    if val.is_empty() {
+        return Err(NetError::Invalid(format!("{}: no validation sample to evaluate (indices i with i mod 5 = 4)", dataset.display())));
+    }
     let (mean, std, max) = tre::summary(&all);
+    if !(mean.is_finite() && max.is_finite()) {
+        return Err(NetError::Invalid(format!("{}: the predictions are not finite (corrupt weights or normalisation)", model_dir.display())));
+    }
     Ok(EvalReport {
         samples: val.len(),
         markers_per_sample,
@@ -47,5 +56,6 @@ pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> 
         tre_max_mm: max,
         marker_displacement_mean_mm: tre::summary(&moved).0,
         per_sample_tre_mm: per,
+        per_marker_tre_mm: all.clone(),
     })
 }

@@ -5,6 +5,8 @@ pub mod data;
 pub mod eval;
 pub mod inference;
 pub mod model;
+pub mod patient;
+pub mod report;
 pub mod training;
 pub mod tre;
 

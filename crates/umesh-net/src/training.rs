@@ -119,7 +119,19 @@ pub fn run_train(
     let mut model = cfg.init(&ad);
     let metrics_path = out.join("metrics.jsonl");
     let mut epochs: Vec<EpochMetrics> = Vec::new();
+    let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
     if resume && out.join("last.safetensors").exists() {
+        // Resuming into a model trained on another dataset would mix both.
+        if let Ok(old) = ModelInfo::read(out) {
+            let same = manifest.as_ref().is_some_and(|m| old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config));
+            if !same || old.config != *cfg {
+                return Err(NetError::Invalid(format!(
+                    "{}: --resume: the model there was trained on another dataset or network configuration than {} (start in an empty folder)",
+                    out.display(),
+                    dataset.display()
+                )));
+            }
+        }
         load_weights(&mut model, &out.join("last.safetensors"))?;
         if let Ok(text) = std::fs::read_to_string(&metrics_path) {
             epochs = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
@@ -127,7 +139,6 @@ pub fn run_train(
     }
     let markers = tre::markers(&set.grid, settings.markers, settings.seed ^ 0x5EED);
     // The grid travels with the model: registration needs its visible nodes and surface.
-    let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
     let grid_src = dataset.join("grid.npz");
     if let Ok(bytes) = std::fs::read(&grid_src) {
         umesh_core::write_atomic(&out.join("grid.npz"), &bytes).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;

@@ -45,6 +45,15 @@ pub struct SolverSettings {
     pub reuse_factorization: bool,
     /// Relative stiffness of the fictitious part of boundary cells (finite cell method).
     pub stabilization: f64,
+    /// Give up after this many Newton iterations over all increments (a sample that keeps
+    /// cutting its load is going to invert; dataset generation rejects it early).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_total_iterations: Option<usize>,
+    /// Treat an indefinite tangent (the material collapsing under the load, which SVK does in
+    /// strong compression) as a failed increment instead of factorising it by LU: dataset
+    /// generation rejects such a load in a few iterations rather than grinding for a minute.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub reject_indefinite: bool,
 }
 
 impl Default for SolverSettings {
@@ -58,6 +67,8 @@ impl Default for SolverSettings {
             line_search: true,
             reuse_factorization: true,
             stabilization: 1e-2,
+            max_total_iterations: None,
+            reject_indefinite: false,
         }
     }
 }
@@ -585,6 +596,134 @@ impl<'g> FeSolver<'g> {
         }
     }
 
+    /// Newton on the hyperelastic material with the load scaled to the factor `lambda` at
+    /// which the mean nodal displacement is `target_mm` (within `rel_tol`), for forces scaled
+    /// so that the *linear* mean displacement at lambda = 1 is the target. A continuation in
+    /// the load factor from `first_lambda`: each probe is warm-started from the nearest
+    /// converged state below (scaled by the secant through the origin) and solved to a loose
+    /// residual; the next factor comes from a softening model fitted to the nearest probe,
+    /// m(lambda) = t lambda / (1 - t lambda / D) (D: the displacement scale at which the
+    /// material would collapse), kept inside the bracket of probes below and above the target;
+    /// the accepted probe is refined to the settings' tolerance. Returns the solution and lambda.
+    pub fn solve_to_mean_displacement(
+        &mut self,
+        bc: &BoundaryConditions,
+        target_mm: f64,
+        rel_tol: f64,
+        first_lambda: f64,
+        cancel: &Cancel,
+    ) -> Result<(Solution, f64), FemError> {
+        let n = self.grid.node_count();
+        if bc.forces_n.len() != n || bc.fixed != self.constrained_nodes || !bc.prescribed_mm.is_empty() {
+            return Err(FemError::InvalidInput("boundary conditions do not match the solver (fixed nodes only, no prescribed values)".into()));
+        }
+        if !(target_mm > 0.0 && target_mm.is_finite() && rel_tol > 0.0 && first_lambda > 0.0) {
+            return Err(FemError::InvalidInput(format!("target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}")));
+        }
+        let start = Instant::now();
+        let s = self.settings.clone();
+        let model = ElementModel::Hyperelastic(self.material.material());
+        let mean = |u: &[Vector3<f64>]| u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
+        // Converged states (lambda, mean, u), sorted by lambda; the rest state is one.
+        let mut states: Vec<(f64, f64, Vec<Vector3<f64>>)> = vec![(0.0, 0.0, vec![Vector3::zeros(); n])];
+        let mut failed_above = f64::INFINITY;
+        let mut history = Vec::new();
+        let mut timings = Timings::default();
+        let mut lambda = first_lambda;
+        let mut increments = 0;
+        let mut failures = 0;
+        loop {
+            if cancel.is_cancelled() {
+                return Err(FemError::Cancelled);
+            }
+            if let Some(budget) = s.max_total_iterations
+                && history.len() >= budget
+            {
+                let closest = states.iter().skip(1).map(|x| x.1).min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
+                return Err(FemError::NotConverged {
+                    reason: format!(
+                        "gave up after {budget} Newton iterations without reaching a mean displacement of {target_mm:.2} mm ({}; iteration budget)",
+                        closest.map(|c| format!("closest {c:.2} mm")).unwrap_or_else(|| "no load step converged".into())
+                    ),
+                    history,
+                });
+            }
+            // Warm start: the nearest converged state below, scaled to the new factor (the secant
+            // through the origin); unscaled when the scaled guess would invert an element.
+            let (lam0, base) =
+                states.iter().rev().find(|x| x.0 < lambda).map(|x| (x.0, x.2.clone())).unwrap_or((0.0, vec![Vector3::zeros(); n]));
+            let mut trial = base.clone();
+            if lam0 > 0.0 {
+                let scaled: Vec<Vector3<f64>> = base.iter().map(|u| u * (lambda / lam0)).collect();
+                if self.asm.assemble(model, &scaled, false).min_det_f > 0.0 {
+                    trial = scaled;
+                }
+            }
+            // Probing solves stop at a loose residual (the mean displacement is then already
+            // right to a fraction of a percent); the accepted one is refined to the settings'.
+            let tight = self.settings.clone();
+            self.settings.residual_tol = tight.residual_tol.max(1e-3);
+            self.settings.correction_tol = tight.correction_tol.max(1e-2);
+            let probe = self.newton(&mut trial, bc, model, lambda, increments + 1, &mut history, &mut timings, &Progress::none(), cancel);
+            self.settings = tight;
+            match probe? {
+                Ok(_) => {
+                    increments += 1;
+                    let m = mean(&trial);
+                    if (m - target_mm).abs() <= rel_tol * target_mm {
+                        let refined =
+                            self.newton(&mut trial, bc, model, lambda, increments, &mut history, &mut timings, &Progress::none(), cancel)?;
+                        let res = match refined {
+                            Ok((_, res)) => res,
+                            Err(reason) => return Err(FemError::NotConverged { reason, history }),
+                        };
+                        let iterations = history.len();
+                        timings.total_ms = ms(start);
+                        let sol = Solution { displacement_mm: trial, history, increments, iterations, timings, final_residual: res };
+                        return Ok((sol, lambda));
+                    }
+                    let k = states.partition_point(|x| x.0 < lambda);
+                    states.insert(k, (lambda, m, trial));
+                }
+                Err(reason) => {
+                    failures += 1;
+                    failed_above = failed_above.min(lambda);
+                    if failures > s.max_halvings {
+                        return Err(FemError::NotConverged {
+                            reason: format!("{reason}; the load factor failed {failures} times short of the target ({target_mm:.2} mm)"),
+                            history,
+                        });
+                    }
+                }
+            }
+            // The bracket: the converged states nearest the target from below and above.
+            let below = states.iter().filter(|x| x.1 < target_mm).max_by(|a, b| a.0.total_cmp(&b.0));
+            let above = states.iter().filter(|x| x.1 > target_mm).min_by(|a, b| a.0.total_cmp(&b.0));
+            let nearest = states.iter().filter(|x| x.0 > 0.0).min_by(|a, b| (a.1 - target_mm).abs().total_cmp(&(b.1 - target_mm).abs()));
+            let mut next = match nearest {
+                Some(&(l, m, _)) => softening_factor(target_mm, l, m),
+                None => lambda * 0.5,
+            };
+            if let (Some(a), Some(b)) = (below, above)
+                && !(next > a.0 && next < b.0)
+            {
+                next = a.0 + (target_mm - a.1) * (b.0 - a.0) / (b.1 - a.1);
+            }
+            if let (Some(a), None) = (below, above) {
+                next = next.min(2.0 * a.0.max(first_lambda));
+            }
+            // Stay below factors that failed: halfway between the last good one and the failure.
+            if next >= failed_above {
+                let lo = states.iter().filter(|x| x.0 < failed_above).map(|x| x.0).fold(0.0, f64::max);
+                next = 0.5 * (lo + failed_above);
+            }
+            if !(next > 0.0 && next.is_finite()) {
+                next = 0.5 * lambda;
+            }
+            lambda = next;
+        }
+    }
+
     fn solve_incremental(
         &mut self,
         bc: &BoundaryConditions,
@@ -608,6 +747,14 @@ impl<'g> FeSolver<'g> {
             let load = (done + step).min(1.0);
             let mut trial = u.clone();
             self.apply_prescribed(&mut trial, bc, load);
+            if let Some(budget) = s.max_total_iterations
+                && history.len() >= budget
+            {
+                return Err(FemError::NotConverged {
+                    reason: format!("gave up after {budget} Newton iterations at load factor {done:.3} (iteration budget)"),
+                    history,
+                });
+            }
             match self.newton(&mut trial, bc, model, load, increments + 1, &mut history, &mut timings, progress, cancel)? {
                 Ok((iters, res)) => {
                     u = trial;
@@ -678,6 +825,10 @@ impl<'g> FeSolver<'g> {
             }
             let at_rest = it == 1 && u.iter().all(|v| *v == Vector3::zeros());
             let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
+            if s.reject_indefinite && fac_name == "lu" {
+                timings.factorization_ms += factorization_ms;
+                return Ok(Err("the tangent stiffness is indefinite (the material collapses under this load)".into()));
+            }
             let du_norm = (0..du.nrows()).map(|i| du[(i, 0)].powi(2)).sum::<f64>().sqrt();
             if !du_norm.is_finite() {
                 return Ok(Err("the Newton correction is not finite".into()));
@@ -744,6 +895,26 @@ impl<'g> FeSolver<'g> {
         timings.assembly_ms += assembly_ms;
         Ok(Err(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations)))
     }
+}
+
+/// The load factor at which a softening response through (lambda, m), with the linear slope
+/// t per unit factor at the origin, reaches t: m(l) = t l / (1 - t l / D).
+pub fn softening_factor(target_mm: f64, lambda: f64, mean_mm: f64) -> f64 {
+    let lin = target_mm * lambda;
+    if mean_mm > lin * (1.0 + 1e-9) {
+        let d = lin / (1.0 - lin / mean_mm);
+        1.0 / (1.0 + target_mm / d)
+    } else {
+        // Stiffening (or linear): the secant through the origin.
+        lambda * target_mm / mean_mm.max(1e-12)
+    }
+}
+
+/// The collapse scale D (mm) of `softening_factor` seen at one converged point; infinite when
+/// the response there is not softer than linear.
+pub fn softening_scale_mm(target_mm: f64, lambda: f64, mean_mm: f64) -> f64 {
+    let lin = target_mm * lambda;
+    if mean_mm > lin * (1.0 + 1e-9) { lin / (1.0 - lin / mean_mm) } else { f64::INFINITY }
 }
 
 fn norm(v: &[f64]) -> f64 {

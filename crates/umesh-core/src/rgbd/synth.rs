@@ -6,7 +6,7 @@ use super::recording::{RecordingMeta, write_frame, write_trajectory_log};
 use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse};
 use crate::dataset::{DatasetConfig, DatasetContext};
 use crate::fem::BoundaryConditions;
-use crate::fem::solver::{FeSolver, SolveMethod};
+use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
 use crate::loads::{apply_forces, deform_mesh};
 use crate::phantom::SplitMix64;
 use crate::progress::{Cancel, Progress};
@@ -55,7 +55,7 @@ impl Default for SynthSettings {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SynthReport {
     pub out: PathBuf,
     pub frames: usize,
@@ -154,7 +154,15 @@ pub fn run_rgbd_synth(
     k.validate().map_err(bad)?;
     progress.report(0, settings.frames as u64, "preparing the grid");
     let ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
-    let forces = ctx.sample_forces(config, 10_000_000 + settings.seed as usize);
+    // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
+    // displacement is the dataset's target times `load_scale`).
+    let forces = {
+        let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
+        let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+        let r = ctx.solve_sample(&mut s0, config, 10_000_000 + settings.seed as usize, settings.load_scale, 0.5, cancel);
+        r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
+        r.forces
+    };
     let pose = camera_pose(&ctx.visible.camera);
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
@@ -165,7 +173,9 @@ pub fn run_rgbd_synth(
     let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;
     let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
     let grid = &reg.grid;
-    let mut solver = FeSolver::new(grid, config.material, &fixed, config.solver.clone()).map_err(|e| bad(e.to_string()))?;
+    // The truth is solved without the dataset's rejection budget: a frame must not be dropped.
+    let truth_solver = SolverSettings { max_total_iterations: None, max_halvings: 8, ..config.solver.clone() };
+    let mut solver = FeSolver::new(grid, config.material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
     let mut rng = SplitMix64(settings.seed);
     let mut truth = GroundTruth {
         world_from_camera: pose.transpose().as_slice().try_into().unwrap_or([0.0; 16]),
@@ -182,7 +192,7 @@ pub fn run_rgbd_synth(
         let ramp = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
         let mut bc = full.clone();
         for v in &mut bc.forces_n {
-            *v *= ramp * settings.load_scale;
+            *v *= ramp;
         }
         let u: Vec<Vector3<f64>> = if ramp == 0.0 {
             vec![Vector3::zeros(); grid.node_count()]

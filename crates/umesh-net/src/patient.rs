@@ -1,0 +1,426 @@
+//! One patient from segmentation to checked model: grid, dataset (the paper's protocol),
+//! training, evaluation and a synthetic-recording registration check, as one resumable job.
+//!
+//! The patient folder holds `patient.json` (inputs and their hashes, every setting, stage
+//! status and timings), `segmentation.nii.gz` (the label volume the job used, so later
+//! commands need not find the original files), `dataset/`, `model/`, `eval.json`,
+//! `check/recording/` and `check/register.json`, and `report.html`. Every stage resumes from
+//! what is on disk; a folder made from other inputs or settings is refused.
+
+use crate::inference::Predictor;
+use crate::training::{EpochMetrics, TrainSettings, run_train};
+use crate::{NetError, eval};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use umesh_core::dataset::{DatasetConfig, DatasetContext, DatasetStats, ShardSelection, fnv_hex, run_generate, run_stats};
+use umesh_core::register::RegistrationContext;
+use umesh_core::register::pipeline::{GroundTruth, RegisterSettings, Summary, run_register};
+use umesh_core::rgbd::recording::Recording;
+use umesh_core::rgbd::stream::RecordingSource;
+use umesh_core::rgbd::synth::{SynthReport, SynthSettings, run_rgbd_synth};
+use umesh_core::segmentation::Segmentation;
+use umesh_core::{Cancel, Progress};
+
+pub const FORMAT: &str = "umesh-patient";
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Everything `prepare` does, chosen before it starts (the CLI and the app build this).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PrepareSettings {
+    pub dataset: DatasetConfig,
+    /// How the fixed region was chosen, in words.
+    pub fixed_description: String,
+    pub train: TrainSettings,
+    /// Markers per validation sample for the TRE.
+    pub eval_markers: usize,
+    /// The registration check's synthetic recording.
+    pub check: SynthSettings,
+}
+
+impl PrepareSettings {
+    /// The paper's protocol with the `cpu` network: 1000 samples, 20 epochs, a 20-frame check.
+    pub fn paper(dataset: DatasetConfig, fixed_description: String) -> Self {
+        Self {
+            dataset,
+            fixed_description,
+            train: TrainSettings { epochs: 20, ..TrainSettings::default() },
+            eval_markers: 10,
+            check: SynthSettings::default(),
+        }
+    }
+}
+
+/// One input file and the hash of its bytes.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct InputFile {
+    pub path: String,
+    pub bytes: u64,
+    pub hash: String,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Stage {
+    Dataset,
+    Train,
+    Eval,
+    Recording,
+    Register,
+    Report,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 6] = [Stage::Dataset, Stage::Train, Stage::Eval, Stage::Recording, Stage::Register, Stage::Report];
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Dataset => "dataset",
+            Stage::Train => "training",
+            Stage::Eval => "evaluation",
+            Stage::Recording => "check recording",
+            Stage::Register => "registration check",
+            Stage::Report => "report",
+        }
+    }
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StageRecord {
+    pub done: bool,
+    /// Wall time spent in this stage, summed over runs (s).
+    pub seconds: f64,
+}
+
+/// `patient.json`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Patient {
+    pub format: String,
+    pub format_version: u32,
+    pub program_version: String,
+    pub inputs: Vec<InputFile>,
+    pub segmentation_hash: String,
+    pub organ_labels: Vec<String>,
+    pub structures: Vec<String>,
+    pub settings: PrepareSettings,
+    pub stages: std::collections::BTreeMap<Stage, StageRecord>,
+}
+
+impl Patient {
+    pub fn read(dir: &Path) -> Result<Self, NetError> {
+        let p = dir.join("patient.json");
+        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+        let v: Patient =
+            serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
+        if v.format != FORMAT || v.format_version != FORMAT_VERSION {
+            return Err(NetError::Invalid(format!("{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}", p.display(), v.format, v.format_version)));
+        }
+        Ok(v)
+    }
+    fn write(&self, dir: &Path) -> Result<(), NetError> {
+        let p = dir.join("patient.json");
+        let text = serde_json::to_string_pretty(self).map_err(|e| NetError::Invalid(e.to_string()))?;
+        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))
+    }
+    pub fn done(&self, s: Stage) -> bool {
+        self.stages.get(&s).is_some_and(|r| r.done)
+    }
+    /// The segmentation the job used, with its organ and structure labels.
+    pub fn segmentation(&self, dir: &Path) -> Result<Segmentation, NetError> {
+        let path = dir.join("segmentation.nii.gz");
+        let volume = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| NetError::Invalid(e.to_string()))?;
+        let by_name = |names: &[String]| -> Vec<i64> {
+            names.iter().filter_map(|n| volume.label_names.iter().find(|(_, v)| *v == n).map(|(l, _)| *l)).collect()
+        };
+        let seg = Segmentation { source: path.clone(), organ_labels: by_name(&self.organ_labels), structure_labels: by_name(&self.structures), volume };
+        seg.validate().map_err(|e| NetError::Invalid(e.to_string()))?;
+        Ok(seg)
+    }
+}
+
+pub fn model_dir(patient: &Path) -> PathBuf {
+    patient.join("model")
+}
+
+/// What a finished (or resumed) job reports.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct PrepareReport {
+    pub out: PathBuf,
+    pub stages: Vec<(Stage, f64, bool)>,
+    pub dataset: DatasetStats,
+    pub dataset_samples_per_minute: Option<f64>,
+    pub final_epoch: Option<EpochMetrics>,
+    pub eval: eval::EvalReport,
+    pub check_recording: Option<SynthReport>,
+    pub check: CheckReport,
+    pub seconds: f64,
+}
+
+/// The registration check on the synthetic recording (last frame and mean over frames).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CheckReport {
+    pub summary: SummaryRecord,
+    pub last_frame_tre_mm: Option<f64>,
+    pub last_frame_tre_rigid_mm: Option<f64>,
+    pub last_frame_marker_displacement_mm: Option<f64>,
+    pub log: Vec<String>,
+}
+
+/// `Summary` in a form that can be read back.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SummaryRecord {
+    pub frames: usize,
+    pub skipped: usize,
+    pub frame_ms_median: f64,
+    pub tre_mean_mm: Option<f64>,
+    pub tre_rigid_mean_mm: Option<f64>,
+    pub marker_displacement_mean_mm: Option<f64>,
+}
+
+impl From<&Summary> for SummaryRecord {
+    fn from(s: &Summary) -> Self {
+        Self {
+            frames: s.frames,
+            skipped: s.skipped,
+            frame_ms_median: s.frame_ms_median,
+            tre_mean_mm: s.tre_mean_mm,
+            tre_rigid_mean_mm: s.tre_rigid_mean_mm,
+            marker_displacement_mean_mm: s.marker_displacement_mean_mm,
+        }
+    }
+}
+
+/// Hash of each input file (a folder: each file in it that the segmentation used).
+pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
+    files
+        .iter()
+        .map(|p| {
+            let bytes = std::fs::read(p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+            Ok(InputFile { path: p.display().to_string(), bytes: bytes.len() as u64, hash: fnv_hex(&bytes) })
+        })
+        .collect()
+}
+
+/// Estimated cost of each stage (arbitrary units ~ 10 ms on 2 cores), for one progress bar.
+fn stage_weights(s: &PrepareSettings) -> [u64; 6] {
+    let samples = s.dataset.samples as u64;
+    let train = (samples * 4 / 5).max(1);
+    [
+        samples * 75,
+        s.train.epochs as u64 * train * 8,
+        (samples / 5).max(1) * 3,
+        s.check.frames as u64 * 100,
+        s.check.frames as u64 * 10,
+        10,
+    ]
+}
+
+/// A progress callback for one stage, mapped into the job's total.
+fn stage_progress(global: &Progress, offset: u64, width: u64, total: u64, stage: Stage) -> Progress {
+    let g = global.clone();
+    Progress::new(move |done, t, msg| {
+        let frac = if t > 0 { (done as f64 / t as f64).clamp(0.0, 1.0) } else { 0.0 };
+        g.report(offset + (frac * width as f64) as u64, total, &format!("{}: {msg}", stage.name()));
+    })
+}
+
+/// Run (or resume) the whole job for `seg` into `out`. `inputs` are the files the
+/// segmentation was read from (hashed and stored); nothing is written before every input
+/// and setting has been checked.
+pub fn run_prepare(
+    seg: &Segmentation,
+    inputs: &[PathBuf],
+    out: &Path,
+    settings: &PrepareSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<PrepareReport, NetError> {
+    let start = Instant::now();
+    // Checks first: labels, grid, fixed region, camera (all raise before anything is written).
+    let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
+    settings
+        .train
+        .model
+        .check_shape([1, 3, ctx.grid.padded_shape()[0], ctx.grid.padded_shape()[1], ctx.grid.padded_shape()[2]])
+        .map_err(|e| NetError::Invalid(format!("{}: {e}", seg.source.display())))?;
+    if settings.dataset.samples < 10 {
+        return Err(NetError::Invalid(format!("{} samples: at least 10 are needed for a train/validation split", settings.dataset.samples)));
+    }
+    if settings.train.epochs == 0 {
+        return Err(NetError::Invalid("0 epochs: at least one is needed".into()));
+    }
+    let hashed = hash_inputs(inputs)?;
+    let seg_hash = umesh_core::dataset::segmentation_hash(seg);
+    let names = |ls: &[i64]| ls.iter().map(|&l| seg.label_name(l)).collect::<Vec<_>>();
+    let mut patient = Patient {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        program_version: env!("CARGO_PKG_VERSION").into(),
+        inputs: hashed,
+        segmentation_hash: seg_hash.clone(),
+        organ_labels: names(&seg.organ_labels),
+        structures: names(&seg.structure_labels),
+        settings: settings.clone(),
+        stages: Default::default(),
+    };
+    if out.join("patient.json").exists() {
+        let old = Patient::read(out)?;
+        if old.segmentation_hash != seg_hash || old.settings != *settings {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient prepared from other inputs or settings (segmentation hash {} vs {seg_hash}); choose an empty folder",
+                out.display(),
+                old.segmentation_hash
+            )));
+        }
+        patient.stages = old.stages;
+    } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
+        return Err(NetError::Invalid(format!("{}: the folder is not empty and holds no patient.json; choose an empty folder", out.display())));
+    }
+    drop(ctx);
+    std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    let seg_path = out.join("segmentation.nii.gz");
+    if !seg_path.exists() {
+        let mut vol = seg.volume.clone();
+        // Names travel with the labels so that `Patient::segmentation` finds them again.
+        for &l in seg.organ_labels.iter().chain(&seg.structure_labels) {
+            vol.label_names.entry(l).or_insert_with(|| seg.label_name(l));
+        }
+        umesh_core::nifti_io::write_volume(&seg_path, &vol, umesh_core::nifti_io::WriteType::I16)
+            .map_err(|e| NetError::Io(format!("{}: {e}", seg_path.display())))?;
+    }
+    patient.write(out)?;
+
+    let weights = stage_weights(settings);
+    let total: u64 = weights.iter().sum();
+    let offset = |s: Stage| weights[..Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)].iter().sum::<u64>();
+    let width = |s: Stage| weights[Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)];
+    let sp = |s: Stage| stage_progress(progress, offset(s), width(s), total, s);
+    let run_stage = |patient: &mut Patient, s: Stage, f: &mut dyn FnMut(&Progress) -> Result<(), NetError>| -> Result<(), NetError> {
+        if patient.done(s) {
+            progress.report(offset(s) + width(s), total, &format!("{}: done before", s.name()));
+            return Ok(());
+        }
+        let t = Instant::now();
+        let r = f(&sp(s));
+        let rec = patient.stages.entry(s).or_default();
+        rec.seconds += t.elapsed().as_secs_f64();
+        rec.done = r.is_ok();
+        patient.write(out)?;
+        r
+    };
+
+    let ds_dir = out.join("dataset");
+    let model = model_dir(out);
+    let mut samples_per_minute = None;
+    run_stage(&mut patient, Stage::Dataset, &mut |p| {
+        let r = run_generate(seg, &ds_dir, &settings.dataset, ShardSelection::all(), p, cancel).map_err(|e| match e {
+            umesh_core::dataset::DatasetError::Cancelled => NetError::Cancelled,
+            e => e.into(),
+        })?;
+        if r.samples_computed > 0 {
+            samples_per_minute = Some(r.samples_per_minute);
+        }
+        Ok(())
+    })?;
+    let stats = run_stats(&ds_dir)?;
+    run_stage(&mut patient, Stage::Train, &mut |p| {
+        run_train(&ds_dir, &model, &settings.train, true, p, &|_| {}, cancel).map(|_| ())
+    })?;
+    let eval_path = out.join("eval.json");
+    run_stage(&mut patient, Stage::Eval, &mut |p| {
+        p.report(0, 1, "validation TRE");
+        let r = eval::run_eval(&model, &ds_dir, settings.eval_markers)?;
+        write_json(&eval_path, &r)
+    })?;
+    let eval: eval::EvalReport = read_json(&eval_path)?;
+    let rec_dir = out.join("check").join("recording");
+    let synth_path = out.join("check").join("recording.json");
+    run_stage(&mut patient, Stage::Recording, &mut |p| {
+        let r = run_rgbd_synth(seg, &settings.dataset, &settings.check, &rec_dir, p, cancel).map_err(|e| match e {
+            umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
+            e => NetError::Invalid(e.to_string()),
+        })?;
+        write_json(&synth_path, &r)
+    })?;
+    let check_path = out.join("check").join("register.json");
+    run_stage(&mut patient, Stage::Register, &mut |p| {
+        let r = registration_check(seg, &settings.dataset, &model, &rec_dir, p, cancel)?;
+        write_json(&check_path, &r)
+    })?;
+    let check: CheckReport = read_json(&check_path)?;
+    let synth: Option<SynthReport> = read_json(&synth_path).ok();
+    let metrics = read_metrics(&model);
+    // The report is rewritten on every run (its timings change), and its stage marked done.
+    let t = Instant::now();
+    let html = crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
+    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    let rec = patient.stages.entry(Stage::Report).or_default();
+    rec.done = true;
+    rec.seconds = t.elapsed().as_secs_f64();
+    patient.write(out)?;
+    progress.report(total, total, "done");
+    Ok(PrepareReport {
+        out: out.into(),
+        stages: Stage::ALL.iter().map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s))).collect(),
+        dataset: stats,
+        dataset_samples_per_minute: samples_per_minute,
+        final_epoch: metrics.last().cloned(),
+        eval,
+        check_recording: synth,
+        check,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Register the check recording with the patient's model: TRE against the recording's truth.
+pub fn registration_check(
+    seg: &Segmentation,
+    config: &DatasetConfig,
+    model: &Path,
+    recording: &Path,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<CheckReport, NetError> {
+    let mut net = Predictor::load(model)?;
+    let dctx = DatasetContext::prepare(seg, config, cancel)?;
+    net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
+    let ctx = RegistrationContext::new(dctx, seg).map_err(NetError::Invalid)?;
+    let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
+    let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
+    let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(NetError::Invalid)?;
+    let frames = rec.len() as u64;
+    let mut source = RecordingSource::new(rec);
+    let settings = RegisterSettings { overlay: false, ..Default::default() };
+    let p = progress.clone();
+    let inner = Progress::new(move |done, _, msg| p.report(done, frames, msg));
+    let r = run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(|e| match e {
+        umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
+        e => NetError::Invalid(e.to_string()),
+    })?;
+    if r.summary.frames == 0 {
+        return Err(NetError::Invalid(format!("{}: no frame could be registered: {}", recording.display(), r.log.join("; "))));
+    }
+    let last = r.frames.last();
+    Ok(CheckReport {
+        summary: (&r.summary).into(),
+        last_frame_tre_mm: last.and_then(|f| f.tre_mean_mm),
+        last_frame_tre_rigid_mm: last.and_then(|f| f.tre_rigid_mean_mm),
+        last_frame_marker_displacement_mm: last.and_then(|f| f.marker_displacement_mean_mm),
+        log: r.log,
+    })
+}
+
+pub fn read_metrics(model: &Path) -> Vec<EpochMetrics> {
+    std::fs::read_to_string(model.join("metrics.jsonl"))
+        .map(|t| t.lines().filter_map(|l| serde_json::from_str(l).ok()).collect())
+        .unwrap_or_default()
+}
+
+fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<(), NetError> {
+    let text = serde_json::to_string_pretty(v).map_err(|e| NetError::Invalid(e.to_string()))?;
+    umesh_core::write_atomic(path, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, NetError> {
+    let text = std::fs::read_to_string(path).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))?;
+    serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))
+}
+

@@ -1,0 +1,110 @@
+//! `umesh prepare`: from a segmentation to a trained, checked model in a patient folder
+//! (grid, dataset, training, evaluation, registration check, report), resumable.
+
+use super::dataset::ConfigArgs;
+use super::grid::GridArgs;
+use super::input::InputArgs;
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+use umesh_net::UNetConfig;
+use umesh_net::patient::{PrepareSettings, run_prepare};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(flatten)]
+    pub input: InputArgs,
+    #[command(flatten)]
+    pub grid: GridArgs,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// Training samples (the paper: 1000).
+    #[arg(long, default_value_t = 1000)]
+    pub samples: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 50)]
+    pub shard_size: usize,
+    /// Training epochs.
+    #[arg(long, default_value_t = 20)]
+    pub epochs: usize,
+    /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Frames of the synthetic registration-check recording.
+    #[arg(long, default_value_t = 20)]
+    pub check_frames: usize,
+    /// The patient folder (created; an interrupted job run again continues there).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let seg = a.input.load()?;
+    let (dataset, fixed) = a.config.config(&seg, a.grid.settings(), a.samples, a.seed, a.shard_size)?;
+    let mut settings = PrepareSettings::paper(dataset, fixed.description.clone());
+    settings.train.epochs = a.epochs;
+    settings.train.model = match a.preset.as_str() {
+        "cpu" => UNetConfig::cpu(),
+        "paper" => UNetConfig::paper(),
+        p => anyhow::bail!("--preset {p:?}: cpu or paper"),
+    };
+    anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
+    settings.check.frames = a.check_frames;
+    if !a.json {
+        eprintln!("fixed region: {}", fixed.description);
+    }
+    let (pb, progress) = super::progress_bar("preparing");
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} [{bar:30}] {percent:>3}% ({elapsed}, eta {eta}) {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, &progress, &super::cancel());
+    pb.finish_and_clear();
+    let r = r.with_context(|| format!("preparing the patient {}", a.out.display()))?;
+    if a.json {
+        super::print_json(&serde_json::json!({
+            "out": r.out, "seconds": r.seconds,
+            "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
+            "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
+            "target_displacement_mm": r.dataset.target_displacement_mm,
+            "mean_displacement_mm": r.dataset.mean_displacement_mm, "achieved_over_target": r.dataset.achieved_over_target,
+            "dataset_samples_per_minute": r.dataset_samples_per_minute,
+            "val_tre_mean_mm": r.eval.tre_mean_mm, "val_tre_max_mm": r.eval.tre_max_mm,
+            "val_marker_displacement_mean_mm": r.eval.marker_displacement_mean_mm,
+            "check": r.check, "check_recording": r.check_recording,
+        }));
+        return Ok(());
+    }
+    println!("patient folder {} ({:.0} s)", r.out.display(), r.seconds);
+    for (s, t, done) in &r.stages {
+        println!("  {:20} {:>8.1} s{}", s.name(), t, if *done { "" } else { "  (not done)" });
+    }
+    let d = &r.dataset;
+    println!(
+        "dataset: {}/{} accepted ({:.1} %), rejected {:?}; mean displacement {} (target {} mm)",
+        d.accepted,
+        d.samples,
+        100.0 * d.accepted as f64 / d.samples.max(1) as f64,
+        d.rejected,
+        d.mean_displacement_mm.as_ref().map(|m| format!("{:.2} mm mean, {:.2}-{:.2} p5-p95", m.mean, m.p5, m.p95)).unwrap_or_default(),
+        d.target_displacement_mm
+    );
+    println!(
+        "validation TRE {:.2} +/- {:.2} mm (max {:.2}) at {:.2} mm mean marker displacement",
+        r.eval.tre_mean_mm, r.eval.tre_std_mm, r.eval.tre_max_mm, r.eval.marker_displacement_mean_mm
+    );
+    let c = &r.check;
+    println!(
+        "registration check: {} frames, {:.1} ms median; last frame TRE {} mm (rigid only {} mm) at {} mm of marker motion",
+        c.summary.frames,
+        c.summary.frame_ms_median,
+        c.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or("-".into()),
+        c.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or("-".into()),
+        c.last_frame_marker_displacement_mm.map(|v| format!("{v:.2}")).unwrap_or("-".into())
+    );
+    println!("report: {}", r.out.join("report.html").display());
+    Ok(())
+}

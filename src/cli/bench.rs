@@ -164,36 +164,49 @@ fn bench_fe(repeat: usize) -> Result<serde_json::Value> {
     }))
 }
 
-/// Dataset generation throughput on the phantom's paper-size grid, both cores.
+/// Dataset generation throughput on the phantom's paper-size grid, both cores: the default
+/// (loads calibrated to a 10 mm mean nodal displacement) and, as the peer in the same run, the
+/// uncalibrated scale of earlier versions (F = E L D / N, D = 3 mm).
 fn bench_dataset(samples: usize) -> Result<serde_json::Value> {
     let seg = bundled_phantom(PHANTOM_BYTES)?;
     let fixed = super::dataset::default_fixed(&seg, None, 6.0);
     let mut config = umesh_core::dataset::DatasetConfig::paper(fixed);
     config.samples = samples.max(2);
     config.shard_size = config.samples;
-    let dir = std::env::temp_dir().join(format!("umesh-bench-dataset-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let t = Instant::now();
-    let r = umesh_core::dataset::run_generate(
-        &seg,
-        &dir,
-        &config,
-        umesh_core::dataset::ShardSelection::all(),
-        &Progress::none(),
-        &Cancel::new(),
-    )?;
-    let secs = t.elapsed().as_secs_f64();
-    let stats = umesh_core::dataset::run_stats(&dir)?;
-    let _ = std::fs::remove_dir_all(&dir);
-    let per_min = r.samples_computed as f64 * 60.0 / secs;
-    Ok(serde_json::json!({
-        "samples": r.samples_computed, "accepted": r.accepted, "rejected": r.rejected, "seconds": secs,
-        "samples_per_minute": per_min, "minutes_for_1000": 1000.0 / per_min,
-        "mean_displacement_mm_median": stats.mean_displacement_mm.map(|d| d.median),
-        "max_displacement_mm_median": stats.max_displacement_mm.map(|d| d.median),
-        "newton_iterations_median": stats.newton_iterations.map(|d| d.median),
-        "threads": rayon::current_num_threads(), "peak_memory_mb": peak_memory_mb(),
-    }))
+    let mut legacy = config.clone();
+    legacy.forces = umesh_core::loads::ForceSettings::energy_scale(config.forces.probes, 3.0);
+    let run = |config: &umesh_core::dataset::DatasetConfig| -> Result<serde_json::Value> {
+        let dir = std::env::temp_dir().join(format!("umesh-bench-dataset-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let t = Instant::now();
+        let r = umesh_core::dataset::run_generate(
+            &seg,
+            &dir,
+            config,
+            umesh_core::dataset::ShardSelection::all(),
+            &Progress::none(),
+            &Cancel::new(),
+        )?;
+        let secs = t.elapsed().as_secs_f64();
+        let stats = umesh_core::dataset::run_stats(&dir)?;
+        let _ = std::fs::remove_dir_all(&dir);
+        let per_min = r.samples_computed as f64 * 60.0 / secs;
+        Ok(serde_json::json!({
+            "samples": r.samples_computed, "accepted": r.accepted, "rejected": r.rejected, "seconds": secs,
+            "samples_per_minute": per_min, "minutes_for_1000": 1000.0 / per_min,
+            "target_displacement_mm": config.forces.target_displacement_mm, "calibration": config.forces.calibration,
+            "mean_displacement_mm_mean": stats.mean_displacement_mm.as_ref().map(|d| d.mean),
+            "mean_displacement_mm_median": stats.mean_displacement_mm.map(|d| d.median),
+            "achieved_over_target_mean": stats.achieved_over_target.map(|d| d.mean),
+            "max_displacement_mm_median": stats.max_displacement_mm.map(|d| d.median),
+            "newton_iterations_median": stats.newton_iterations.map(|d| d.median),
+        }))
+    };
+    let mut v = run(&config)?;
+    v["energy_scale_3mm"] = run(&legacy)?;
+    v["threads"] = serde_json::json!(rayon::current_num_threads());
+    v["peak_memory_mb"] = serde_json::json!(peak_memory_mb());
+    Ok(v)
 }
 
 /// Single-sample inference latency of the CPU and paper settings on the phantom's padded grid,

@@ -102,20 +102,20 @@ pub struct ConfigArgs {
     #[arg(long, default_value_t = 6.0)]
     pub fix_distance_mm: f64,
     /// Fix the nodes inside a box: xmin,ymin,zmin,xmax,ymax,zmax (world mm).
-    #[arg(long, value_delimiter = ',', num_args = 6, allow_hyphen_values = true)]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub fix_box: Vec<f64>,
     /// Fix the nodes on the negative side of a plane: nx,ny,nz,offset_mm,thickness_mm.
-    #[arg(long, value_delimiter = ',', num_args = 5, allow_hyphen_values = true)]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub fix_plane: Vec<f64>,
     /// Laparoscope view: anterior, posterior, right, left, superior, inferior, or two joined by
     /// '-' (anterior-inferior); from 2.5 organ sizes away, looking at the organ's centre.
     #[arg(long, conflicts_with = "camera_from")]
     pub camera: Option<String>,
     /// Camera position x,y,z (world mm), with --camera-to.
-    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true, requires = "camera_to")]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "camera_to")]
     pub camera_from: Vec<f64>,
     /// Point the camera looks at, x,y,z (world mm).
-    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true, requires = "camera_from")]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "camera_from")]
     pub camera_to: Vec<f64>,
     #[arg(long, default_value_t = 50.0)]
     pub fov_deg: f64,
@@ -133,6 +133,7 @@ impl ConfigArgs {
             Ok(())
         };
         if !self.fix_box.is_empty() {
+            anyhow::ensure!(self.fix_box.len() == 6, "--fix-box: expected xmin,ymin,zmin,xmax,ymax,zmax (6 numbers)");
             finite(&self.fix_box, "--fix-box")?;
             let b = &self.fix_box;
             anyhow::ensure!((0..3).all(|a| b[a] < b[a + 3]), "--fix-box: each minimum must be below its maximum");
@@ -142,6 +143,7 @@ impl ConfigArgs {
             });
         }
         if !self.fix_plane.is_empty() {
+            anyhow::ensure!(self.fix_plane.len() == 5, "--fix-plane: expected nx,ny,nz,offset_mm,thickness_mm (5 numbers)");
             finite(&self.fix_plane, "--fix-plane")?;
             let p = &self.fix_plane;
             anyhow::ensure!(p[4] >= 0.0, "--fix-plane: the thickness must be >= 0");
@@ -168,6 +170,7 @@ impl ConfigArgs {
     pub fn camera(&self, seg: &Segmentation) -> Result<Option<Camera>> {
         anyhow::ensure!(self.fov_deg > 0.0 && self.fov_deg < 170.0, "--fov-deg {}: must lie in (0, 170)", self.fov_deg);
         if !self.camera_from.is_empty() {
+            anyhow::ensure!(self.camera_from.len() == 3 && self.camera_to.len() == 3, "--camera-from and --camera-to: x,y,z (3 numbers each)");
             let (f, t) = (Vector3::from_column_slice(&self.camera_from), Vector3::from_column_slice(&self.camera_to));
             anyhow::ensure!(f.iter().chain(t.iter()).all(|v| v.is_finite()), "--camera-from/--camera-to: numbers must be finite");
             anyhow::ensure!((f - t).norm() > 1e-6, "--camera-from and --camera-to are the same point");

@@ -348,8 +348,9 @@ pub fn run_prepare(
     let check: CheckReport = read_json(&check_path)?;
     let synth: Option<SynthReport> = read_json(&synth_path).ok();
     let metrics = read_metrics(&model);
-    // The report is rewritten on every run (its timings change), and its stage marked done.
+    // The report is rewritten on every run (its timings change).
     let t = Instant::now();
+    patient.stages.entry(Stage::Report).or_default().done = true;
     let html = crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
     umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
     let rec = patient.stages.entry(Stage::Report).or_default();

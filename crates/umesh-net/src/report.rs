@@ -77,7 +77,8 @@ pub fn histogram_svg(values: &[f64], bins: usize, xlabel: &str, mark: Option<(f6
         let b = (((x - lo) / (hi - lo)) * bins as f64).floor() as usize;
         counts[b.min(bins - 1)] += 1;
     }
-    let cmax = *counts.iter().max().unwrap_or(&1) as f64;
+    // Whole counts on the four y ticks.
+    let cmax = (*counts.iter().max().unwrap_or(&1)).div_ceil(4).max(1) as f64 * 4.0;
     axes(&mut svg, lo, hi, 0.0, cmax, xlabel, "samples");
     let pw = W - L - 8.0;
     let ph = H - B - 8.0;

@@ -80,12 +80,41 @@ fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>
     pts.iter().map(|p| grid.embed(p).ok_or_else(|| format!("point {p:?} lies outside the grid"))).collect()
 }
 
+/// The triangles of `mesh` whose three vertices lie in or near the grid, with their
+/// embeddings; None when no triangle does.
+fn clip_to_grid(grid: &ImmersedGrid, mesh: &TriMesh) -> Option<(TriMesh, Vec<Embedding>)> {
+    let emb: Vec<Option<Embedding>> = mesh.positions.iter().map(|p| grid.embed(p)).collect();
+    if emb.iter().all(|e| e.is_some()) {
+        return Some((mesh.clone(), emb.into_iter().flatten().collect()));
+    }
+    let mut remap = vec![u32::MAX; mesh.positions.len()];
+    let mut out = TriMesh { positions: Vec::new(), triangles: Vec::new() };
+    let mut embedding = Vec::new();
+    for tri in &mesh.triangles {
+        let Some(es) = tri.iter().map(|&v| emb[v as usize].clone()).collect::<Option<Vec<Embedding>>>() else { continue };
+        let mut t = [0u32; 3];
+        for (k, (&v, e)) in tri.iter().zip(es).enumerate() {
+            let v = v as usize;
+            if remap[v] == u32::MAX {
+                remap[v] = out.positions.len() as u32;
+                out.positions.push(mesh.positions[v]);
+                embedding.push(e);
+            }
+            t[k] = remap[v];
+        }
+        out.triangles.push(t);
+    }
+    (!out.triangles.is_empty()).then_some((out, embedding))
+}
+
 impl RegistrationContext {
     /// From the dataset context of the model's grid, with the structures of `seg`.
     pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, String> {
         let mut structures = Vec::new();
         for (label, name, color, mesh) in structure_surfaces(seg) {
-            let embedding = embed_all(&ctx.grid, &mesh.positions)?;
+            // A structure may leave the organ (TotalSegmentator's portal vein runs on to the
+            // spleen): only the part the grid carries is drawn.
+            let Some((mesh, embedding)) = clip_to_grid(&ctx.grid, &mesh) else { continue };
             structures.push(Structure { label, name, color, mesh, embedding });
         }
         let surface = ctx.surface;

@@ -344,7 +344,15 @@ fn short_prepare(seg: Option<&str>, out: &std::path::Path, extra: &[&str]) -> se
     let (ok, stdout, stderr) = umesh(&args);
     assert!(ok, "prepare failed: {stderr}");
     let v = json(&stdout);
-    for f in ["patient.json", "segmentation.nii.gz", "dataset/manifest.json", "model/model.json", "eval.json", "check/register.json", "report.html"] {
+    for f in [
+        "patient.json",
+        "segmentation.nii.gz",
+        "dataset/manifest.json",
+        "model/model.json",
+        "eval.json",
+        "check/register.json",
+        "report.html",
+    ] {
         assert!(out.join(f).is_file(), "{} missing", f);
     }
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
@@ -367,8 +375,20 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     assert!(v["val_tre_mean_mm"].as_f64().unwrap().is_finite());
     assert!(v["check"]["summary"]["frames"].as_u64().unwrap() >= 2, "{v}");
     // Run again: every stage was done, nothing is recomputed.
-    let (ok, stdout, stderr) =
-        umesh(&["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--json", "--out", out.to_str().unwrap()]);
+    let (ok, stdout, stderr) = umesh(&[
+        "prepare",
+        "--samples",
+        "10",
+        "--shard-size",
+        "5",
+        "--epochs",
+        "1",
+        "--check-frames",
+        "3",
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(ok, "{stderr}");
     let again = json(&stdout);
     assert!(again["seconds"].as_f64().unwrap() < 0.5 * v["seconds"].as_f64().unwrap() + 5.0, "{again}");

@@ -130,9 +130,15 @@ fn bench_fe(repeat: usize) -> Result<serde_json::Value> {
     let organ = extract_surface(&sc.seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
     let (mut svk, mut lin, mut cor) = (Vec::new(), Vec::new(), Vec::new());
     for seed in 1..=repeat as u64 {
-        let forces =
-            loads::visible_random_forces(&organ, &sc.grid, &sc.settings.material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)
-                .map_err(anyhow::Error::msg)?;
+        let forces = loads::visible_random_forces(
+            &organ,
+            &sc.grid,
+            &sc.settings.material,
+            &ForceSettings::energy_scale(100, 3.0),
+            &Default::default(),
+            seed,
+        )
+        .map_err(anyhow::Error::msg)?;
         let settings = SimulationSettings { forces, ..sc.settings.clone() };
         let bc = boundary_conditions(&sc.grid, Some(&sc.seg.volume), &settings)?;
         svk.push(solver.solve(&bc, SolveMethod::Newton, &Progress::none(), &Cancel::new())?);

@@ -3,10 +3,10 @@
 use super::grid::GridArgs;
 use super::input::InputArgs;
 use anyhow::{Context, Result};
+use nalgebra::Vector3;
 use std::path::PathBuf;
 use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate, run_merge, run_stats};
 use umesh_core::fem::{FixedRegion, MaterialParams};
-use nalgebra::Vector3;
 use umesh_core::grid::GridSettings;
 use umesh_core::loads::{FixedChoice, ForceSettings, LoadCalibration};
 use umesh_core::segmentation::Segmentation;
@@ -170,7 +170,10 @@ impl ConfigArgs {
     pub fn camera(&self, seg: &Segmentation) -> Result<Option<Camera>> {
         anyhow::ensure!(self.fov_deg > 0.0 && self.fov_deg < 170.0, "--fov-deg {}: must lie in (0, 170)", self.fov_deg);
         if !self.camera_from.is_empty() {
-            anyhow::ensure!(self.camera_from.len() == 3 && self.camera_to.len() == 3, "--camera-from and --camera-to: x,y,z (3 numbers each)");
+            anyhow::ensure!(
+                self.camera_from.len() == 3 && self.camera_to.len() == 3,
+                "--camera-from and --camera-to: x,y,z (3 numbers each)"
+            );
             let (f, t) = (Vector3::from_column_slice(&self.camera_from), Vector3::from_column_slice(&self.camera_to));
             anyhow::ensure!(f.iter().chain(t.iter()).all(|v| v.is_finite()), "--camera-from/--camera-to: numbers must be finite");
             anyhow::ensure!((f - t).norm() > 1e-6, "--camera-from and --camera-to are the same point");
@@ -184,7 +187,14 @@ impl ConfigArgs {
     }
 
     /// The dataset configuration (paper protocol) with these options.
-    pub fn config(&self, seg: &Segmentation, grid: GridSettings, samples: usize, seed: u64, shard_size: usize) -> Result<(DatasetConfig, FixedChoice)> {
+    pub fn config(
+        &self,
+        seg: &Segmentation,
+        grid: GridSettings,
+        samples: usize,
+        seed: u64,
+        shard_size: usize,
+    ) -> Result<(DatasetConfig, FixedChoice)> {
         let fixed = self.fixed(seg)?;
         let mut c = DatasetConfig::paper(fixed.region.clone());
         c.samples = samples;

@@ -62,12 +62,19 @@ impl InputArgs {
         let files = if path.is_dir() {
             let (files, ignored) = segmentation::mask_folder(path)?;
             if !ignored.is_empty() {
-                eprintln!("{}: {} files not used (not liver, vena cava, hepatic veins, portal vein, vessels or tumours)", path.display(), ignored.len());
+                eprintln!(
+                    "{}: {} files not used (not liver, vena cava, hepatic veins, portal vein, vessels or tumours)",
+                    path.display(),
+                    ignored.len()
+                );
             }
             Some(files)
         } else if !self.structure_files.is_empty() {
             let mut files = vec![segmentation::MaskFile {
-                name: path.file_name().map(|n| n.to_string_lossy().trim_end_matches(".gz").trim_end_matches(".nii").to_string()).unwrap_or_default(),
+                name: path
+                    .file_name()
+                    .map(|n| n.to_string_lossy().trim_end_matches(".gz").trim_end_matches(".nii").to_string())
+                    .unwrap_or_default(),
                 path: path.clone(),
                 role: segmentation::Role::Organ,
             }];
@@ -85,7 +92,10 @@ impl InputArgs {
             None
         };
         if let Some(files) = files {
-            anyhow::ensure!(self.organ_labels.is_empty() && self.structure_labels.is_empty(), "--organ-label/--structure-label apply to a multi-label file, not to separate masks");
+            anyhow::ensure!(
+                self.organ_labels.is_empty() && self.structure_labels.is_empty(),
+                "--organ-label/--structure-label apply to a multi-label file, not to separate masks"
+            );
             let (seg, notes) = segmentation::assemble_masks(&files, &options)?;
             for r in &notes.resampled {
                 eprintln!("note: {r}");

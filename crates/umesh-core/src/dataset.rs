@@ -384,7 +384,8 @@ impl DatasetContext {
             return Ok(f64::INFINITY);
         }
         let settings = SolverSettings { max_total_iterations: Some(80), max_halvings: 8, ..config.solver.clone() };
-        let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings).map_err(|e| invalid(Path::new("."), e.to_string()))?;
+        let mut solver =
+            FeSolver::new(&self.grid, config.material, &self.fixed, settings).map_err(|e| invalid(Path::new("."), e.to_string()))?;
         let mut reference = config.clone();
         reference.forces.target_spread = 0.0;
         let mut scales = Vec::new();

@@ -59,13 +59,7 @@ impl Default for ForceSettings {
 impl ForceSettings {
     /// The uncalibrated scale F = E L D / N (one-off solves and the FE benchmark).
     pub fn energy_scale(probes: usize, target_displacement_mm: f64) -> Self {
-        Self {
-            probes,
-            target_displacement_mm,
-            calibration: LoadCalibration::EnergyScale,
-            target_spread: 0.0,
-            ..Self::default()
-        }
+        Self { probes, target_displacement_mm, calibration: LoadCalibration::EnergyScale, target_spread: 0.0, ..Self::default() }
     }
 
     pub fn validate(&self) -> Result<(), String> {
@@ -169,7 +163,11 @@ pub fn anchor_label(seg: &Segmentation) -> Option<(i64, String)> {
         .volume
         .label_names
         .iter()
-        .filter(|(l, n)| counts.contains_key(*l) && !seg.organ_labels.contains(l) && ANCHOR_NAMES.iter().any(|a| norm(n) == *a || norm(n).ends_with(&format!("_{a}"))))
+        .filter(|(l, n)| {
+            counts.contains_key(*l)
+                && !seg.organ_labels.contains(l)
+                && ANCHOR_NAMES.iter().any(|a| norm(n) == *a || norm(n).ends_with(&format!("_{a}")))
+        })
         .map(|(l, n)| (ANCHOR_NAMES.iter().position(|a| norm(n).ends_with(a)).unwrap_or(9), *l, n.clone()))
         .collect();
     named.sort();

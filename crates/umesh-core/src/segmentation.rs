@@ -86,11 +86,8 @@ pub fn load_nifti_labels(
 ) -> Result<Segmentation, SegmentationError> {
     let volume = read_volume(path, options)?;
     let by_name = labels_by_name(&volume);
-    let organ = if !organ_labels.is_empty() {
-        organ_labels.to_vec()
-    } else {
-        by_name.as_ref().map(|b| b.0.clone()).unwrap_or_else(|| vec![1])
-    };
+    let organ =
+        if !organ_labels.is_empty() { organ_labels.to_vec() } else { by_name.as_ref().map(|b| b.0.clone()).unwrap_or_else(|| vec![1]) };
     let structures = if !structure_labels.is_empty() || !organ_labels.is_empty() {
         structure_labels.to_vec()
     } else {
@@ -202,12 +199,12 @@ pub enum Role {
 pub fn labels_by_name(volume: &Volume) -> Option<(Vec<i64>, Vec<i64>)> {
     let counts = volume.label_counts();
     let present = |l: &i64| counts.contains_key(l);
-    let organ: Vec<i64> = volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Organ)).map(|x| *x.0).collect();
+    let organ: Vec<i64> =
+        volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Organ)).map(|x| *x.0).collect();
     if organ.is_empty() {
         return None;
     }
-    let structures =
-        volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Structure)).map(|x| *x.0).collect();
+    let structures = volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Structure)).map(|x| *x.0).collect();
     Some((organ, structures))
 }
 
@@ -324,7 +321,9 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
                 let n = a as usize + nx * (b as usize + ny * c as usize);
                 if !hits[n] {
                     border += 1;
-                    border_organ += (volume.data[n] != 0.0 && volume.data[n] != label as f32 && organ_labels.contains(&(volume.data[n] as i64))) as usize;
+                    border_organ += (volume.data[n] != 0.0
+                        && volume.data[n] != label as f32
+                        && organ_labels.contains(&(volume.data[n] as i64))) as usize;
                 }
             }
         }

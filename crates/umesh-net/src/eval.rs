@@ -46,7 +46,10 @@ pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> 
     }
     let (mean, std, max) = tre::summary(&all);
     if !(mean.is_finite() && max.is_finite()) {
-        return Err(NetError::Invalid(format!("{}: the predictions are not finite (corrupt weights or normalisation)", model_dir.display())));
+        return Err(NetError::Invalid(format!(
+            "{}: the predictions are not finite (corrupt weights or normalisation)",
+            model_dir.display()
+        )));
     }
     Ok(EvalReport {
         samples: val.len(),

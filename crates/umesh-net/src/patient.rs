@@ -111,7 +111,12 @@ impl Patient {
         let v: Patient =
             serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
         if v.format != FORMAT || v.format_version != FORMAT_VERSION {
-            return Err(NetError::Invalid(format!("{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}", p.display(), v.format, v.format_version)));
+            return Err(NetError::Invalid(format!(
+                "{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}",
+                p.display(),
+                v.format,
+                v.format_version
+            )));
         }
         Ok(v)
     }
@@ -130,7 +135,12 @@ impl Patient {
         let by_name = |names: &[String]| -> Vec<i64> {
             names.iter().filter_map(|n| volume.label_names.iter().find(|(_, v)| *v == n).map(|(l, _)| *l)).collect()
         };
-        let seg = Segmentation { source: path.clone(), organ_labels: by_name(&self.organ_labels), structure_labels: by_name(&self.structures), volume };
+        let seg = Segmentation {
+            source: path.clone(),
+            organ_labels: by_name(&self.organ_labels),
+            structure_labels: by_name(&self.structures),
+            volume,
+        };
         seg.validate().map_err(|e| NetError::Invalid(e.to_string()))?;
         Ok(seg)
     }
@@ -203,14 +213,7 @@ pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
 fn stage_weights(s: &PrepareSettings) -> [u64; 6] {
     let samples = s.dataset.samples as u64;
     let train = (samples * 4 / 5).max(1);
-    [
-        samples * 75,
-        s.train.epochs as u64 * train * 8,
-        (samples / 5).max(1) * 3,
-        s.check.frames as u64 * 100,
-        s.check.frames as u64 * 10,
-        10,
-    ]
+    [samples * 75, s.train.epochs as u64 * train * 8, (samples / 5).max(1) * 3, s.check.frames as u64 * 100, s.check.frames as u64 * 10, 10]
 }
 
 /// A progress callback for one stage, mapped into the job's total.
@@ -242,7 +245,10 @@ pub fn run_prepare(
         .check_shape([1, 3, ctx.grid.padded_shape()[0], ctx.grid.padded_shape()[1], ctx.grid.padded_shape()[2]])
         .map_err(|e| NetError::Invalid(format!("{}: {e}", seg.source.display())))?;
     if settings.dataset.samples < 10 {
-        return Err(NetError::Invalid(format!("{} samples: at least 10 are needed for a train/validation split", settings.dataset.samples)));
+        return Err(NetError::Invalid(format!(
+            "{} samples: at least 10 are needed for a train/validation split",
+            settings.dataset.samples
+        )));
     }
     if settings.train.epochs == 0 {
         return Err(NetError::Invalid("0 epochs: at least one is needed".into()));
@@ -272,7 +278,10 @@ pub fn run_prepare(
         }
         patient.stages = old.stages;
     } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
-        return Err(NetError::Invalid(format!("{}: the folder is not empty and holds no patient.json; choose an empty folder", out.display())));
+        return Err(NetError::Invalid(format!(
+            "{}: the folder is not empty and holds no patient.json; choose an empty folder",
+            out.display()
+        )));
     }
     drop(ctx);
     std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
@@ -321,9 +330,7 @@ pub fn run_prepare(
         Ok(())
     })?;
     let stats = run_stats(&ds_dir)?;
-    run_stage(&mut patient, Stage::Train, &mut |p| {
-        run_train(&ds_dir, &model, &settings.train, true, p, &|_| {}, cancel).map(|_| ())
-    })?;
+    run_stage(&mut patient, Stage::Train, &mut |p| run_train(&ds_dir, &model, &settings.train, true, p, &|_| {}, cancel).map(|_| ()))?;
     let eval_path = out.join("eval.json");
     run_stage(&mut patient, Stage::Eval, &mut |p| {
         p.report(0, 1, "validation TRE");
@@ -351,7 +358,8 @@ pub fn run_prepare(
     // The report is rewritten on every run (its timings change).
     let t = Instant::now();
     patient.stages.entry(Stage::Report).or_default().done = true;
-    let html = crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
+    let html =
+        crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
     umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
     let rec = patient.stages.entry(Stage::Report).or_default();
     rec.done = true;
@@ -385,17 +393,22 @@ pub fn registration_check(
     net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
     let ctx = RegistrationContext::new(dctx, seg).map_err(NetError::Invalid)?;
     let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
-    let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
+    let pose = rec
+        .trajectory
+        .as_ref()
+        .and_then(|t| t.first().copied())
+        .ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
     let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(NetError::Invalid)?;
     let frames = rec.len() as u64;
     let mut source = RecordingSource::new(rec);
     let settings = RegisterSettings { overlay: false, ..Default::default() };
     let p = progress.clone();
     let inner = Progress::new(move |done, _, msg| p.report(done, frames, msg));
-    let r = run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(|e| match e {
-        umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
-        e => NetError::Invalid(e.to_string()),
-    })?;
+    let r =
+        run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(|e| match e {
+            umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
+            e => NetError::Invalid(e.to_string()),
+        })?;
     if r.summary.frames == 0 {
         return Err(NetError::Invalid(format!("{}: no frame could be registered: {}", recording.display(), r.log.join("; "))));
     }
@@ -424,4 +437,3 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, NetError>
     let text = std::fs::read_to_string(path).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))?;
     serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))
 }
-

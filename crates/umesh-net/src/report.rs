@@ -19,7 +19,13 @@ const L: f64 = 48.0;
 const B: f64 = 34.0;
 
 fn nice(v: f64) -> String {
-    if v.abs() >= 100.0 { format!("{v:.0}") } else if v.abs() >= 10.0 { format!("{v:.1}") } else { format!("{v:.2}") }
+    if v.abs() >= 100.0 {
+        format!("{v:.0}")
+    } else if v.abs() >= 10.0 {
+        format!("{v:.1}")
+    } else {
+        format!("{v:.2}")
+    }
 }
 
 fn axes(svg: &mut String, x0: f64, x1: f64, y0: f64, y1: f64, xlabel: &str, ylabel: &str) {
@@ -158,7 +164,8 @@ pub fn grid_svg(grid_npz: &Path) -> String {
         return "<p>grid.npz could not be read</p>".into();
     };
     let nodes = npz.f64_with_shape("nodes", &[None, Some(3)]).map(|x| x.1).unwrap_or_default();
-    let list = |name: &str| npz.f64_with_shape(name, &[None]).map(|x| x.1.iter().map(|&v| v as usize).collect::<Vec<_>>()).unwrap_or_default();
+    let list =
+        |name: &str| npz.f64_with_shape(name, &[None]).map(|x| x.1.iter().map(|&v| v as usize).collect::<Vec<_>>()).unwrap_or_default();
     let n = nodes.len() / 3;
     let mut kind = vec![0u8; n];
     for i in list("visible_nodes") {
@@ -328,10 +335,22 @@ figcaption{{font-size:12px;color:#555}}pre{{background:#f5f5f5;padding:.5em;over
         h,
         "<figure>{}<figcaption>loss (MSE, normalised units)</figcaption></figure><figure>{}<figcaption>validation TRE per epoch</figcaption></figure>",
         lines_svg(&[("train", "#4c78a8", ep(&|m| m.train_loss)), ("validation", "#f58518", ep(&|m| m.val_loss))], "epoch", "loss", true),
-        lines_svg(&[("mean", "#4c78a8", ep(&|m| m.val_tre_mean_mm)), ("max", "#d62728", ep(&|m| m.val_tre_max_mm))], "epoch", "TRE (mm)", false)
+        lines_svg(
+            &[("mean", "#4c78a8", ep(&|m| m.val_tre_mean_mm)), ("max", "#d62728", ep(&|m| m.val_tre_max_mm))],
+            "epoch",
+            "TRE (mm)",
+            false
+        )
     );
     if let Some(m) = metrics.last() {
-        let _ = write!(h, "<p>{} epochs; last: validation TRE {:.2} mm mean, {:.2} mm max; {:.1} training samples/s.</p>", metrics.len(), m.val_tre_mean_mm, m.val_tre_max_mm, m.train_samples_per_s);
+        let _ = write!(
+            h,
+            "<p>{} epochs; last: validation TRE {:.2} mm mean, {:.2} mm max; {:.1} training samples/s.</p>",
+            metrics.len(),
+            m.val_tre_mean_mm,
+            m.val_tre_max_mm,
+            m.train_samples_per_s
+        );
     }
 
     h.push_str("<h2>Target registration error (validation split, FE truth)</h2>");
@@ -349,7 +368,11 @@ figcaption{{font-size:12px;color:#555}}pre{{background:#f5f5f5;padding:.5em;over
 
     h.push_str("<h2>Registration check (synthetic RGB-D recording)</h2>");
     if let Some(r) = synth {
-        let _ = write!(h, "<p>{} frames, {} markers; mean marker displacement at the last frame {:.2} mm (max over frames {:.2} mm).</p>", r.frames, r.markers, r.mean_marker_displacement_mm, r.max_marker_displacement_mm);
+        let _ = write!(
+            h,
+            "<p>{} frames, {} markers; mean marker displacement at the last frame {:.2} mm (max over frames {:.2} mm).</p>",
+            r.frames, r.markers, r.mean_marker_displacement_mm, r.max_marker_displacement_mm
+        );
     }
     let c = &check.summary;
     let _ = write!(

@@ -123,7 +123,9 @@ pub fn run_train(
     if resume && out.join("last.safetensors").exists() {
         // Resuming into a model trained on another dataset would mix both.
         if let Ok(old) = ModelInfo::read(out) {
-            let same = manifest.as_ref().is_some_and(|m| old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config));
+            let same = manifest
+                .as_ref()
+                .is_some_and(|m| old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config));
             if !same || old.config != *cfg {
                 return Err(NetError::Invalid(format!(
                     "{}: --resume: the model there was trained on another dataset or network configuration than {} (start in an empty folder)",

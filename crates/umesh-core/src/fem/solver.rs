@@ -615,7 +615,9 @@ impl<'g> FeSolver<'g> {
     ) -> Result<(Solution, f64), FemError> {
         let n = self.grid.node_count();
         if bc.forces_n.len() != n || bc.fixed != self.constrained_nodes || !bc.prescribed_mm.is_empty() {
-            return Err(FemError::InvalidInput("boundary conditions do not match the solver (fixed nodes only, no prescribed values)".into()));
+            return Err(FemError::InvalidInput(
+                "boundary conditions do not match the solver (fixed nodes only, no prescribed values)".into(),
+            ));
         }
         if !(target_mm > 0.0 && target_mm.is_finite() && rel_tol > 0.0 && first_lambda > 0.0) {
             return Err(FemError::InvalidInput(format!("target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}")));

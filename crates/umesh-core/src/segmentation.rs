@@ -276,17 +276,14 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
     let mut notes = AssemblyNotes::default();
     let mut organ_labels = vec![1];
     let mut structure_labels = Vec::new();
-    let mut next = 2i64;
     let to_index = volume.world_from_voxel;
-    for f in files.iter().filter(|f| f.role != Role::Organ) {
+    for (label, f) in (2i64..).zip(files.iter().filter(|f| f.role != Role::Organ)) {
         let m = read_volume(&f.path, options)?;
         let mask = Mask { dims: m.dims, data: m.data.iter().map(|v| v.round() != 0.0).collect(), world_from_voxel: m.world_from_voxel };
         if mask.count() == 0 {
             return Err(SegmentationError::EmptyMask { path: f.path.clone() });
         }
         let same = m.dims == volume.dims && (m.world_from_voxel - volume.world_from_voxel).abs().max() < 1e-4;
-        let label = next;
-        next += 1;
         let sampler = mask.world_sampler();
         let [nx, ny, nz] = volume.dims;
         let hits: Vec<bool> = (0..volume.data.len())

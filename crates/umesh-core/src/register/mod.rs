@@ -91,7 +91,7 @@ fn clip_to_grid(grid: &ImmersedGrid, mesh: &TriMesh) -> Option<(TriMesh, Vec<Emb
     let mut out = TriMesh { positions: Vec::new(), triangles: Vec::new() };
     let mut embedding = Vec::new();
     for tri in &mesh.triangles {
-        let Some(es) = tri.iter().map(|&v| emb[v as usize].clone()).collect::<Option<Vec<Embedding>>>() else { continue };
+        let Some(es) = tri.iter().map(|&v| emb[v as usize]).collect::<Option<Vec<Embedding>>>() else { continue };
         let mut t = [0u32; 3];
         for (k, (&v, e)) in tri.iter().zip(es).enumerate() {
             let v = v as usize;

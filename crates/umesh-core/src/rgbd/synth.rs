@@ -156,10 +156,15 @@ pub fn run_rgbd_synth(
     let ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
-    let forces = {
+    let index = 10_000_000 + settings.seed as usize;
+    let forces = if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+        let mut f = ctx.sample_forces(config, index).0;
+        let _ = crate::loads::scale_forces(&mut f, 1.0, settings.load_scale);
+        f
+    } else {
         let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
         let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-        let r = ctx.solve_sample(&mut s0, config, 10_000_000 + settings.seed as usize, settings.load_scale, 0.5, cancel);
+        let r = ctx.solve_sample(&mut s0, config, index, settings.load_scale, 0.5, cancel);
         r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
         r.forces
     };
@@ -174,7 +179,7 @@ pub fn run_rgbd_synth(
     let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
     let grid = &reg.grid;
     // The truth is solved without the dataset's rejection budget: a frame must not be dropped.
-    let truth_solver = SolverSettings { max_total_iterations: None, max_halvings: 8, ..config.solver.clone() };
+    let truth_solver = SolverSettings { max_total_iterations: None, max_halvings: 8, reject_indefinite: false, ..config.solver.clone() };
     let mut solver = FeSolver::new(grid, config.material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
     let mut rng = SplitMix64(settings.seed);
     let mut truth = GroundTruth {

@@ -118,7 +118,7 @@ fn read_forces(path: &Path) -> Result<Vec<PointForce>> {
     Ok(forces)
 }
 
-pub fn fixed_regions(a: &Args, seg: &Segmentation, grid: &ImmersedGrid) -> Vec<FixedRegion> {
+pub fn fixed_regions(a: &Args, seg: &Segmentation) -> Vec<FixedRegion> {
     let mut regions = Vec::new();
     if let Some(l) = a.fix_label {
         regions.push(FixedRegion::Label { label: l, distance_mm: a.fix_distance_mm });
@@ -137,7 +137,6 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation, grid: &ImmersedGrid) -> Vec<F
         regions.push(FixedRegion::Nodes { nodes: a.fix_nodes.clone() });
     }
     if regions.is_empty() {
-        let _ = grid;
         regions.push(loads::default_fixed(seg, None, a.fix_distance_mm).region);
     }
     regions
@@ -168,7 +167,7 @@ pub fn run(a: Args) -> Result<()> {
         )
         .map_err(anyhow::Error::msg)?,
     };
-    let settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg, &grid), forces };
+    let settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces };
     let bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
     if let Some(p) = &a.export_problem {
         write_problem(p, &grid, &material, &bc)?;

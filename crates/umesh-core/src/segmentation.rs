@@ -69,9 +69,11 @@ pub fn load_nifti(
     structure_labels: &[i64],
     options: &ReadOptions,
 ) -> Result<Segmentation, SegmentationError> {
-    let volume = read_volume(path, options)?;
-    let seg =
-        Segmentation { source: path.into(), volume, organ_labels: organ_labels.to_vec(), structure_labels: structure_labels.to_vec() };
+    with_labels(path, read_volume(path, options)?, organ_labels.to_vec(), structure_labels.to_vec())
+}
+
+fn with_labels(path: &Path, volume: Volume, organ_labels: Vec<i64>, structure_labels: Vec<i64>) -> Result<Segmentation, SegmentationError> {
+    let seg = Segmentation { source: path.into(), volume, organ_labels, structure_labels };
     seg.validate()?;
     Ok(seg)
 }
@@ -93,9 +95,7 @@ pub fn load_nifti_labels(
     } else {
         by_name.map(|b| b.1).unwrap_or_default()
     };
-    let seg = Segmentation { source: path.into(), volume, organ_labels: organ, structure_labels: structures };
-    seg.validate()?;
-    Ok(seg)
+    with_labels(path, volume, organ, structures)
 }
 
 /// The bundled phantom with its default labels.

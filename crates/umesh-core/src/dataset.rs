@@ -375,7 +375,7 @@ impl DatasetContext {
     }
 
     /// How much softer than linear the organ responds at the dataset's target: the collapse
-    /// scale D (mm) of `fem::solver::softening_factor`, the median over three reference
+    /// scale D (mm) of `fem::solver::softening_factor`, the lower quartile over eight reference
     /// patterns (not samples of the dataset). Each sample's first load factor is then
     /// 1 / (1 + target / D), so that most land within the tolerance at the first solve.
     /// Infinite for `energy-scale` or a response no softer than linear.
@@ -383,24 +383,36 @@ impl DatasetContext {
         if config.forces.calibration == LoadCalibration::EnergyScale {
             return Ok(f64::INFINITY);
         }
+        use rayon::prelude::*;
         let settings = SolverSettings { max_total_iterations: Some(80), max_halvings: 8, ..config.solver.clone() };
-        let mut solver =
-            FeSolver::new(&self.grid, config.material, &self.fixed, settings).map_err(|e| invalid(Path::new("."), e.to_string()))?;
         let mut reference = config.clone();
         reference.forces.target_spread = 0.0;
+        // Patterns differ a lot in how much they soften (on the phantom D spans 4-15 mm), so
+        // the median needs several; they run in parallel, each solve single-threaded.
+        let results: Vec<Result<Option<f64>, String>> = (0..REFERENCE_PATTERNS)
+            .into_par_iter()
+            .map(|k| {
+                let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings.clone()).map_err(|e| e.to_string())?;
+                let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
+                Ok(r.solution
+                    .ok()
+                    .map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, sol.mean_displacement_mm())))
+            })
+            .collect();
+        if cancel.is_cancelled() {
+            return Err(DatasetError::Cancelled);
+        }
         let mut scales = Vec::new();
-        for k in 0..3 {
-            let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
-            if cancel.is_cancelled() {
-                return Err(DatasetError::Cancelled);
-            }
-            if let Ok(sol) = &r.solution {
-                scales.push(crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, sol.mean_displacement_mm()));
+        for r in results {
+            if let Some(d) = r.map_err(|e| invalid(Path::new("."), e))? {
+                scales.push(d);
             }
         }
         scales.sort_by(f64::total_cmp);
+        // The lower quartile, not the median: a first probe that overshoots heads for a
+        // collapsed state and is abandoned, one that undershoots costs a cheap second probe.
         // No reference converged: assume strong softening (the continuation corrects it).
-        Ok(scales.get(scales.len() / 2).copied().unwrap_or(config.forces.target_displacement_mm))
+        Ok(scales.get(scales.len() / 4).copied().unwrap_or(config.forces.target_displacement_mm))
     }
 }
 
@@ -411,6 +423,8 @@ pub fn first_load_factor(target_mm: f64, softening_mm: f64) -> f64 {
 
 /// Sample indices of the reference patterns (far beyond any dataset's samples).
 const REFERENCE_INDEX: usize = 1 << 40;
+/// How many reference patterns set the collapse scale.
+const REFERENCE_PATTERNS: usize = 8;
 
 /// Solve one sample with a solver built for the context's fixed nodes; `softening_mm` from
 /// `DatasetContext::reference_softening_mm`.
@@ -763,7 +777,7 @@ pub fn run_generate(
     // Parallel over samples; each solve single-threaded so results do not depend on scheduling.
     let previous_par = faer::get_global_parallelism();
     faer::set_global_parallelism(faer::Par::Seq);
-    // Single-threaded like the samples, so that every machine finds the same factor.
+    // Each reference solve single-threaded like the samples, so every machine finds the same factor.
     let softening = if todo.is_empty() {
         Ok(f64::INFINITY)
     } else {

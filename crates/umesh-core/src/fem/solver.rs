@@ -345,6 +345,9 @@ pub struct FeSolver<'g> {
     asm: Assembler<'g>,
     fact: Factorizer,
     constrained_nodes: Vec<bool>,
+    /// While probing a load factor: give up on the probe once the iterate's mean nodal
+    /// displacement passes this (mm), as it is heading for a collapsed state.
+    overshoot_mm: Option<f64>,
 }
 
 fn ms(t: Instant) -> f64 {
@@ -365,7 +368,7 @@ impl<'g> FeSolver<'g> {
         let lin = MaterialParams { kind: MaterialKind::Linear, ..material }.material();
         let asm = Assembler::new(grid, &dofs, lin, settings.stabilization);
         let fact = Factorizer::new(&grid.node_ijk, &asm.dofs.free_of);
-        Ok(Self { grid, material, settings, asm, fact, constrained_nodes: constrained.to_vec() })
+        Ok(Self { grid, material, settings, asm, fact, constrained_nodes: constrained.to_vec(), overshoot_mm: None })
     }
 
     pub fn free_dofs(&self) -> usize {
@@ -666,8 +669,10 @@ impl<'g> FeSolver<'g> {
             let tight = self.settings.clone();
             self.settings.residual_tol = tight.residual_tol.max(1e-3);
             self.settings.correction_tol = tight.correction_tol.max(1e-2);
+            self.overshoot_mm = Some(OVERSHOOT * target_mm);
             let probe = self.newton(&mut trial, bc, model, lambda, increments + 1, &mut history, &mut timings, &Progress::none(), cancel);
             self.settings = tight;
+            self.overshoot_mm = None;
             match probe? {
                 Ok(_) => {
                     increments += 1;
@@ -893,11 +898,22 @@ impl<'g> FeSolver<'g> {
                 0,
                 &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0),
             );
+            if let Some(limit) = self.overshoot_mm {
+                let m = u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
+                if m > limit {
+                    timings.assembly_ms += assembly_ms;
+                    return Ok(Err(format!("the mean displacement passed {limit:.1} mm (overshoot)")));
+                }
+            }
         }
         timings.assembly_ms += assembly_ms;
         Ok(Err(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations)))
     }
 }
+
+/// A probe whose iterate's mean displacement passes this multiple of the target is abandoned:
+/// on the phantom such iterates were heading for a collapsed state (15 wasted iterations each).
+const OVERSHOOT: f64 = 2.0;
 
 /// The load factor at which a softening response through (lambda, m), with the linear slope
 /// t per unit factor at the origin, reaches t: m(l) = t l / (1 - t l / D).

@@ -166,8 +166,10 @@ fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
     let organ = phantom();
     let mut q = WorkQueue::default();
     let dir = tmp_dir("queue");
-    let kind =
-        || WorkKind::Dataset { seg: organ.seg.clone(), config: Box::new(umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg)) };
+    let kind = || WorkKind::Dataset {
+        seg: organ.seg.clone(),
+        config: Box::new(umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg).unwrap()),
+    };
     q.submit(kind(), dir.clone()).unwrap();
     // The same folder spelled differently.
     let err = q.submit(kind(), dir.join("x").join("..")).unwrap_err();
@@ -192,7 +194,7 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let model_dir = tmp_dir("gui-model");
     // A small, coarse dataset: what a user tries first.
     let form = DatasetForm { samples: 8, shard_size: 4, cell_size_mm: 10.0, ..Default::default() };
-    let config = form.config(&organ.seg);
+    let config = form.config(&organ.seg).unwrap();
     let train = TrainForm { epochs: 2, batch_size: 2, ..Default::default() };
     {
         let mut q = app.world_mut().resource_mut::<WorkQueue>();
@@ -286,7 +288,7 @@ fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
     umesh_core::dataset::run_generate(
         &organ.seg,
         &data_dir,
-        &form.config(&organ.seg),
+        &form.config(&organ.seg).unwrap(),
         umesh_core::dataset::ShardSelection::all(),
         &Default::default(),
         &Default::default(),
@@ -388,4 +390,112 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
     assert!(out.join("00002.png").is_file(), "the overlay was recorded");
     let _ = std::fs::remove_dir_all(&rec);
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Update until the camera preview is computed (or refused).
+fn wait_for_preview(app: &mut App, limit: Duration) {
+    use umesh::app::setup::ObservationSetup;
+    let t = Instant::now();
+    let start = app.world().resource::<ObservationSetup>().generation;
+    loop {
+        app.update();
+        if app.world().resource::<ObservationSetup>().generation != start {
+            return;
+        }
+        assert!(t.elapsed() < limit, "no camera preview within {limit:?}");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_refused() {
+    use umesh::app::setup::{CameraChoice, ObservationSetup};
+    let mut app = app();
+    let organ = phantom();
+    app.world_mut().resource_mut::<Organ>().set(organ.clone());
+    app.world_mut().resource_mut::<Jobs>().spawn("grid", grid_job(organ.seg.clone(), Default::default()));
+    finish_jobs(&mut app, Duration::from_secs(60));
+    wait_for_preview(&mut app, Duration::from_secs(60));
+    let grid = app.world().resource::<GridState>().grid.clone().unwrap();
+    let (fixed_n, visible_n, fraction, description) = {
+        let s = app.world().resource::<ObservationSetup>();
+        assert!(s.error.is_none(), "{:?}", s.error);
+        let p = s.preview.as_ref().expect("a preview");
+        (p.fixed_nodes_mm.len(), p.visible_nodes, p.visible_fraction, p.fixed_description.clone())
+    };
+    // The dataset form's configuration through the same core check: the same nodes.
+    let cfg = umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg).unwrap();
+    let core = umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &cfg.visibility, &cfg.fixed).unwrap();
+    assert_eq!(fixed_n, core.fixed.iter().filter(|f| **f).count());
+    assert_eq!(visible_n, core.visible_nodes.len());
+    assert!(fraction > 0.05 && fraction <= 0.5 + 1e-6, "seen fraction {fraction}");
+    assert!(description.contains("inferior_vena_cava"), "{description}");
+    // Another view sees another part.
+    app.world_mut().resource_mut::<ObservationSetup>().camera = CameraChoice::Named("inferior".into());
+    wait_for_preview(&mut app, Duration::from_secs(60));
+    let other = app.world().resource::<ObservationSetup>().preview.as_ref().map(|p| p.visible_nodes).expect("a preview");
+    assert_ne!(other, visible_n, "the inferior view sees the same nodes as the anterior one");
+    // A camera inside the organ (the centre of a cell wholly inside): refused, with a message.
+    let cell = grid.cells.iter().find(|c| c.kind == umesh_core::grid::CellKind::Inside).unwrap();
+    let inside = grid.origin_mm
+        + (Vector3::new(cell.ijk[0] as f64, cell.ijk[1] as f64, cell.ijk[2] as f64) + Vector3::repeat(0.5)) * grid.cell_size_mm;
+    app.world_mut().resource_mut::<ObservationSetup>().camera = CameraChoice::Custom { from_mm: inside, to_mm: inside + Vector3::y() };
+    wait_for_preview(&mut app, Duration::from_secs(60));
+    let s = app.world().resource::<ObservationSetup>();
+    assert!(s.preview.is_none());
+    assert!(s.error.as_deref().is_some_and(|e| e.contains("inside the organ")), "{:?}", s.error);
+}
+
+#[test]
+fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region() {
+    use umesh::app::setup::{CameraChoice, ObservationSetup};
+    use umesh::app::ui_jobs::{DatasetForm, PatientForm};
+    use umesh::app::workflow::{WorkKind, WorkQueue, WorkStatus};
+    let mut app = app();
+    let organ = phantom();
+    app.world_mut().resource_mut::<Organ>().set(organ.clone());
+    let dir = tmp_dir("gui-patient");
+    let mut setup = ObservationSetup::default();
+    setup.camera = CameraChoice::Named("anterior-inferior".into());
+    let form = PatientForm { samples: 10, epochs: 1, ..Default::default() };
+    let mut settings = form.settings(&DatasetForm::default(), &organ.seg, &setup, &FixedChoice::default()).unwrap();
+    settings.check.frames = 3;
+    let camera = settings.dataset.visibility.camera.clone().expect("a named view is stored as a camera");
+    app.world_mut()
+        .resource_mut::<WorkQueue>()
+        .submit(WorkKind::Prepare { seg: organ.seg.clone(), inputs: vec![], settings: Box::new(settings) }, dir.clone())
+        .unwrap();
+    finish_work(&mut app, Duration::from_secs(1200));
+    {
+        let q = app.world().resource::<WorkQueue>();
+        assert!(matches!(q.items[0].status, WorkStatus::Done(_)), "{:?}", q.items[0].status);
+        assert!(q.items[0].command.starts_with("umesh prepare"), "{}", q.items[0].command);
+    }
+    for f in ["patient.json", "report.html", "model/model.json", "eval.json"] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    assert!(!dir.join("umesh-job.json").exists(), "the patient folder holds only the patient's files");
+    // Open it as File > Open patient does: organ, model, camera and fixed region follow.
+    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::jobs::open_patient_job(dir.clone()));
+    finish_jobs(&mut app, Duration::from_secs(120));
+    let active = app.world().resource::<ActiveModel>().dir.clone();
+    assert_eq!(active, dir.join("model"));
+    assert!(matches!(app.world().resource::<Simulation>().fixed, FixedChoice::Region(..)));
+    let s = app.world().resource::<ObservationSetup>();
+    match &s.camera {
+        CameraChoice::Custom { from_mm, .. } => {
+            assert!((from_mm - Vector3::from(camera.position_mm)).norm() < 1e-9, "camera {from_mm:?} vs {:?}", camera.position_mm)
+        }
+        other => panic!("the patient's camera was not adopted: {other:?}"),
+    }
+    assert!((s.fov_deg - camera.fov_deg).abs() < 1e-12);
+    let fig = app.world().resource::<OpenPatient>().0.as_ref().expect("the patient's figures");
+    assert!(fig.dataset.as_ref().is_some_and(|d| d.accepted >= 9), "{:?}", fig.dataset);
+    assert!(fig.eval.is_some() && fig.check.is_some() && fig.has_model && !fig.metrics.is_empty());
+    assert!(app.world().resource::<Organ>().data.as_ref().is_some_and(|d| d.source.contains("patient")));
+    // A folder that is no patient: one message naming the file, nothing replaced.
+    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::jobs::open_patient_job(dir.join("model")));
+    let err = wait_for_error(&mut app, Duration::from_secs(30));
+    assert!(err.contains("patient.json"), "{err}");
+    assert_eq!(app.world().resource::<ActiveModel>().dir, dir.join("model"));
 }

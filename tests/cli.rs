@@ -417,6 +417,15 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
 }
 
 #[test]
+fn gui_refuses_a_folder_that_is_no_patient_before_opening_a_window() {
+    let dir = tmp("not-a-patient");
+    std::fs::create_dir_all(&dir).unwrap();
+    let (ok, _, stderr) = umesh(&["gui", dir.to_str().unwrap()]);
+    assert!(!ok, "exit 0 for a folder without patient.json");
+    assert!(stderr.contains("patient.json") && stderr.contains(&dir.display().to_string()), "{stderr}");
+}
+
+#[test]
 fn prepare_refuses_bad_input_before_writing_anything() {
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (vec!["--organ-label", "77"], "label 77"),

@@ -31,6 +31,8 @@ pub enum JobOutput {
     Model(Arc<Mutex<super::probes::RehearsalModel>>),
     /// A synthetic RGB-D recording written to this folder.
     Synthesized(std::path::PathBuf, String),
+    /// A patient folder: its organ and what it holds.
+    Patient(OrganData, Box<umesh_net::patient::PatientFigures>),
 }
 
 #[derive(Clone, Debug, Default)]
@@ -98,6 +100,14 @@ impl Jobs {
     }
 }
 
+/// The state an opened patient sets besides the organ.
+#[derive(bevy::ecs::system::SystemParam)]
+pub struct PatientState<'w> {
+    setup: ResMut<'w, super::setup::ObservationSetup>,
+    active: ResMut<'w, ActiveModel>,
+    open: ResMut<'w, OpenPatient>,
+}
+
 /// Poll the tasks; apply finished results to the app state.
 pub fn poll_jobs(
     mut jobs: ResMut<Jobs>,
@@ -109,6 +119,7 @@ pub fn poll_jobs(
     mut pending: ResMut<PendingOpenRes>,
     mut rehearsal: ResMut<super::probes::Rehearsal>,
     mut ar: ResMut<super::ar::Ar>,
+    mut patient: PatientState,
 ) {
     let mut i = 0;
     while i < jobs.running.len() {
@@ -127,6 +138,29 @@ pub fn poll_jobs(
                 probes.list.clear();
                 probes.generation += 1;
                 sim.clear();
+                messages.info(msg.clone());
+                msg
+            }
+            Ok(JobOutput::Patient(data, figures)) => {
+                let dir = figures.dir.clone();
+                let settings = &figures.patient.settings;
+                organ.set(data);
+                grid.grid = None;
+                grid.stats = None;
+                grid.settings = settings.dataset.grid.clone();
+                probes.list.clear();
+                probes.generation += 1;
+                sim.clear();
+                sim.fixed = FixedChoice::Region(settings.dataset.fixed.clone(), settings.fixed_description.clone());
+                patient.setup.adopt(&settings.dataset.visibility);
+                let model = if figures.has_model {
+                    *patient.active = ActiveModel { dir: umesh_net::patient::model_dir(&dir), checkpoint: "model.safetensors".into() };
+                    "its model is active"
+                } else {
+                    "no trained model yet (run umesh prepare again to continue)"
+                };
+                patient.open.0 = Some(*figures);
+                let msg = format!("patient {}: {model}", dir.display());
                 messages.info(msg.clone());
                 msg
             }
@@ -236,20 +270,36 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             return Err("cancelled".into());
         }
         progress.report(1, 3, "organ surface");
-        // Sampled every second voxel (every fourth on software rasterisers): 68k (17k)
-        // triangles instead of 272k on the phantom, plenty for display and picking.
-        let step = super::view3d::display_surface_step();
-        let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step, ..Default::default() });
-        if surface.triangles.is_empty() {
-            return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
-        }
-        progress.report(2, 3, "structures");
-        let structures = umesh_core::register::structure_surfaces(&seg)
-            .into_iter()
-            .map(|(label, name, color, mesh)| StructureMesh { label, name, color, mesh: Arc::new(mesh) })
-            .collect();
         let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
-        Ok(JobOutput::Loaded(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source }))
+        Ok(JobOutput::Loaded(organ_data(seg, source)?))
+    }
+}
+
+/// The organ's display surfaces.
+pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -> Result<OrganData, String> {
+    // Sampled every second voxel (every fourth on software rasterisers): 68k (17k)
+    // triangles instead of 272k on the phantom, plenty for display and picking.
+    let step = super::view3d::display_surface_step();
+    let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step, ..Default::default() });
+    if surface.triangles.is_empty() {
+        return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
+    }
+    let structures = umesh_core::register::structure_surfaces(&seg)
+        .into_iter()
+        .map(|(label, name, color, mesh)| StructureMesh { label, name, color, mesh: Arc::new(mesh) })
+        .collect();
+    Ok(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source })
+}
+
+/// Open a patient folder made by `umesh prepare`: its segmentation and figures.
+pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, _| {
+        progress.report(0, 2, "reading the patient");
+        let figures = umesh_net::patient::read_figures(&dir).map_err(|e| e.to_string())?;
+        let seg = figures.patient.segmentation(&dir).map_err(|e| e.to_string())?;
+        progress.report(1, 2, "organ surface");
+        let organ = organ_data(seg, format!("patient {}", dir.display()))?;
+        Ok(JobOutput::Patient(organ, Box::new(figures)))
     }
 }
 

@@ -11,6 +11,7 @@ pub mod qa;
 pub mod qa_view;
 pub mod scene;
 pub mod screenshot;
+pub mod setup;
 pub mod state;
 pub mod ui;
 pub mod ui_ar;
@@ -29,7 +30,8 @@ pub struct CorePlugins;
 
 impl Plugin for CorePlugins {
     fn build(&self, app: &mut App) {
-        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin, workflow::WorkflowPlugin, qa::QaPlugin, ar::ArPlugin))
+        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin, workflow::WorkflowPlugin, qa::QaPlugin, ar::ArPlugin, setup::SetupPlugin))
+            .init_resource::<state::OpenPatient>()
             .init_resource::<state::ActiveModel>()
             .init_resource::<state::Mode>();
     }
@@ -49,6 +51,7 @@ impl Plugin for ViewPlugins {
                 probes::ProbeInputPlugin,
                 view3d::View3dPlugin,
                 qa_view::QaViewPlugin,
+                setup::SetupViewPlugin,
             ))
             .init_resource::<ui::UiState>()
             .init_resource::<ui_jobs::JobsUi>()
@@ -89,8 +92,19 @@ fn spawn_window_cameras(world: &mut World) {
     spawn_cameras(world, None);
 }
 
-fn load_phantom_at_start(mut jobs: ResMut<jobs::Jobs>) {
-    jobs.spawn("load phantom", jobs::load_job(state::OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+/// What the window opens on: a patient folder (`umesh gui PATIENT/`) or the bundled phantom.
+#[derive(Resource, Clone, Default)]
+pub struct StartWith(pub Option<std::path::PathBuf>);
+
+fn load_at_start(mut jobs: ResMut<jobs::Jobs>, start: Res<StartWith>) {
+    match &start.0 {
+        Some(dir) => {
+            jobs.spawn("open patient", jobs::open_patient_job(dir.clone()));
+        }
+        None => {
+            jobs.spawn("load phantom", jobs::load_job(state::OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+        }
+    }
 }
 
 /// Build a grid once an organ is loaded and none exists.
@@ -115,19 +129,28 @@ fn request_redraws(
     qa: Res<qa::Qa>,
     ar: Res<ar::Ar>,
     jobs: Res<jobs::Jobs>,
-    mut last: Local<[u64; 7]>,
+    setup: Res<setup::ObservationSetup>,
+    mut last: Local<[u64; 8]>,
     mut redraw: MessageWriter<bevy::window::RequestRedraw>,
 ) {
-    let now =
-        [organ.generation, sim.generation, grid.generation, probes.generation, qa.generation, ar.generation, jobs.finished.len() as u64];
+    let now = [
+        organ.generation,
+        sim.generation,
+        grid.generation,
+        probes.generation,
+        qa.generation,
+        ar.generation,
+        jobs.finished.len() as u64,
+        setup.generation,
+    ];
     if now != *last || probes.dragging.is_some() {
         *last = now;
         redraw.write(bevy::window::RequestRedraw);
     }
 }
 
-/// Open the app window on the bundled phantom.
-pub fn run_gui() -> AppExit {
+/// Open the app window on a patient folder, or on the bundled phantom.
+pub fn run_gui(patient: Option<std::path::PathBuf>) -> AppExit {
     App::new()
         .add_plugins(DefaultPlugins.set(WindowPlugin {
             primary_window: Some(Window { title: "umesh".into(), resolution: (1400u32, 900u32).into(), ..default() }),
@@ -135,7 +158,8 @@ pub fn run_gui() -> AppExit {
         }))
         .add_plugins(ViewPlugins)
         .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
-        .add_systems(Startup, (spawn_window_cameras, load_phantom_at_start))
+        .insert_resource(StartWith(patient))
+        .add_systems(Startup, (spawn_window_cameras, load_at_start))
         .add_systems(Update, (auto_grid, request_redraws))
         // Update on input, on a wake-up (AR frames) and on state changes; otherwise 10 times a
         // second for progress bars. A software-rendered frame costs a core: drawing only when

@@ -16,6 +16,7 @@ struct Shown {
     organ: u64,
     sim: u64,
     deformed: bool,
+    setup: u64,
 }
 
 fn setup(mut commands: Commands) {
@@ -33,26 +34,43 @@ fn sync(
     mut commands: Commands,
     organ: Res<Organ>,
     sim: Res<Simulation>,
+    setup: Res<super::setup::ObservationSetup>,
     mut shown: ResMut<Shown>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
     old: Query<Entity, Or<(With<OrganMesh>, With<StructureMesh>)>>,
 ) {
     let deformed = sim.show_deformed && sim.result.is_some();
-    if shown.organ == organ.generation && shown.sim == sim.generation && shown.deformed == deformed {
+    // The seen-surface tint follows the camera preview (shown on the rest shape only).
+    let setup_key = if deformed { 0 } else { setup.generation * 2 + setup.show as u64 };
+    if shown.organ == organ.generation && shown.sim == sim.generation && shown.deformed == deformed && shown.setup == setup_key {
         return;
     }
-    *shown = Shown { organ: organ.generation, sim: sim.generation, deformed };
+    *shown = Shown { organ: organ.generation, sim: sim.generation, deformed, setup: setup_key };
     for e in &old {
         commands.entity(e).despawn();
     }
     let Some(data) = &organ.data else { return };
     let def = sim.result.as_ref().filter(|_| deformed);
-    let (surface, colors) = match def {
-        Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32))),
-        None => (data.surface.as_ref(), None),
+    let (surface, colors, seen) = match def {
+        Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32)), false),
+        None => {
+            let seen = super::setup::seen_colors(&setup, data, organ.generation);
+            let tinted = seen.is_some();
+            (data.surface.as_ref(), seen, tinted)
+        }
     };
-    let organ_mat = if colors.is_some() {
+    let organ_mat = if seen {
+        // Vertex colours carry the organ's and the seen part's colour and opacity.
+        StandardMaterial {
+            base_color: Color::WHITE,
+            alpha_mode: AlphaMode::Blend,
+            perceptual_roughness: 0.6,
+            double_sided: true,
+            cull_mode: None,
+            ..default()
+        }
+    } else if colors.is_some() {
         StandardMaterial { base_color: Color::WHITE.with_alpha(0.55), alpha_mode: AlphaMode::Blend, perceptual_roughness: 0.7, ..default() }
     } else {
         StandardMaterial {

@@ -92,29 +92,47 @@ impl Probes {
     }
 }
 
-/// Which nodes the simulation holds fixed.
+/// Which nodes the simulation and the dataset hold fixed.
 #[derive(Clone, Debug, PartialEq)]
 pub enum FixedChoice {
-    /// Nodes within `distance_mm` of a label (the phantom: the vena cava).
+    /// The CLI's default: near the vena cava / hepatic veins when the segmentation names them,
+    /// else the posterior fifth (`umesh_core::loads::default_fixed`).
+    Auto { distance_mm: f64 },
+    /// Nodes within `distance_mm` of a label.
     Label { label: i64, distance_mm: f64 },
     /// The posterior slab of the organ, `fraction` of its depth.
     Posterior { fraction: f64 },
+    /// A region given elsewhere (an opened patient's), with its description.
+    Region(FixedRegion, String),
 }
 
 impl Default for FixedChoice {
     fn default() -> Self {
-        FixedChoice::Label { label: umesh_core::phantom::VENA_CAVA, distance_mm: 6.0 }
+        FixedChoice::Auto { distance_mm: 6.0 }
     }
 }
 
 impl FixedChoice {
     pub fn region(&self, seg: &Segmentation) -> FixedRegion {
-        match *self {
-            FixedChoice::Label { label, distance_mm } => FixedRegion::Label { label, distance_mm },
+        self.describe(seg).0
+    }
+    /// The region and how it was chosen (as `umesh dataset generate` prints it).
+    pub fn describe(&self, seg: &Segmentation) -> (FixedRegion, String) {
+        match self {
+            FixedChoice::Auto { distance_mm } => {
+                let c = umesh_core::loads::default_fixed(seg, None, *distance_mm);
+                (c.region, c.description)
+            }
+            FixedChoice::Label { label, distance_mm } => {
+                let c = umesh_core::loads::default_fixed(seg, Some(*label), *distance_mm);
+                (c.region, c.description)
+            }
             FixedChoice::Posterior { fraction } => {
                 let (lo, hi) = seg.organ_mask().world_bounds().unwrap_or_default();
-                FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: fraction * (hi.y - lo.y) }
+                let region = FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: fraction * (hi.y - lo.y) };
+                (region, format!("the posterior {:.0} % of the organ", fraction * 100.0))
             }
+            FixedChoice::Region(r, d) => (r.clone(), d.clone()),
         }
     }
 }
@@ -278,3 +296,7 @@ pub fn short_path(p: &std::path::Path) -> String {
         .and_then(|d| p.strip_prefix(d).ok().map(|r| r.display().to_string()))
         .unwrap_or_else(|| p.display().to_string())
 }
+
+/// The patient folder opened (File > Open patient, `umesh gui PATIENT/`) and its figures.
+#[derive(Resource, Default)]
+pub struct OpenPatient(pub Option<umesh_net::patient::PatientFigures>);

@@ -16,6 +16,7 @@ pub struct UiState {
     pub show_help: bool,
     pub frame_ms: f32,
     file_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    folder_dialog: Option<Task<Option<std::path::PathBuf>>>,
 }
 
 #[derive(bevy::ecs::system::SystemParam)]
@@ -29,6 +30,8 @@ pub struct AppState<'w> {
     pending: ResMut<'w, PendingOpenRes>,
     probe_settings: ResMut<'w, ProbeSettings>,
     rehearsal: ResMut<'w, Rehearsal>,
+    setup: ResMut<'w, super::setup::ObservationSetup>,
+    orbit: Res<'w, super::camera::OrbitCamera>,
 }
 
 /// The state of the jobs, QA and AR views.
@@ -40,6 +43,7 @@ pub struct Views<'w> {
     qa: ResMut<'w, super::qa::Qa>,
     ar: ResMut<'w, super::ar::Ar>,
     active: ResMut<'w, ActiveModel>,
+    patient: ResMut<'w, OpenPatient>,
     proxy: Option<Res<'w, bevy::winit::EventLoopProxyWrapper>>,
 }
 
@@ -54,6 +58,11 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
                         .await
                         .map(|f| f.path().to_path_buf())
                 }));
+            }
+            if ui.button("Open patient folder...").on_hover_text("a folder made by umesh prepare (or New patient in Jobs)").clicked() {
+                uis.folder_dialog = Some(
+                    IoTaskPool::get().spawn(async { rfd::AsyncFileDialog::new().pick_folder().await.map(|f| f.path().to_path_buf()) }),
+                );
             }
             if ui.button("Bundled phantom").clicked() {
                 st.jobs.spawn("load phantom", load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
@@ -113,26 +122,11 @@ fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
         st.jobs.spawn("grid", grid_job(d.seg.clone(), st.grid.settings.clone()));
     }
     ui.separator();
+    ui.heading("Laparoscope (dataset camera)");
+    super::setup::camera_ui(ui, &mut st.setup, &st.orbit);
+    ui.separator();
     ui.heading("Simulation");
-    let is_label = matches!(st.sim.fixed, FixedChoice::Label { .. });
-    ui.horizontal(|ui| {
-        ui.label("Fixed:");
-        if ui.radio(is_label, "near a label").clicked() {
-            st.sim.fixed = FixedChoice::default();
-        }
-        if ui.radio(!is_label, "posterior slab").clicked() {
-            st.sim.fixed = FixedChoice::Posterior { fraction: 0.1 };
-        }
-    });
-    match &mut st.sim.fixed {
-        FixedChoice::Label { label, distance_mm } => {
-            ui.add(egui::DragValue::new(label).prefix("label "));
-            ui.add(egui::Slider::new(distance_mm, 1.0..=20.0).text("within (mm)"));
-        }
-        FixedChoice::Posterior { fraction } => {
-            ui.add(egui::Slider::new(fraction, 0.02..=0.5).text("of the depth"));
-        }
-    }
+    super::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
     ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
     let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
     if ui.add_enabled(can, egui::Button::new("Simulate (SVK)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
@@ -307,6 +301,14 @@ pub fn ui_system(
             st.jobs.spawn("inspect", inspect_job(path));
         }
     }
+    if let Some(task) = &mut uis.folder_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.folder_dialog = None;
+        if let Some(dir) = picked {
+            st.jobs.spawn("open patient", super::jobs::open_patient_job(dir));
+        }
+    }
     let ctx = contexts.ctx_mut()?.clone();
     let mode = *views.mode;
     if !ctx.egui_wants_keyboard_input() {
@@ -356,7 +358,7 @@ pub fn ui_system(
             let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
         }) as super::ar::Waker
     });
-    let Views { jobs_ui, queue, qa, ar, active, .. } = &mut views;
+    let Views { jobs_ui, queue, qa, ar, active, patient, .. } = &mut views;
     match mode {
         Mode::Model => {
             egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
@@ -368,10 +370,12 @@ pub fn ui_system(
         }
         Mode::Jobs => {
             egui::Panel::left("jobs_left").default_size(300.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| super::ui_jobs::forms_panel(ui, jobs_ui, queue, &st.organ, &mut st.messages));
+                egui::ScrollArea::vertical()
+                    .show(ui, |ui| super::ui_jobs::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages));
             });
-            let load =
-                egui::CentralPanel::default().show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active)).inner;
+            let load = egui::CentralPanel::default()
+                .show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
+                .inner;
             if let Some((dir, file)) = load {
                 **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
                 if let Some(d) = &st.organ.data {

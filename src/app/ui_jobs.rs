@@ -1,8 +1,11 @@
 //! Panels of the jobs view: the dataset and training forms (the CLI's settings), the queue
 //! with progress, rate, ETA, log and cancel, and the training dashboard.
 
+use super::setup::ObservationSetup;
 use super::state::{ActiveModel, Organ, UiMessages};
+use super::state::{FixedChoice, OpenPatient};
 use super::workflow::{WorkKind, WorkQueue, WorkStatus, read_metrics};
+use crate::cli::dataset::ConfigArgs;
 use bevy::prelude::*;
 use bevy_egui::egui;
 use egui_plot::{Legend, Line, Plot, PlotPoints};
@@ -10,7 +13,9 @@ use std::path::PathBuf;
 use umesh_core::dataset::DatasetConfig;
 use umesh_core::fem::MaterialParams;
 use umesh_core::loads::ForceSettings;
+use umesh_core::segmentation::Segmentation;
 use umesh_net::UNetConfig;
+use umesh_net::patient::{PatientFigures, PrepareSettings};
 use umesh_net::training::{EpochMetrics, TrainSettings};
 
 #[derive(Clone, Debug)]
@@ -21,7 +26,6 @@ pub struct DatasetForm {
     pub shard_size: usize,
     pub probes: usize,
     pub target_displacement_mm: f64,
-    pub visible_fraction: f64,
     pub young_pa: f64,
     pub poisson: f64,
     pub cell_size_mm: f64,
@@ -40,7 +44,6 @@ impl Default for DatasetForm {
             shard_size: 10,
             probes: f.probes,
             target_displacement_mm: f.target_displacement_mm,
-            visible_fraction: 0.5,
             young_pa: m.young_pa,
             poisson: m.poisson,
             cell_size_mm: g.cell_size_mm,
@@ -50,17 +53,68 @@ impl Default for DatasetForm {
 }
 
 impl DatasetForm {
-    /// The configuration `umesh dataset generate` builds from the same values.
-    pub fn config(&self, seg: &umesh_core::segmentation::Segmentation) -> DatasetConfig {
-        let mut c = DatasetConfig::paper(crate::cli::dataset::default_fixed(seg, None, 6.0));
-        c.samples = self.samples.max(1);
-        c.seed = self.seed;
-        c.shard_size = self.shard_size.max(1);
-        c.grid = umesh_core::grid::GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, ..Default::default() };
-        c.forces = ForceSettings { probes: self.probes, target_displacement_mm: self.target_displacement_mm, ..Default::default() };
-        c.visibility.max_fraction = self.visible_fraction;
-        c.material = MaterialParams { young_pa: self.young_pa, poisson: self.poisson, ..Default::default() };
-        c
+    /// The CLI options of these values with the model view's camera and fixed region.
+    pub fn config_args(&self, setup: &ObservationSetup, fixed: &FixedChoice) -> ConfigArgs {
+        let base = ConfigArgs {
+            probes: self.probes,
+            target_displacement_mm: self.target_displacement_mm,
+            young_pa: self.young_pa,
+            poisson: self.poisson,
+            ..ConfigArgs::default()
+        };
+        setup.config_args(fixed, &base)
+    }
+
+    /// The configuration `umesh dataset generate` builds from the same values (its checks
+    /// too), with the camera and fixed region chosen in the model view.
+    pub fn config_with(&self, seg: &Segmentation, setup: &ObservationSetup, fixed: &FixedChoice) -> Result<DatasetConfig, String> {
+        let grid =
+            umesh_core::grid::GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, ..Default::default() };
+        let (mut c, _) = self
+            .config_args(setup, fixed)
+            .config(seg, grid, self.samples.max(1), self.seed, self.shard_size)
+            .map_err(|e| format!("{e:#}"))?;
+        // Regions the options cannot spell (a posterior slab, a patient's region) are set as they are.
+        c.fixed = fixed.region(seg);
+        Ok(c)
+    }
+
+    /// With the default camera and fixed region.
+    pub fn config(&self, seg: &Segmentation) -> Result<DatasetConfig, String> {
+        self.config_with(seg, &ObservationSetup::default(), &FixedChoice::default())
+    }
+}
+
+/// `umesh prepare` from the jobs view: the dataset form's loads, the model view's camera and
+/// fixed region, the paper's protocol.
+#[derive(Clone, Debug)]
+pub struct PatientForm {
+    pub out: String,
+    pub samples: usize,
+    pub epochs: usize,
+    pub paper_preset: bool,
+}
+
+impl Default for PatientForm {
+    fn default() -> Self {
+        Self { out: "patients/new".into(), samples: 1000, epochs: 20, paper_preset: false }
+    }
+}
+
+impl PatientForm {
+    pub fn settings(
+        &self,
+        dataset: &DatasetForm,
+        seg: &Segmentation,
+        setup: &ObservationSetup,
+        fixed: &FixedChoice,
+    ) -> Result<PrepareSettings, String> {
+        let form = DatasetForm { samples: self.samples, shard_size: 50, ..dataset.clone() };
+        let config = form.config_with(seg, setup, fixed)?;
+        let mut s = PrepareSettings::paper(config, fixed.describe(seg).1);
+        s.train.epochs = self.epochs.max(1);
+        s.train.model = if self.paper_preset { UNetConfig::paper() } else { UNetConfig::cpu() };
+        Ok(s)
     }
 }
 
@@ -115,8 +169,11 @@ pub enum DashSource {
 #[derive(Resource, Default)]
 pub struct JobsUi {
     pub dataset: DatasetForm,
+    pub patient: PatientForm,
     pub train: TrainForm,
     pub dash: Option<DashSource>,
+    /// The patient job whose figures were last loaded.
+    pub patient_shown: Option<u64>,
     pub folder_text: String,
     /// Metrics read from a folder (re-read every second while shown).
     folder_metrics: Option<(Vec<EpochMetrics>, f64)>,
@@ -132,7 +189,15 @@ fn path_field(ui: &mut egui::Ui, label: &str, s: &mut String) {
 }
 
 /// Left panel: the two forms.
-pub fn forms_panel(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, organ: &Organ, messages: &mut UiMessages) {
+pub fn forms_panel(
+    ui: &mut egui::Ui,
+    f: &mut JobsUi,
+    q: &mut WorkQueue,
+    organ: &Organ,
+    setup: &ObservationSetup,
+    fixed: &FixedChoice,
+    messages: &mut UiMessages,
+) {
     ui.heading("Dataset generation");
     let d = &mut f.dataset;
     egui::Grid::new("dataset_form").num_columns(2).show(ui, |ui| {
@@ -151,9 +216,6 @@ pub fn forms_panel(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, organ: 
         ui.label("target displacement (mm)");
         ui.add(egui::DragValue::new(&mut d.target_displacement_mm).range(0.1..=50.0).speed(0.1));
         ui.end_row();
-        ui.label("visible fraction");
-        ui.add(egui::DragValue::new(&mut d.visible_fraction).range(0.05..=1.0).speed(0.01));
-        ui.end_row();
         ui.label("Young's modulus (Pa)");
         ui.add(egui::DragValue::new(&mut d.young_pa).range(100.0..=1e7).speed(100.0));
         ui.end_row();
@@ -170,15 +232,57 @@ pub fn forms_panel(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, organ: 
     path_field(ui, "output folder", &mut d.out);
     let organ_name = organ.data.as_ref().map(|o| o.source.clone());
     ui.weak(format!("organ: {}", organ_name.as_deref().unwrap_or("none loaded")));
+    ui.weak(match (&setup.preview, &setup.error) {
+        (_, Some(e)) => format!("camera and fixed region (model view): {e}"),
+        (Some(p), None) => format!(
+            "camera and fixed region as in the model view: {:.0} % of the surface seen, {} fixed nodes",
+            100.0 * p.visible_fraction,
+            p.fixed_nodes_mm.len()
+        ),
+        (None, None) => "camera and fixed region as chosen in the model view".into(),
+    });
     if ui.add_enabled(organ.data.is_some(), egui::Button::new("Queue dataset generation")).clicked()
         && let Some(o) = &organ.data
     {
-        let config = d.config(&o.seg);
-        match q.submit(WorkKind::Dataset { seg: o.seg.clone(), config: Box::new(config) }, PathBuf::from(d.out.trim())) {
+        let submitted = d
+            .config_with(&o.seg, setup, fixed)
+            .and_then(|config| q.submit(WorkKind::Dataset { seg: o.seg.clone(), config: Box::new(config) }, PathBuf::from(d.out.trim())));
+        match submitted {
             Ok(id) => {
                 messages.info(format!("dataset job #{id} queued"));
                 f.train.dataset = d.out.clone();
             }
+            Err(e) => messages.error(e),
+        }
+    }
+    ui.separator();
+    ui.heading("New patient");
+    ui.weak("umesh prepare: grid, dataset (these loads, the model view's camera and fixed region), training, evaluation, registration check, report.html; resumable");
+    let pf = &mut f.patient;
+    path_field(ui, "patient folder", &mut pf.out);
+    egui::Grid::new("patient_form").num_columns(2).show(ui, |ui| {
+        ui.label("samples");
+        ui.add(egui::DragValue::new(&mut pf.samples).range(10..=100_000));
+        ui.end_row();
+        ui.label("epochs");
+        ui.add(egui::DragValue::new(&mut pf.epochs).range(1..=10_000));
+        ui.end_row();
+        ui.label("network");
+        ui.horizontal(|ui| {
+            ui.radio_value(&mut pf.paper_preset, false, "cpu");
+            ui.radio_value(&mut pf.paper_preset, true, "paper");
+        });
+        ui.end_row();
+    });
+    if ui.add_enabled(organ.data.is_some(), egui::Button::new("Queue new patient")).clicked()
+        && let Some(o) = &organ.data
+    {
+        let inputs: Vec<PathBuf> = Some(o.seg.source.clone()).filter(|p| p.is_file()).into_iter().collect();
+        let submitted = pf.settings(&f.dataset, &o.seg, setup, fixed).and_then(|settings| {
+            q.submit(WorkKind::Prepare { seg: o.seg.clone(), inputs, settings: Box::new(settings) }, PathBuf::from(pf.out.trim()))
+        });
+        match submitted {
+            Ok(id) => messages.info(format!("patient job #{id} queued")),
             Err(e) => messages.error(e),
         }
     }
@@ -231,7 +335,30 @@ fn fmt_secs(s: f64) -> String {
 }
 
 /// Central area: the queue, then the dashboard. Returns a model to load: (folder, checkpoint file).
-pub fn queue_and_dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, active: &ActiveModel) -> Option<(PathBuf, String)> {
+pub fn queue_and_dashboard(
+    ui: &mut egui::Ui,
+    f: &mut JobsUi,
+    q: &mut WorkQueue,
+    active: &ActiveModel,
+    patient: &mut OpenPatient,
+) -> Option<(PathBuf, String)> {
+    // A finished patient job shows its figures (as File > Open patient would, without the organ).
+    if let Some(item) = q.items.iter().rev().find(|i| i.label == "patient" && matches!(i.status, WorkStatus::Done(_)))
+        && f.patient_shown != Some(item.id)
+    {
+        f.patient_shown = Some(item.id);
+        if let Ok(fig) = umesh_net::patient::read_figures(&item.out) {
+            patient.0 = Some(fig);
+        }
+    }
+    if let Some(fig) = &patient.0 {
+        egui::CollapsingHeader::new(format!("Patient {}", fig.dir.display())).default_open(true).show(ui, |ui| {
+            if let Some(show) = patient_figures(ui, fig) {
+                f.dash = Some(DashSource::Folder(show));
+            }
+        });
+        ui.separator();
+    }
     ui.heading("Jobs");
     if q.items.is_empty() {
         ui.label("No jobs yet: queue a dataset generation or a training on the left.");
@@ -380,4 +507,94 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
         });
     }
     load
+}
+
+/// The report's figures for a patient folder: stages, dataset acceptance and displacement
+/// against target, validation TRE, the registration check. Returns the model folder when
+/// its learning curves are asked for.
+pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBuf> {
+    use egui_plot::{Bar, BarChart};
+    let mut show_curves = None;
+    let p = &fig.patient;
+    ui.label(format!(
+        "organ {} · structures {} · fixed: {}",
+        p.organ_labels.join(", "),
+        p.structures.join(", "),
+        p.settings.fixed_description
+    ));
+    ui.horizontal_wrapped(|ui| {
+        for s in umesh_net::patient::Stage::ALL {
+            let r = p.stages.get(&s);
+            let done = r.is_some_and(|r| r.done);
+            let text = format!("{} {}", s.name(), r.map(|r| fmt_secs(r.seconds)).unwrap_or_else(|| "-".into()));
+            ui.colored_label(if done { egui::Color32::LIGHT_GREEN } else { egui::Color32::GRAY }, text);
+        }
+    });
+    if let Some(d) = &fig.dataset {
+        let rejected: Vec<String> = d.rejected.iter().map(|(k, v)| format!("{v} {k}")).collect();
+        ui.label(format!(
+            "dataset: {} / {} accepted{}; mean nodal displacement {} for a target of {} mm",
+            d.accepted,
+            d.samples,
+            if rejected.is_empty() { String::new() } else { format!(" ({})", rejected.join(", ")) },
+            d.mean_displacement_mm
+                .as_ref()
+                .map(|m| format!("{:.2} mm (p5 {:.1}, p95 {:.1})", m.mean, m.p5, m.p95))
+                .unwrap_or_else(|| "-".into()),
+            d.target_displacement_mm
+        ));
+    }
+    let hist = |values: &[f64], bins: usize| -> Vec<(f64, f64, f64)> {
+        let (lo, hi) = values.iter().fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        if values.is_empty() || !(hi > lo) {
+            return values.first().map(|&v| vec![(v, 1.0, values.len() as f64)]).unwrap_or_default();
+        }
+        let w = (hi - lo) / bins as f64;
+        let mut counts = vec![0.0; bins];
+        for v in values {
+            counts[(((v - lo) / w) as usize).min(bins - 1)] += 1.0;
+        }
+        counts.into_iter().enumerate().map(|(i, c)| (lo + (i as f64 + 0.5) * w, w, c)).collect()
+    };
+    ui.columns(2, |cols| {
+        let achieved: Vec<f64> = fig.mean_vs_target_mm.iter().map(|x| x.0).collect();
+        cols[0].label("achieved mean displacement (mm)");
+        let bars: Vec<Bar> = hist(&achieved, 20).into_iter().map(|(x, w, c)| Bar::new(x, c).width(w * 0.95)).collect();
+        Plot::new("patient_disp").height(140.0).x_axis_label("mm").y_axis_label("samples").show(&mut cols[0], |pl| {
+            pl.bar_chart(BarChart::new("samples", bars));
+        });
+        cols[1].label("validation TRE per marker (mm)");
+        let tre = fig.eval.as_ref().map(|e| e.per_marker_tre_mm.clone()).unwrap_or_default();
+        let bars: Vec<Bar> = hist(&tre, 20).into_iter().map(|(x, w, c)| Bar::new(x, c).width(w * 0.95)).collect();
+        Plot::new("patient_tre").height(140.0).x_axis_label("mm").y_axis_label("markers").show(&mut cols[1], |pl| {
+            pl.bar_chart(BarChart::new("markers", bars));
+        });
+    });
+    if let Some(e) = &fig.eval {
+        ui.label(format!(
+            "validation TRE {:.2} mm mean, {:.2} max, at a mean marker displacement of {:.2} mm",
+            e.tre_mean_mm, e.tre_max_mm, e.marker_displacement_mean_mm
+        ));
+    }
+    if let Some(c) = &fig.check {
+        let o = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into());
+        ui.label(format!(
+            "registration check, last frame: TRE {} mm, rigid only {}, marker motion {} ({} frames, {:.0} ms median)",
+            o(c.last_frame_tre_mm),
+            o(c.last_frame_tre_rigid_mm),
+            o(c.last_frame_marker_displacement_mm),
+            c.summary.frames,
+            c.summary.frame_ms_median
+        ));
+    }
+    ui.horizontal(|ui| {
+        if !fig.metrics.is_empty() && ui.button("Learning curves").clicked() {
+            show_curves = Some(umesh_net::patient::model_dir(&fig.dir));
+        }
+        let report = fig.dir.join("report.html");
+        if report.is_file() {
+            ui.weak(format!("report: {}", report.display()));
+        }
+    });
+    show_curves
 }

@@ -12,11 +12,25 @@ use std::time::Instant;
 use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate};
 use umesh_core::segmentation::Segmentation;
 use umesh_core::{Cancel, Progress};
+use umesh_net::patient::{PrepareSettings, run_prepare};
 use umesh_net::training::{EpochMetrics, TrainSettings, run_train};
 
 pub enum WorkKind {
-    Dataset { seg: Arc<Segmentation>, config: Box<DatasetConfig> },
-    Train { dataset: PathBuf, settings: TrainSettings, resume: bool },
+    Dataset {
+        seg: Arc<Segmentation>,
+        config: Box<DatasetConfig>,
+    },
+    Train {
+        dataset: PathBuf,
+        settings: TrainSettings,
+        resume: bool,
+    },
+    /// `umesh prepare`: the whole job into a patient folder.
+    Prepare {
+        seg: Arc<Segmentation>,
+        inputs: Vec<PathBuf>,
+        settings: Box<PrepareSettings>,
+    },
 }
 
 impl WorkKind {
@@ -24,6 +38,7 @@ impl WorkKind {
         match self {
             WorkKind::Dataset { .. } => "dataset",
             WorkKind::Train { .. } => "training",
+            WorkKind::Prepare { .. } => "patient",
         }
     }
 }
@@ -183,7 +198,7 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
             let input = if src.contains("phantom") && !Path::new(&src).exists() { String::new() } else { format!("{src} ") };
             let command = format!(
                 "umesh dataset generate {input}--samples {} --seed {} --shard-size {} --probes {} --target-displacement-mm {} \
-                 --visible-fraction {} --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {} --out {}",
+                 --visible-fraction {} --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {}{} --out {}",
                 c.samples,
                 c.seed,
                 c.shard_size,
@@ -194,6 +209,7 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
                 c.material.poisson,
                 c.grid.cell_size_mm,
                 c.grid.subdivisions,
+                camera_and_fixed_options(c),
                 out.display()
             );
             (serde_json::json!({ "kind": "dataset", "segmentation": src, "config": c }), command)
@@ -214,7 +230,47 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
             );
             (serde_json::json!({ "kind": "training", "dataset": dataset, "settings": s, "resume": resume }), command)
         }
+        WorkKind::Prepare { inputs, settings, .. } => {
+            let c = &settings.dataset;
+            let input = inputs.iter().map(|p| format!("{} ", p.display())).collect::<String>();
+            let command = format!(
+                "umesh prepare {input}--samples {} --epochs {} --preset {} --probes {} --target-displacement-mm {} --visible-fraction {} \
+                 --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {}{} --out {}",
+                c.samples,
+                settings.train.epochs,
+                if settings.train.model == umesh_net::UNetConfig::paper() { "paper" } else { "cpu" },
+                c.forces.probes,
+                c.forces.target_displacement_mm,
+                c.visibility.max_fraction,
+                c.material.young_pa,
+                c.material.poisson,
+                c.grid.cell_size_mm,
+                c.grid.subdivisions,
+                camera_and_fixed_options(c),
+                out.display()
+            );
+            (serde_json::json!({ "kind": "patient", "inputs": inputs, "settings": settings }), command)
+        }
     }
+}
+
+/// The camera and fixed-region options of a configuration, as typed on the command line
+/// (a region no option spells is named as such).
+fn camera_and_fixed_options(c: &DatasetConfig) -> String {
+    use umesh_core::fem::FixedRegion;
+    let list = |v: &[f64]| v.iter().map(|x| format!("{x:.1}")).collect::<Vec<_>>().join(",");
+    let mut out = String::new();
+    if let Some(cam) = &c.visibility.camera {
+        let to: Vec<f64> = (0..3).map(|i| cam.position_mm[i] + cam.direction[i]).collect();
+        out += &format!(" --camera-from {} --camera-to {} --fov-deg {}", list(&cam.position_mm), list(&to), cam.fov_deg);
+    }
+    out += &match &c.fixed {
+        FixedRegion::Label { label, distance_mm } => format!(" --fix-label {label} --fix-distance-mm {distance_mm}"),
+        FixedRegion::Box { min_mm, max_mm } => format!(" --fix-box {},{}", list(min_mm), list(max_mm)),
+        FixedRegion::Plane { normal, offset_mm, thickness_mm } => format!(" --fix-plane {},{offset_mm:.1},{thickness_mm:.1}", list(normal)),
+        other => format!(" (fixed region {other:?} as chosen in the app)"),
+    };
+    out
 }
 
 fn start(item: &mut WorkItem) {
@@ -249,10 +305,13 @@ fn start(item: &mut WorkItem) {
                 push(msg.to_string());
             }
         });
-        std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
-        let job_file = out.join("umesh-job.json");
-        umesh_core::write_atomic(&job_file, serde_json::to_string_pretty(&record).unwrap_or_default().as_bytes())
-            .map_err(|e| format!("{}: {e}", job_file.display()))?;
+        // A patient folder records its own settings (patient.json) and refuses foreign files.
+        if !matches!(kind, WorkKind::Prepare { .. }) {
+            std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
+            let job_file = out.join("umesh-job.json");
+            umesh_core::write_atomic(&job_file, serde_json::to_string_pretty(&record).unwrap_or_default().as_bytes())
+                .map_err(|e| format!("{}: {e}", job_file.display()))?;
+        }
         let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -265,6 +324,17 @@ fn start(item: &mut WorkItem) {
                 Ok(format!(
                     "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
                     r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
+                ))
+            }
+            WorkKind::Prepare { seg, inputs, settings } => {
+                let r = run_prepare(&seg, &inputs, &out, &settings, &sink, &cancel).map_err(|e| e.to_string())?;
+                Ok(format!(
+                    "{} / {} samples accepted, validation TRE {:.2} mm; check TRE {} mm (rigid {}); report.html written",
+                    r.dataset.accepted,
+                    r.dataset.samples,
+                    r.eval.tre_mean_mm,
+                    r.check.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
+                    r.check.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
                 ))
             }
             WorkKind::Train { dataset, settings, resume } => {

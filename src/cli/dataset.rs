@@ -125,7 +125,48 @@ pub struct ConfigArgs {
     pub max_newton_iterations: usize,
 }
 
+impl Default for ConfigArgs {
+    /// The command line's defaults (what `umesh dataset generate` uses with no option).
+    fn default() -> Self {
+        #[derive(clap::Parser)]
+        struct Wrapper {
+            #[command(flatten)]
+            c: ConfigArgs,
+        }
+        <Wrapper as clap::Parser>::parse_from(["umesh"]).c
+    }
+}
+
 impl ConfigArgs {
+    /// The options that differ from the defaults, as they are typed on the command line.
+    pub fn command_line(&self) -> String {
+        let d = Self::default();
+        let list = |v: &[f64]| v.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join(",");
+        let mut out = Vec::new();
+        let mut opt = |name: &str, differs: bool, value: String| {
+            if differs {
+                out.push(format!("--{name} {value}"));
+            }
+        };
+        opt("probes", self.probes != d.probes, self.probes.to_string());
+        opt("target-displacement-mm", self.target_displacement_mm != d.target_displacement_mm, self.target_displacement_mm.to_string());
+        opt("target-spread", self.target_spread != d.target_spread, self.target_spread.to_string());
+        opt("calibration", self.calibration != d.calibration, self.calibration.clone());
+        opt("visible-fraction", self.visible_fraction != d.visible_fraction, self.visible_fraction.to_string());
+        opt("young-pa", self.young_pa != d.young_pa, self.young_pa.to_string());
+        opt("poisson", self.poisson != d.poisson, self.poisson.to_string());
+        opt("fix-label", self.fix_label.is_some(), self.fix_label.map(|l| l.to_string()).unwrap_or_default());
+        opt("fix-distance-mm", self.fix_distance_mm != d.fix_distance_mm, self.fix_distance_mm.to_string());
+        opt("fix-box", !self.fix_box.is_empty(), list(&self.fix_box));
+        opt("fix-plane", !self.fix_plane.is_empty(), list(&self.fix_plane));
+        opt("camera", self.camera.is_some(), self.camera.clone().unwrap_or_default());
+        opt("camera-from", !self.camera_from.is_empty(), list(&self.camera_from));
+        opt("camera-to", !self.camera_to.is_empty(), list(&self.camera_to));
+        opt("fov-deg", self.fov_deg != d.fov_deg, self.fov_deg.to_string());
+        opt("max-newton-iterations", self.max_newton_iterations != d.max_newton_iterations, self.max_newton_iterations.to_string());
+        out.join(" ")
+    }
+
     /// The fixed region: the options given, else core's default for this segmentation.
     pub fn fixed(&self, seg: &Segmentation) -> Result<FixedChoice> {
         let finite = |v: &[f64], opt: &str| -> Result<()> {

@@ -139,6 +139,74 @@ pub struct DatasetContext {
     pub segmentation_hash: String,
 }
 
+/// What a dataset's camera sees and which nodes its fixed region holds, checked as
+/// generation checks them (camera outside the organ, enough of the surface seen, a fixed
+/// region that holds some nodes but not all). The app previews exactly this.
+pub struct ObservationSetup {
+    pub visible: VisibleSurface,
+    /// Grid nodes under the visible triangles (the network's observed nodes).
+    pub visible_nodes: Vec<usize>,
+    /// Per grid node: held fixed.
+    pub fixed: Vec<bool>,
+}
+
+pub fn observation_setup(
+    seg: &Segmentation,
+    grid: &ImmersedGrid,
+    surface: &TriMesh,
+    visibility: &VisibilitySettings,
+    fixed: &FixedRegion,
+) -> Result<ObservationSetup, DatasetError> {
+    let seg_path = seg.source.clone();
+    let visible = visible_surface(surface, visibility).map_err(|r| invalid(&seg_path, r))?;
+    let eye = nalgebra::Point3::from(Vector3::from(visible.camera.position_mm));
+    if seg.organ_mask().world_sampler().inside(&eye) {
+        return Err(invalid(&seg_path, format!("the camera at {:?} mm is inside the organ", visible.camera.position_mm)));
+    }
+    if visible.fraction() < MIN_VISIBLE_FRACTION {
+        return Err(invalid(
+            &seg_path,
+            format!(
+                "the camera at {:?} mm looking along {:?} sees {:.1} % of the organ surface (at least {:.0} % needed)",
+                visible.camera.position_mm,
+                visible.camera.direction,
+                visible.fraction() * 100.0,
+                MIN_VISIBLE_FRACTION * 100.0
+            ),
+        ));
+    }
+    let mut is_visible = vec![false; grid.node_count()];
+    for (t, tri) in surface.triangles.iter().enumerate() {
+        if !visible.visible[t] {
+            continue;
+        }
+        let c = tri.iter().map(|&i| surface.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
+        for p in tri.iter().map(|&i| surface.positions[i as usize]).chain([c]) {
+            if let Some(e) = grid.embed(&p) {
+                for (n, w) in e.nodes.iter().zip(e.weights) {
+                    if w > 1e-9 {
+                        is_visible[*n as usize] = true;
+                    }
+                }
+            }
+        }
+    }
+    let visible_nodes: Vec<usize> = (0..grid.node_count()).filter(|&n| is_visible[n]).collect();
+    let mut bc = BoundaryConditions::new(grid.node_count());
+    let label_mask = match fixed {
+        FixedRegion::Label { label, .. } => Some(seg.volume.mask(&[*label])),
+        _ => None,
+    };
+    bc.fix_region(grid, fixed, label_mask.as_ref()).map_err(|r| invalid(&seg_path, r))?;
+    if bc.fixed_count() == 0 {
+        return Err(invalid(&seg_path, format!("the fixed region {fixed:?} holds no grid node")));
+    }
+    if bc.fixed_count() == grid.node_count() {
+        return Err(invalid(&seg_path, format!("the fixed region {fixed:?} holds every grid node: nothing can move")));
+    }
+    Ok(ObservationSetup { visible, visible_nodes, fixed: bc.fixed })
+}
+
 impl DatasetContext {
     pub fn prepare(seg: &Segmentation, config: &DatasetConfig, cancel: &Cancel) -> Result<Self, DatasetError> {
         let seg_path = seg.source.clone();
@@ -150,52 +218,8 @@ impl DatasetContext {
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
         let surface = extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });
-        let visible = visible_surface(&surface, &config.visibility).map_err(|r| invalid(&seg_path, r))?;
-        let eye = nalgebra::Point3::from(Vector3::from(visible.camera.position_mm));
-        if mask.world_sampler().inside(&eye) {
-            return Err(invalid(&seg_path, format!("the camera at {:?} mm is inside the organ", visible.camera.position_mm)));
-        }
-        if visible.fraction() < MIN_VISIBLE_FRACTION {
-            return Err(invalid(
-                &seg_path,
-                format!(
-                    "the camera at {:?} mm looking along {:?} sees {:.1} % of the organ surface (at least {:.0} % needed)",
-                    visible.camera.position_mm,
-                    visible.camera.direction,
-                    visible.fraction() * 100.0,
-                    MIN_VISIBLE_FRACTION * 100.0
-                ),
-            ));
-        }
-        let mut is_visible = vec![false; grid.node_count()];
-        for (t, tri) in surface.triangles.iter().enumerate() {
-            if !visible.visible[t] {
-                continue;
-            }
-            let c = tri.iter().map(|&i| surface.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
-            for p in tri.iter().map(|&i| surface.positions[i as usize]).chain([c]) {
-                if let Some(e) = grid.embed(&p) {
-                    for (n, w) in e.nodes.iter().zip(e.weights) {
-                        if w > 1e-9 {
-                            is_visible[*n as usize] = true;
-                        }
-                    }
-                }
-            }
-        }
-        let visible_nodes: Vec<usize> = (0..grid.node_count()).filter(|&n| is_visible[n]).collect();
-        let mut bc = BoundaryConditions::new(grid.node_count());
-        let label_mask = match &config.fixed {
-            FixedRegion::Label { label, .. } => Some(seg.volume.mask(&[*label])),
-            _ => None,
-        };
-        bc.fix_region(&grid, &config.fixed, label_mask.as_ref()).map_err(|r| invalid(&seg_path, r))?;
-        if bc.fixed_count() == 0 {
-            return Err(invalid(&seg_path, format!("the fixed region {:?} holds no grid node", config.fixed)));
-        }
-        if bc.fixed_count() == grid.node_count() {
-            return Err(invalid(&seg_path, format!("the fixed region {:?} holds every grid node: nothing can move", config.fixed)));
-        }
+        let ObservationSetup { visible, visible_nodes, fixed } =
+            observation_setup(seg, &grid, &surface, &config.visibility, &config.fixed)?;
         let mut grid_arrays = grid.to_npz_arrays();
         let [x, y, z] = grid.padded_shape();
         let mut vmask = vec![0u8; x * y * z];
@@ -209,7 +233,7 @@ impl DatasetContext {
         grid_arrays.push(("visible_nodes", Array::i64(vec![visible_nodes.len()], visible_nodes.iter().map(|&v| v as i64).collect())));
         grid_arrays.push(("visible_mask", Array::new(vec![x, y, z], ArrayData::U8(vmask))));
         grid_arrays.push(("node_mask", Array::new(vec![x, y, z], ArrayData::U8(omask))));
-        let fixed_list: Vec<i64> = (0..grid.node_count()).filter(|&n| bc.fixed[n]).map(|n| n as i64).collect();
+        let fixed_list: Vec<i64> = (0..grid.node_count()).filter(|&n| fixed[n]).map(|n| n as i64).collect();
         grid_arrays.push(("fixed_nodes", Array::i64(vec![fixed_list.len()], fixed_list)));
         grid_arrays.push((
             "surface_vertices",
@@ -227,7 +251,7 @@ impl DatasetContext {
             Array::new(vec![surface.triangles.len()], ArrayData::U8(visible.visible.iter().map(|&v| v as u8).collect())),
         ));
         let grid_npz = encode_npz_with(&grid_arrays, true).map_err(|e| DatasetError::Io { path: "grid.npz".into(), source: e })?;
-        Ok(Self { grid, surface, visible, visible_nodes, fixed: bc.fixed, grid_npz, segmentation_hash: segmentation_hash(seg) })
+        Ok(Self { grid, surface, visible, visible_nodes, fixed, grid_npz, segmentation_hash: segmentation_hash(seg) })
     }
 
     pub fn grid_hash(&self) -> String {

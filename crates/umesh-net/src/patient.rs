@@ -437,3 +437,39 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, NetError>
     let text = std::fs::read_to_string(path).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))?;
     serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))
 }
+
+/// What a patient folder holds so far, for the app's jobs view (the report's figures): every
+/// part after patient.json is optional, as an interrupted job has written only some.
+#[derive(Clone, Debug)]
+pub struct PatientFigures {
+    pub dir: PathBuf,
+    pub patient: Patient,
+    pub dataset: Option<DatasetStats>,
+    /// Per accepted sample: (achieved mean nodal displacement, its target) in mm; no target
+    /// for uncalibrated datasets.
+    pub mean_vs_target_mm: Vec<(f64, Option<f64>)>,
+    pub metrics: Vec<EpochMetrics>,
+    pub eval: Option<eval::EvalReport>,
+    pub check: Option<CheckReport>,
+    pub has_model: bool,
+}
+
+pub fn read_figures(dir: &Path) -> Result<PatientFigures, NetError> {
+    let patient = Patient::read(dir)?;
+    let ds = dir.join("dataset");
+    let dataset = run_stats(&ds).ok();
+    let mean_vs_target_mm = umesh_core::dataset::Manifest::read(&ds)
+        .map(|m| m.accepted().map(|s| (s.mean_displacement_mm, s.target_displacement_mm)).collect())
+        .unwrap_or_default();
+    let model = model_dir(dir);
+    Ok(PatientFigures {
+        dir: dir.to_path_buf(),
+        dataset,
+        mean_vs_target_mm,
+        metrics: read_metrics(&model),
+        eval: read_json(&dir.join("eval.json")).ok(),
+        check: read_json(&dir.join("check").join("register.json")).ok(),
+        has_model: model.join("model.json").exists() && model.join("model.safetensors").exists(),
+        patient,
+    })
+}

@@ -21,7 +21,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use umesh_core::{Cancel, Progress};
 
-pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "jobs", "qa", "ar"];
+pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "camera", "jobs", "qa", "ar"];
 
 /// A folder for data a scene generates (a small dataset, a short recording), kept between
 /// runs: the generation is deterministic and is skipped when the folder is complete.
@@ -80,8 +80,27 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         gs.generation += 1;
     }
     world.resource_mut::<GridState>().show = show_grid;
+    // The camera preview is computed in the background in the app; only its own scene shows it
+    // (computed here, so that the image does not depend on timing).
+    world.resource_mut::<super::setup::ObservationSetup>().show = scene == "camera";
     match scene {
         "phantom" | "grid" => {}
+        "camera" => {
+            world.resource_scope(|world, mut setup: Mut<super::setup::ObservationSetup>| {
+                setup.camera = super::setup::CameraChoice::Named("anterior-inferior".into());
+                setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
+            })?;
+            // From behind the laparoscope and a little aside: the frustum opens toward the
+            // organ, whose seen part faces the viewer.
+            let eye =
+                world.resource::<super::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).ok_or("no preview")?;
+            let eye = super::convert::bevy_from_world(&Vector3::from(eye));
+            let mut cam = world.resource_mut::<OrbitCamera>();
+            let v = (eye - cam.focus).normalize();
+            cam.pitch = v.y.asin() + 0.15;
+            cam.yaw = (-v.x).atan2(-v.z) + 0.35;
+            cam.distance = (eye - cam.focus).length() * 1.1;
+        }
         "probes" => {
             let probes = anterior_probes(&organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
             let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;

@@ -126,6 +126,25 @@ impl ObservationSetup {
         Ok((VisibilitySettings { camera, max_fraction: self.max_fraction, ..Default::default() }, region, description))
     }
 
+    /// Compute the preview now (screenshots: a rendered frame waits for nothing).
+    pub fn compute_now(&mut self, organ: &Organ, grid: &GridState, fixed: &FixedChoice) -> Result<(), String> {
+        let (Some(data), Some(g)) = (&organ.data, &grid.grid) else { return Err("no organ or grid".into()) };
+        let vis = self.visibility(&data.seg, fixed)?;
+        let p = compute(data.clone(), organ.generation, g.clone(), vis)?;
+        self.preview = Some(Arc::new(p));
+        self.error = None;
+        self.computed = Some(PreviewKey {
+            organ: organ.generation,
+            grid: grid.generation,
+            camera: self.camera.clone(),
+            fov_deg: self.fov_deg,
+            max_fraction: self.max_fraction,
+            fixed: fixed.clone(),
+        });
+        self.generation += 1;
+        Ok(())
+    }
+
     /// Adopt a dataset's camera and visible fraction (an opened patient's).
     pub fn adopt(&mut self, v: &VisibilitySettings) {
         self.max_fraction = v.max_fraction;
@@ -183,7 +202,8 @@ fn update_preview(mut setup: ResMut<ObservationSetup>, organ: Res<Organ>, grid: 
         setup.computed = Some(key);
         setup.generation += 1;
     }
-    let (Some(data), Some(g)) = (&organ.data, &grid.grid) else { return };
+    // Hidden, it costs nothing; shown again, it catches up.
+    let (true, Some(data), Some(g)) = (setup.show, &organ.data, &grid.grid) else { return };
     let key = PreviewKey {
         organ: organ.generation,
         grid: grid.generation,
@@ -293,7 +313,13 @@ pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &super:
             ui.label(format!("fixed: {} nodes, {}", p.fixed_nodes_mm.len(), p.fixed_description));
         }
         (None, None) => {
-            ui.weak(if setup.task.is_some() { "computing the preview..." } else { "build a grid to preview" });
+            ui.weak(if !setup.show {
+                "preview hidden"
+            } else if setup.task.is_some() {
+                "computing the preview..."
+            } else {
+                "build a grid to preview"
+            });
         }
     }
 }

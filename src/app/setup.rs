@@ -283,7 +283,7 @@ pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &super:
     ui.checkbox(&mut setup.show, "show the camera, seen surface, fixed nodes");
     let current = match &setup.camera {
         CameraChoice::Named(v) => v.clone(),
-        CameraChoice::Custom { .. } => "from the 3-D view".into(),
+        CameraChoice::Custom { .. } => "custom position".into(),
     };
     egui::ComboBox::from_label("laparoscope").selected_text(current).show_ui(ui, |ui| {
         for v in VIEWS {

@@ -12,6 +12,7 @@ pub mod mesh;
 pub mod mesh_io;
 pub mod nifti_io;
 pub mod npz;
+pub mod observation;
 pub mod phantom;
 pub mod progress;
 pub mod register;

@@ -1,0 +1,372 @@
+//! The observation operator: observed 3-D points of the organ surface (world frame, after
+//! rigid alignment; no vertex identity) -> the network's input tensor on the rest grid's dense
+//! lattice. The same function makes training inputs (points rendered from the deformed FE
+//! solution) and runs at surgery (points from the depth camera).
+//!
+//! Two correspondence-free encodings, both sums over points (so invariant to their order) and
+//! local averages or nearest points (so nearly invariant to their density):
+//! - `corner` (after DeepPhysX's liver registration): each lattice node takes the
+//!   trilinear-weighted mean offset (point - node) of the points in its 8 adjacent cells;
+//!   taken relative to the same encoding of the whole rest surface;
+//! - `nearest`: each point of a dense, fixed sampling of the rest surface looks for its nearest
+//!   observed point within `band_mm`; the normal component of the offset (what a depth camera
+//!   measures: tangential sliding is invisible, and dropping it removes the sampling noise) is
+//!   spread to the lattice nodes with the rest point's trilinear weights and averaged. Offsets
+//!   mostly tangential (a rest point beyond the edge of the seen patch) are ignored.
+//!
+//! Both are zero where the surface did not move (as the exact surface displacement u_s was)
+//! and come with a mask channel: 4 channels [dx, dy, dz, observed] over [X, Y, Z].
+
+use crate::grid::ImmersedGrid;
+use crate::mesh::TriMesh;
+use nalgebra::Vector3;
+
+/// Channels of the encoded observation: offset x, y, z (mm) and the observed mask (0 or 1).
+pub const CHANNELS: usize = 4;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Encoding {
+    Corner,
+    Nearest,
+}
+
+impl Encoding {
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "corner" => Ok(Encoding::Corner),
+            "nearest" => Ok(Encoding::Nearest),
+            other => Err(format!("unknown observation encoding {other:?}: corner or nearest")),
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Encoding::Corner => "corner",
+            Encoding::Nearest => "nearest",
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ObservationSettings {
+    pub encoding: Encoding,
+    /// `nearest`: nodes farther than this from every observed point are unobserved (mm).
+    pub band_mm: f64,
+    /// Points sampled per mm^2 of the rest surface for the rest baseline.
+    pub rest_density_per_mm2: f64,
+}
+
+impl Default for ObservationSettings {
+    fn default() -> Self {
+        Self { encoding: Encoding::Nearest, band_mm: 10.0, rest_density_per_mm2: 0.25 }
+    }
+}
+
+/// The encoder for one rest grid: the lattice, the rest baseline and reusable scratch.
+pub struct Observer {
+    pub settings: ObservationSettings,
+    origin_mm: Vector3<f64>,
+    h_mm: f64,
+    shape: [usize; 3],
+    /// The dense rest-surface sampling: points and outward normals.
+    rest_points: Vec<(Vector3<f64>, Vector3<f64>)>,
+    /// `corner`: the rest surface's own encoding ([3, X, Y, Z] offsets, and where defined).
+    rest: Vec<f32>,
+    rest_defined: Vec<bool>,
+    acc: Vec<Vector3<f64>>,
+    wsum: Vec<f64>,
+    wmax: Vec<f64>,
+    buckets: Buckets,
+}
+
+/// What one encoding used.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct ObservationStats {
+    pub points: usize,
+    /// Points inside the lattice (the others are ignored).
+    pub points_used: usize,
+    pub nodes_observed: usize,
+}
+
+impl Observer {
+    pub fn new(grid: &ImmersedGrid, rest_surface: &TriMesh, settings: ObservationSettings) -> Result<Self, String> {
+        if !(settings.band_mm > 0.0 && settings.band_mm.is_finite()) {
+            return Err(format!("observation band {} mm: must be positive", settings.band_mm));
+        }
+        if !(settings.rest_density_per_mm2 > 0.0 && settings.rest_density_per_mm2.is_finite()) {
+            return Err(format!("rest sampling density {} per mm^2: must be positive", settings.rest_density_per_mm2));
+        }
+        let shape = grid.padded_shape();
+        let cells = shape.iter().product::<usize>();
+        let mut o = Self {
+            origin_mm: grid.origin_mm,
+            h_mm: grid.cell_size_mm,
+            shape,
+            rest_points: Vec::new(),
+            rest: vec![0.0; 3 * cells],
+            rest_defined: vec![false; cells],
+            acc: vec![Vector3::zeros(); cells],
+            wsum: vec![0.0; cells],
+            wmax: vec![0.0; cells],
+            buckets: Buckets::default(),
+            settings,
+        };
+        o.rest_points = dense_surface_points(rest_surface, o.settings.rest_density_per_mm2);
+        if o.rest_points.is_empty() {
+            return Err("the rest surface has no triangle".into());
+        }
+        if o.settings.encoding == Encoding::Corner {
+            let pts: Vec<Vector3<f64>> = o.rest_points.iter().map(|p| p.0).collect();
+            let mut raw = Vec::new();
+            o.raw_encode(&pts, &mut raw);
+            for d in 0..cells {
+                if raw[3 * cells + d] > 0.0 {
+                    o.rest_defined[d] = true;
+                    for c in 0..3 {
+                        o.rest[c * cells + d] = raw[c * cells + d];
+                    }
+                }
+            }
+        } else {
+            o.rest_defined.iter_mut().for_each(|v| *v = true);
+        }
+        Ok(o)
+    }
+
+    pub fn shape(&self) -> [usize; 3] {
+        self.shape
+    }
+
+    /// Encode `points_mm` into `out` ([CHANNELS, X, Y, Z], f32), relative to the rest surface.
+    /// Non-finite points are ignored.
+    pub fn encode(&mut self, points_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> ObservationStats {
+        let cells = self.shape.iter().product::<usize>();
+        let used = self.raw_encode(points_mm, out);
+        let mut observed = 0;
+        for d in 0..cells {
+            if out[3 * cells + d] > 0.0 && self.rest_defined[d] {
+                observed += 1;
+                for c in 0..3 {
+                    out[c * cells + d] -= self.rest[c * cells + d];
+                }
+            } else {
+                for c in 0..CHANNELS {
+                    out[c * cells + d] = 0.0;
+                }
+            }
+        }
+        ObservationStats { points: points_mm.len(), points_used: used, nodes_observed: observed }
+    }
+
+    fn node_position(&self, i: usize, j: usize, k: usize) -> Vector3<f64> {
+        self.origin_mm + Vector3::new(i as f64, j as f64, k as f64) * self.h_mm
+    }
+
+    fn dense(&self, i: usize, j: usize, k: usize) -> usize {
+        (i * self.shape[1] + j) * self.shape[2] + k
+    }
+
+    /// The encoding without the rest baseline; returns the points inside the lattice.
+    fn raw_encode(&mut self, points: &[Vector3<f64>], out: &mut Vec<f32>) -> usize {
+        let cells = self.shape.iter().product::<usize>();
+        out.clear();
+        out.resize(CHANNELS * cells, 0.0);
+        match self.settings.encoding {
+            Encoding::Corner => self.corner(points, out, cells),
+            Encoding::Nearest => self.nearest(points, out, cells),
+        }
+    }
+
+    fn corner(&mut self, points: &[Vector3<f64>], out: &mut [f32], cells: usize) -> usize {
+        self.acc.iter_mut().for_each(|a| *a = Vector3::zeros());
+        self.wsum.iter_mut().for_each(|w| *w = 0.0);
+        self.wmax.iter_mut().for_each(|w| *w = 0.0);
+        let [sx, sy, sz] = self.shape;
+        let mut used = 0;
+        for p in points.iter().filter(|p| p.iter().all(|v| v.is_finite())) {
+            let l = (p - self.origin_mm) / self.h_mm;
+            let (fi, fj, fk) = (l.x.floor(), l.y.floor(), l.z.floor());
+            if fi < 0.0 || fj < 0.0 || fk < 0.0 || fi + 1.0 >= sx as f64 || fj + 1.0 >= sy as f64 || fk + 1.0 >= sz as f64 {
+                continue;
+            }
+            used += 1;
+            let (i, j, k) = (fi as usize, fj as usize, fk as usize);
+            let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
+            for a in 0..8 {
+                let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
+                let w = (if di == 1 { t.x } else { 1.0 - t.x })
+                    * (if dj == 1 { t.y } else { 1.0 - t.y })
+                    * (if dk == 1 { t.z } else { 1.0 - t.z });
+                let d = self.dense(i + di, j + dj, k + dk);
+                let x = self.node_position(i + di, j + dj, k + dk);
+                self.acc[d] += (p - x) * w;
+                self.wsum[d] += w;
+                self.wmax[d] = self.wmax[d].max(w);
+            }
+        }
+        for d in 0..cells {
+            // A node only seen by points at the far corners of its cells gets a noisy mean: it
+            // needs one point with weight 1/8 (the largest weight, not the sum, so that the
+            // test does not depend on the points' density).
+            if self.wmax[d] >= 0.125 {
+                let m = self.acc[d] / self.wsum[d];
+                for c in 0..3 {
+                    out[c * cells + d] = m[c] as f32;
+                }
+                out[3 * cells + d] = 1.0;
+            }
+        }
+        used
+    }
+
+    fn nearest(&mut self, points: &[Vector3<f64>], out: &mut [f32], cells: usize) -> usize {
+        let band = self.settings.band_mm;
+        let used = self.buckets.fill(points, self.origin_mm, band, self.shape, self.h_mm);
+        if used == 0 {
+            return 0;
+        }
+        self.acc.iter_mut().for_each(|a| *a = Vector3::zeros());
+        self.wsum.iter_mut().for_each(|w| *w = 0.0);
+        self.wmax.iter_mut().for_each(|w| *w = 0.0);
+        let [sx, sy, sz] = self.shape;
+        for k in 0..self.rest_points.len() {
+            let (r, n) = self.rest_points[k];
+            let Some(q) = self.buckets.nearest(&r, band) else { continue };
+            let d = q - r;
+            let dn = d.dot(&n);
+            // Mostly sideways: this rest point lies beyond the seen patch (or in a hole).
+            if (d - n * dn).norm() > TANGENTIAL_MM + dn.abs() {
+                continue;
+            }
+            let l = (r - self.origin_mm) / self.h_mm;
+            let (fi, fj, fk) = (l.x.floor(), l.y.floor(), l.z.floor());
+            if fi < 0.0 || fj < 0.0 || fk < 0.0 || fi + 1.0 >= sx as f64 || fj + 1.0 >= sy as f64 || fk + 1.0 >= sz as f64 {
+                continue;
+            }
+            let (i, j, kk) = (fi as usize, fj as usize, fk as usize);
+            let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
+            for a in 0..8 {
+                let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
+                let w = (if di == 1 { t.x } else { 1.0 - t.x })
+                    * (if dj == 1 { t.y } else { 1.0 - t.y })
+                    * (if dk == 1 { t.z } else { 1.0 - t.z });
+                let dd = self.dense(i + di, j + dj, kk + dk);
+                self.acc[dd] += n * (dn * w);
+                self.wsum[dd] += w;
+                self.wmax[dd] = self.wmax[dd].max(w);
+            }
+        }
+        for d in 0..cells {
+            if self.wmax[d] >= 0.125 {
+                let m = self.acc[d] / self.wsum[d];
+                for c in 0..3 {
+                    out[c * cells + d] = m[c] as f32;
+                }
+                out[3 * cells + d] = 1.0;
+            }
+        }
+        used
+    }
+}
+
+/// `nearest`: an offset whose tangential part exceeds this plus its normal part is ignored (mm).
+const TANGENTIAL_MM: f64 = 3.0;
+
+/// Points bucketed on a uniform grid of cells `band` wide, for nearest-point queries.
+#[derive(Default)]
+struct Buckets {
+    origin: Vector3<f64>,
+    size: f64,
+    dims: [usize; 3],
+    start: Vec<u32>,
+    points: Vec<Vector3<f64>>,
+}
+
+impl Buckets {
+    fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
+        // The lattice's box grown by the band: points beyond cannot be nearest to a node.
+        self.origin = lattice_origin - Vector3::repeat(band);
+        self.size = band;
+        let extent = Vector3::new(shape[0] as f64, shape[1] as f64, shape[2] as f64) * h + Vector3::repeat(2.0 * band);
+        self.dims = [0, 1, 2].map(|a| ((extent[a] / band).ceil() as usize).max(1));
+        let n = self.dims.iter().product::<usize>();
+        let key = |p: &Vector3<f64>| -> Option<usize> {
+            let l = (p - self.origin) / self.size;
+            if !(l.iter().all(|v| v.is_finite() && *v >= 0.0)) {
+                return None;
+            }
+            let (i, j, k) = (l.x as usize, l.y as usize, l.z as usize);
+            (i < self.dims[0] && j < self.dims[1] && k < self.dims[2]).then(|| (i * self.dims[1] + j) * self.dims[2] + k)
+        };
+        let mut counts = vec![0u32; n + 1];
+        let keys: Vec<Option<usize>> = points.iter().map(key).collect();
+        for b in keys.iter().flatten() {
+            counts[*b + 1] += 1;
+        }
+        for b in 0..n {
+            counts[b + 1] += counts[b];
+        }
+        self.start = counts.clone();
+        let used = counts[n] as usize;
+        self.points.clear();
+        self.points.resize(used, Vector3::zeros());
+        let mut fill = counts;
+        for (p, b) in points.iter().zip(&keys) {
+            if let Some(b) = b {
+                self.points[fill[*b] as usize] = *p;
+                fill[*b] += 1;
+            }
+        }
+        used
+    }
+
+    fn nearest(&self, x: &Vector3<f64>, band: f64) -> Option<Vector3<f64>> {
+        let l = (x - self.origin) / self.size;
+        let c = [l.x.floor() as i64, l.y.floor() as i64, l.z.floor() as i64];
+        let mut best: Option<(f64, Vector3<f64>)> = None;
+        for di in -1..=1 {
+            for dj in -1..=1 {
+                for dk in -1..=1 {
+                    let (i, j, k) = (c[0] + di, c[1] + dj, c[2] + dk);
+                    if i < 0 || j < 0 || k < 0 || i >= self.dims[0] as i64 || j >= self.dims[1] as i64 || k >= self.dims[2] as i64 {
+                        continue;
+                    }
+                    let b = (i as usize * self.dims[1] + j as usize) * self.dims[2] + k as usize;
+                    for q in &self.points[self.start[b] as usize..self.start[b + 1] as usize] {
+                        let d2 = (q - x).norm_squared();
+                        // Ties go to the smaller coordinates, so the result is independent of order.
+                        let better = match best {
+                            None => true,
+                            Some((bd, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z) < (bq.x, bq.y, bq.z)),
+                        };
+                        if better {
+                            best = Some((d2, *q));
+                        }
+                    }
+                }
+            }
+        }
+        best.filter(|(d2, _)| *d2 <= band * band).map(|(_, q)| q)
+    }
+}
+
+/// A deterministic, even sampling of a surface with the triangles' normals: each triangle's
+/// centroid and, for triangles larger than 1/density, a regular barycentric subdivision.
+pub fn dense_surface_points(mesh: &TriMesh, density_per_mm2: f64) -> Vec<(Vector3<f64>, Vector3<f64>)> {
+    let mut out = Vec::new();
+    for (ti, t) in mesh.triangles.iter().enumerate() {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        let (normal, area) = mesh.triangle_normal_area(ti);
+        if !(area > 0.0) {
+            continue;
+        }
+        let n = ((area * density_per_mm2).sqrt().ceil() as usize).max(1);
+        for i in 0..n {
+            for j in 0..n - i {
+                let (u, v) = ((i as f64 + 1.0 / 3.0) / n as f64, (j as f64 + 1.0 / 3.0) / n as f64);
+                out.push((a + (b - a) * u + (c - a) * v, normal));
+            }
+        }
+    }
+    out
+}

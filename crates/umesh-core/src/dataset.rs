@@ -24,7 +24,8 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 pub const FORMAT: &str = "umesh-dataset";
-pub const FORMAT_VERSION: u32 = 1;
+/// 2: shards carry each sample's simulated camera view (`obs_points`, `obs_count`).
+pub const FORMAT_VERSION: u32 = 2;
 /// Each calibrated sample's SVK mean nodal displacement lands within this fraction of its target.
 pub const CALIBRATION_TOLERANCE: f64 = 0.2;
 /// The first load factor of the reference solves, relative to the forces whose *linear* mean
@@ -48,6 +49,10 @@ pub struct DatasetConfig {
     pub fixed: FixedRegion,
     /// Voxel step of the surface mesh used for visibility and probe sampling.
     pub surface_step: usize,
+    /// The simulated depth-camera view stored with each sample (configurations written
+    /// before it get the defaults).
+    #[serde(default)]
+    pub view: crate::observation::ViewSettings,
 }
 
 impl DatasetConfig {
@@ -72,6 +77,7 @@ impl DatasetConfig {
             visibility: VisibilitySettings::default(),
             fixed,
             surface_step: 2,
+            view: Default::default(),
         }
     }
     pub fn shard_count(&self) -> usize {
@@ -309,6 +315,8 @@ pub struct SampleResult {
     /// The mean nodal displacement the forces were calibrated for (mm).
     pub target_mm: f64,
     pub displacement_mm: Option<Vec<Vector3<f64>>>,
+    /// The simulated camera view of the deformed organ (accepted samples).
+    pub observed_mm: Vec<[f32; 3]>,
     pub rejection: Option<(Rejection, String)>,
     pub newton_iterations: usize,
     pub solve_ms: f64,
@@ -465,19 +473,40 @@ pub fn generate_sample(
     if cancel.is_cancelled() {
         return Err(DatasetError::Cancelled);
     }
-    let solve_ms = t.elapsed().as_secs_f64() * 1e3;
     let (forces, target_mm) = (r.forces, r.target_mm);
-    Ok(match r.solution {
-        Ok(sol) => SampleResult {
+    // What the camera sees of this deformation: decided on the deformed shape, with its own
+    // random stream so that the loads do not depend on the view settings.
+    let solution = r.solution.and_then(|sol| {
+        let deformed = loads::deform_mesh(&ctx.grid, &ctx.surface, &sol.displacement_mm);
+        let mut rng = SplitMix64(config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x0B5E_4F1E_77E0_0001);
+        match crate::observation::simulated_view(&deformed, &ctx.visible.camera, &config.view, &mut rng) {
+            Ok(v) if v.len() >= 10 => Ok((sol, v)),
+            Ok(v) => Err((Rejection::Failed, format!("the simulated camera view holds {} points", v.len()))),
+            Err(e) => Err((Rejection::Failed, format!("simulated camera view: {e}"))),
+        }
+    });
+    let solve_ms = t.elapsed().as_secs_f64() * 1e3;
+    Ok(match solution {
+        Ok((sol, view)) => SampleResult {
             index,
             forces,
             target_mm,
             newton_iterations: sol.iterations,
             displacement_mm: Some(sol.displacement_mm),
+            observed_mm: view.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect(),
             rejection: None,
             solve_ms,
         },
-        Err(r) => SampleResult { index, forces, target_mm, displacement_mm: None, rejection: Some(r), newton_iterations: 0, solve_ms },
+        Err(r) => SampleResult {
+            index,
+            forces,
+            target_mm,
+            displacement_mm: None,
+            observed_mm: Vec::new(),
+            rejection: Some(r),
+            newton_iterations: 0,
+            solve_ms,
+        },
     })
 }
 
@@ -535,8 +564,18 @@ impl Manifest {
         let path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
         let m: Manifest = serde_json::from_str(&text).map_err(|e| invalid(&path, format!("not a umesh dataset manifest: {e}")))?;
-        if m.format != FORMAT || m.format_version != FORMAT_VERSION {
-            return Err(invalid(&path, format!("format {} v{} is not {FORMAT} v{FORMAT_VERSION}", m.format, m.format_version)));
+        if m.format != FORMAT {
+            return Err(invalid(&path, format!("format {} is not {FORMAT}", m.format)));
+        }
+        if m.format_version != FORMAT_VERSION {
+            return Err(invalid(
+                &path,
+                format!(
+                    "dataset format v{} (this umesh reads v{FORMAT_VERSION}: its samples carry the simulated camera view); \
+                     regenerate it with `umesh dataset generate SEG --samples {} --seed {} --out NEW_FOLDER`",
+                    m.format_version, m.config.samples, m.config.seed
+                ),
+            ));
         }
         Ok(m)
     }
@@ -604,6 +643,14 @@ fn encode_shard(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
         ("u_v", Array::f32(vec![a, 3, x, y, z], u_v)),
         ("probes_mm", Array::f32(vec![a, p, 3], probes)),
         ("forces_n", Array::f32(vec![a, p, 3], forces)),
+        ("obs_count", Array::i64(vec![a], accepted.iter().map(|r| r.observed_mm.len() as i64).collect())),
+        (
+            "obs_points",
+            Array::f32(
+                vec![accepted.iter().map(|r| r.observed_mm.len()).sum(), 3],
+                accepted.iter().flat_map(|r| r.observed_mm.iter().flatten().copied()).collect(),
+            ),
+        ),
     ];
     encode_npz_with(&arrays, true)
 }
@@ -632,6 +679,11 @@ pub fn read_shard_records(
     let [x, y, z] = padded;
     npz.f64_with_shape("u_v", &[Some(a), Some(3), Some(x), Some(y), Some(z)])?;
     npz.f64_with_shape("u_s", &[Some(a), Some(3), Some(x), Some(y), Some(z)])?;
+    let (_, counts) = npz.f64_with_shape("obs_count", &[Some(a)])?;
+    if counts.iter().any(|c| !(*c >= 0.0)) {
+        return Err(invalid(path, "obs_count holds a negative count"));
+    }
+    npz.f64_with_shape("obs_points", &[Some(counts.iter().sum::<f64>() as usize), Some(3)])?;
     let file = shard_file_name(shard);
     let records = (0..n)
         .map(|k| SampleRecord {
@@ -979,6 +1031,28 @@ impl Dataset {
             }
         };
         Ok((idx, f("u_s")?, f("u_v")?))
+    }
+
+    /// The simulated camera views of the accepted samples of one shard (world mm), in the
+    /// order of `load_shard`'s indices.
+    pub fn load_views(&self, shard: &ShardRecord) -> Result<Vec<Vec<Vector3<f64>>>, DatasetError> {
+        let path = self.dir.join(&shard.file);
+        let npz = Npz::read(&path)?;
+        let counts: Vec<usize> = match &npz.get("obs_count")?.data {
+            ArrayData::I64(v) if v.iter().all(|&c| c >= 0) => v.iter().map(|&c| c as usize).collect(),
+            _ => return Err(invalid(&path, "'obs_count' is not a non-negative int64 array")),
+        };
+        let pts = match &npz.get("obs_points")?.data {
+            ArrayData::F32(v) if v.len() == 3 * counts.iter().sum::<usize>() => v.clone(),
+            _ => return Err(invalid(&path, "'obs_points' is not float32 [sum(obs_count), 3]")),
+        };
+        let mut out = Vec::with_capacity(counts.len());
+        let mut at = 0;
+        for c in counts {
+            out.push(pts[3 * at..3 * (at + c)].chunks_exact(3).map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect());
+            at += c;
+        }
+        Ok(out)
     }
 }
 

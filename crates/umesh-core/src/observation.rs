@@ -370,3 +370,133 @@ pub fn dense_surface_points(mesh: &TriMesh, density_per_mm2: f64) -> Vec<(Vector
     }
     out
 }
+
+/// What a depth camera gives of a deformed organ, for training inputs: the visible part
+/// decided on the deformed shape from a jittered camera, a visible area that varies, depth
+/// noise, dropped points, holes and occluding instruments.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct ViewSettings {
+    /// Points sampled on the seen surface.
+    pub points: usize,
+    /// Camera position jitter (mm, uniform in a ball) and direction jitter (degrees).
+    pub jitter_mm: f64,
+    pub jitter_deg: f64,
+    /// The seen fraction of the surface area is drawn uniformly in this range.
+    pub min_fraction: f64,
+    pub max_fraction: f64,
+    /// Standard deviation of the depth noise along the viewing ray (mm).
+    pub noise_mm: f64,
+    /// Fraction of the points dropped at random.
+    pub dropout: f64,
+    /// Up to this many holes (radius 8-20 mm) and instruments (a 5 mm shaft between the
+    /// camera and the organ) per view.
+    pub max_holes: usize,
+    pub max_instruments: usize,
+}
+
+impl Default for ViewSettings {
+    fn default() -> Self {
+        Self {
+            points: 3000,
+            jitter_mm: 15.0,
+            jitter_deg: 8.0,
+            min_fraction: 0.2,
+            max_fraction: 0.5,
+            noise_mm: 1.0,
+            dropout: 0.1,
+            max_holes: 3,
+            max_instruments: 2,
+        }
+    }
+}
+
+impl ViewSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        let finite = [self.jitter_mm, self.jitter_deg, self.min_fraction, self.max_fraction, self.noise_mm, self.dropout];
+        if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
+            return Err(format!("camera view settings must be finite and non-negative: {self:?}"));
+        }
+        if !(self.min_fraction > 0.0 && self.min_fraction <= self.max_fraction && self.max_fraction <= 1.0) {
+            return Err(format!("seen fraction range {}..{}: needs 0 < min <= max <= 1", self.min_fraction, self.max_fraction));
+        }
+        if self.dropout >= 1.0 || self.points == 0 || self.points > 1_000_000 {
+            return Err(format!("{} points with dropout {}: needs 1..1e6 points and dropout below 1", self.points, self.dropout));
+        }
+        Ok(())
+    }
+}
+
+/// The simulated view of `deformed` from around `camera`; deterministic for a given `rng`.
+pub fn simulated_view(
+    deformed: &TriMesh,
+    camera: &crate::visible::Camera,
+    settings: &ViewSettings,
+    rng: &mut crate::phantom::SplitMix64,
+) -> Result<Vec<Vector3<f64>>, String> {
+    let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
+    let unit = |rng_f: &mut dyn FnMut(f64, f64) -> f64| loop {
+        let v = Vector3::new(rng_f(-1.0, 1.0), rng_f(-1.0, 1.0), rng_f(-1.0, 1.0));
+        if v.norm_squared() <= 1.0 && v.norm_squared() > 1e-6 {
+            return v;
+        }
+    };
+    let eye = Vector3::from(camera.position_mm) + unit(&mut uniform) * settings.jitter_mm;
+    let dir = Vector3::from(camera.direction).normalize();
+    let dir = (dir + unit(&mut uniform) * settings.jitter_deg.to_radians()).normalize();
+    let fraction = uniform(settings.min_fraction, settings.max_fraction);
+    let cam = crate::visible::Camera { position_mm: eye.into(), direction: dir.into(), fov_deg: camera.fov_deg };
+    let vis = crate::visible::visible_surface(
+        deformed,
+        &crate::visible::VisibilitySettings { camera: Some(cam), max_fraction: fraction, resolution: 256 },
+    )?;
+    let seen = crate::visible::sample_points(deformed, &vis.visible, settings.points, rng);
+    let gauss = |rng: &mut crate::phantom::SplitMix64| {
+        // Box-Muller.
+        let (a, b) = (rng.next_f64().max(1e-12), rng.next_f64());
+        (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+    };
+    let n_holes = (rng.next_u64() % (settings.max_holes as u64 + 1)) as usize;
+    let n_tools = (rng.next_u64() % (settings.max_instruments as u64 + 1)) as usize;
+    let pick = |rng: &mut crate::phantom::SplitMix64| seen[(rng.next_u64() % seen.len().max(1) as u64) as usize].0;
+    let holes: Vec<(Vector3<f64>, f64)> =
+        if seen.is_empty() { Vec::new() } else { (0..n_holes).map(|_| (pick(rng), 8.0 + 12.0 * rng.next_f64())).collect() };
+    // An instrument: a shaft from beside the camera to a seen point (its tip on the organ).
+    let tools: Vec<(Vector3<f64>, Vector3<f64>)> = if seen.is_empty() {
+        Vec::new()
+    } else {
+        (0..n_tools)
+            .map(|_| {
+                let tip = pick(rng);
+                let side = Vector3::new(gauss(rng), gauss(rng), gauss(rng)) * 60.0;
+                (eye + side, tip)
+            })
+            .collect()
+    };
+    let mut out = Vec::with_capacity(seen.len());
+    for (p, _) in &seen {
+        if rng.next_f64() < settings.dropout || holes.iter().any(|(c, r)| (p - c).norm() < *r) {
+            continue;
+        }
+        if tools.iter().any(|(a, b)| segment_line_distance(a, b, &eye, p) < 5.0 && (p - b).norm() > 5.0) {
+            continue;
+        }
+        let ray = (p - eye).normalize();
+        out.push(p + ray * (settings.noise_mm * gauss(rng)));
+    }
+    Ok(out)
+}
+
+/// Distance between the segment [a, b] and the segment from the eye `e` to `p` (the ray to p):
+/// whether an instrument hides p.
+fn segment_line_distance(a: &Vector3<f64>, b: &Vector3<f64>, e: &Vector3<f64>, p: &Vector3<f64>) -> f64 {
+    // Closest points of two segments, sampled finely enough for a 5 mm shaft.
+    let (u, v) = (b - a, p - e);
+    let w = a - e;
+    let (aa, bb, cc, dd, ee) = (u.dot(&u), u.dot(&v), v.dot(&v), u.dot(&w), v.dot(&w));
+    let den = aa * cc - bb * bb;
+    let (mut s, mut t) = if den > 1e-12 { ((bb * ee - cc * dd) / den, (aa * ee - bb * dd) / den) } else { (0.0, ee / cc.max(1e-12)) };
+    s = s.clamp(0.0, 1.0);
+    t = t.clamp(0.0, 1.0);
+    ((a + u * s) - (e + v * t)).norm()
+}

@@ -367,3 +367,55 @@ fn masks_on_other_lattices_are_resampled_and_disjoint_ones_refused() {
     let e = assemble_masks(&[f("liver", Role::Organ), f("far", Role::Structure)], &ReadOptions::default()).unwrap_err().to_string();
     assert!(e.contains("far.nii.gz") && e.contains("do not overlap"), "{e}");
 }
+
+#[test]
+fn samples_carry_a_simulated_camera_view_of_their_deformed_organ() {
+    let seg = phantom();
+    let config = small_config(4);
+    let dir = tmp("views");
+    run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let ds = Dataset::open(&dir).unwrap();
+    let grid = umesh_core::grid::ImmersedGrid::from_npz(&umesh_core::npz::Npz::read(&dir.join("grid.npz")).unwrap()).unwrap();
+    let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: config.surface_step, ..Default::default() });
+    let [_, py, pz] = grid.padded_shape();
+    let cells = grid.padded_shape().iter().product::<usize>();
+    let mut counts = Vec::new();
+    for shard in &ds.manifest.shards {
+        let (idx, _, u_v) = ds.load_shard(shard).unwrap();
+        let views = ds.load_views(shard).unwrap();
+        assert_eq!(views.len(), idx.len());
+        for (k, view) in views.iter().enumerate() {
+            counts.push(view.len());
+            assert!(view.len() > 300 && view.len() <= config.view.points, "sample {}: {} points", idx[k], view.len());
+            // The nodal displacement back from the dense field, then the deformed surface.
+            let u: Vec<Vector3<f64>> = (0..grid.node_count())
+                .map(|n| {
+                    let [i, j, l] = grid.node_ijk[n];
+                    let d = (i * py + j) * pz + l;
+                    let o = k * 3 * cells;
+                    Vector3::new(u_v[o + d] as f64, u_v[o + cells + d] as f64, u_v[o + 2 * cells + d] as f64)
+                })
+                .collect();
+            let deformed = umesh_core::loads::deform_mesh(&grid, &surface, &u);
+            let mut dist: Vec<f64> =
+                view.iter().step_by(10).map(|p| deformed.positions.iter().map(|v| (v - p).norm()).fold(f64::INFINITY, f64::min)).collect();
+            dist.sort_by(f64::total_cmp);
+            // 1 mm depth noise and points inside 3-voxel triangles: the nearest vertex is near.
+            let (median, p95) = (dist[dist.len() / 2], dist[dist.len() * 95 / 100]);
+            assert!(median < 2.5 && p95 < 5.0, "sample {}: distance to the deformed surface median {median:.2}, p95 {p95:.2} mm", idx[k]);
+        }
+    }
+    assert!(counts.iter().any(|&c| c != counts[0]), "every view holds {} points: dropout and holes do not vary", counts[0]);
+}
+
+#[test]
+fn a_dataset_of_the_previous_format_names_the_command_that_regenerates_it() {
+    let seg = phantom();
+    let dir = tmp("old-format");
+    run_generate(&seg, &dir, &small_config(2), ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let path = dir.join("manifest.json");
+    let text = std::fs::read_to_string(&path).unwrap().replace("\"format_version\": 2", "\"format_version\": 1");
+    std::fs::write(&path, text).unwrap();
+    let err = Dataset::open(&dir).err().expect("an old dataset is refused").to_string();
+    assert!(err.contains("v1") && err.contains("umesh dataset generate") && err.contains("manifest.json"), "{err}");
+}

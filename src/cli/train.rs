@@ -32,6 +32,11 @@ pub struct Args {
     /// Continue from `last.safetensors` and `metrics.jsonl` in --out.
     #[arg(long)]
     pub resume: bool,
+    /// Network input: "exact" (the visible nodes' displacement u_s), or the dataset's simulated
+    /// camera views encoded by "nearest" (nearest-point normal offsets) or "corner" (cell-corner
+    /// mean offsets), as registration encodes each frame.
+    #[arg(long, default_value = "exact")]
+    pub input: String,
     #[arg(long)]
     pub json: bool,
 }
@@ -64,12 +69,23 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(s) = a.steps {
         model.steps = s;
     }
+    let observation = match a.input.as_str() {
+        "exact" => None,
+        e => Some(umesh_core::observation::ObservationSettings {
+            encoding: umesh_core::observation::Encoding::parse(e).map_err(|m| anyhow::anyhow!("--input: {m} (or exact)"))?,
+            ..Default::default()
+        }),
+    };
+    if observation.is_some() {
+        model.in_channels = umesh_core::observation::CHANNELS;
+    }
     let settings = TrainSettings {
         model,
         epochs: a.epochs,
         batch_size: a.batch_size.max(1),
         learning_rate: a.learning_rate,
         seed: a.seed,
+        observation,
         ..Default::default()
     };
     let (pb, progress) = super::progress_bar("training");

@@ -15,13 +15,15 @@
 //!   mostly tangential (a rest point beyond the edge of the seen patch) are ignored.
 //!
 //! Both are zero where the surface did not move (as the exact surface displacement u_s was)
-//! and come with a mask channel: 4 channels [dx, dy, dz, observed] over [X, Y, Z].
+//! and come with a mask channel: 4 channels [dx, dy, dz, observed] over [X, Y, Z]. The mask
+//! holds half the cell size (mm) where observed, so that it scales like the offsets under the
+//! network's input normalisation.
 
 use crate::grid::ImmersedGrid;
 use crate::mesh::TriMesh;
 use nalgebra::Vector3;
 
-/// Channels of the encoded observation: offset x, y, z (mm) and the observed mask (0 or 1).
+/// Channels of the encoded observation: offset x, y, z (mm) and the observed mask (0 or h/2).
 pub const CHANNELS: usize = 4;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -213,7 +215,7 @@ impl Observer {
                 for c in 0..3 {
                     out[c * cells + d] = m[c] as f32;
                 }
-                out[3 * cells + d] = 1.0;
+                out[3 * cells + d] = (0.5 * self.h_mm) as f32;
             }
         }
         used
@@ -262,7 +264,7 @@ impl Observer {
                 for c in 0..3 {
                     out[c * cells + d] = m[c] as f32;
                 }
-                out[3 * cells + d] = 1.0;
+                out[3 * cells + d] = (0.5 * self.h_mm) as f32;
             }
         }
         used

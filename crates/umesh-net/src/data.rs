@@ -2,12 +2,38 @@
 
 use umesh_core::dataset::{Dataset, DatasetError};
 use umesh_core::grid::ImmersedGrid;
-use umesh_core::npz::Npz;
+use umesh_core::mesh::TriMesh;
+use umesh_core::npz::{ArrayData, Npz};
+use umesh_core::observation::{ObservationSettings, Observer};
 
-/// All accepted, unflagged samples of a dataset: u_s and u_v as [3, X, Y, Z] f32 each.
+/// The rest surface stored in a dataset's or model's `grid.npz` (the one the camera views
+/// were sampled on).
+pub fn rest_surface(npz: &Npz) -> Result<TriMesh, String> {
+    let v = match &npz.get("surface_vertices").map_err(|e| e.to_string())?.data {
+        ArrayData::F32(v) if v.len() % 3 == 0 => v.clone(),
+        _ => return Err("'surface_vertices' is not float32 [N, 3]".into()),
+    };
+    let t = match &npz.get("surface_triangles").map_err(|e| e.to_string())?.data {
+        ArrayData::I64(t) if t.len() % 3 == 0 => t.clone(),
+        _ => return Err("'surface_triangles' is not int64 [M, 3]".into()),
+    };
+    let n = v.len() / 3;
+    if t.iter().any(|&i| i < 0 || i as usize >= n) {
+        return Err("'surface_triangles' indexes a vertex that does not exist".into());
+    }
+    Ok(TriMesh {
+        positions: v.chunks_exact(3).map(|p| nalgebra::Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect(),
+        triangles: t.chunks_exact(3).map(|c| [c[0] as u32, c[1] as u32, c[2] as u32]).collect(),
+    })
+}
+
+/// All accepted, unflagged samples of a dataset: the network input ([C, X, Y, Z]: u_s, or the
+/// encoded camera view) and u_v ([3, X, Y, Z]), f32.
 #[derive(Debug)]
 pub struct SampleSet {
     pub shape: [usize; 3],
+    /// Input channels C.
+    pub channels: usize,
     pub indices: Vec<usize>,
     pub u_s: Vec<Vec<f32>>,
     pub u_v: Vec<Vec<f32>>,
@@ -15,25 +41,48 @@ pub struct SampleSet {
 }
 
 impl SampleSet {
+    /// With the exact surface displacement u_s as input.
     pub fn load(dir: &std::path::Path) -> Result<Self, DatasetError> {
+        Self::load_inputs(dir, None)
+    }
+
+    /// With u_s, or with each sample's simulated camera view encoded by `observation`.
+    pub fn load_inputs(dir: &std::path::Path, observation: Option<&ObservationSettings>) -> Result<Self, DatasetError> {
         let ds = Dataset::open(dir)?;
         let flagged: std::collections::BTreeSet<usize> = ds.manifest.samples.iter().filter(|s| s.flagged).map(|s| s.index).collect();
         let grid = ImmersedGrid::from_npz(&Npz::read(&dir.join("grid.npz"))?)?;
         let shape = ds.manifest.padded_shape;
         let n = 3 * shape[0] * shape[1] * shape[2];
+        let mut observer = match observation {
+            Some(o) => {
+                let npz = Npz::read(&dir.join("grid.npz"))?;
+                let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
+                Some(Observer::new(&grid, &surface, o.clone()).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?)
+            }
+            None => None,
+        };
         let (mut indices, mut u_s, mut u_v) = (Vec::new(), Vec::new(), Vec::new());
         for shard in &ds.manifest.shards {
             let (idx, s, v) = ds.load_shard(shard)?;
+            let views = if observer.is_some() { ds.load_views(shard)? } else { Vec::new() };
             for (k, i) in idx.into_iter().enumerate() {
                 if flagged.contains(&i) {
                     continue;
                 }
                 indices.push(i);
-                u_s.push(s[k * n..(k + 1) * n].to_vec());
+                match &mut observer {
+                    Some(obs) => {
+                        let mut x = Vec::new();
+                        obs.encode(&views[k], &mut x);
+                        u_s.push(x);
+                    }
+                    None => u_s.push(s[k * n..(k + 1) * n].to_vec()),
+                }
                 u_v.push(v[k * n..(k + 1) * n].to_vec());
             }
         }
-        Ok(Self { shape, indices, u_s, u_v, grid })
+        let channels = if observer.is_some() { umesh_core::observation::CHANNELS } else { 3 };
+        Ok(Self { shape, channels, indices, u_s, u_v, grid })
     }
 
     pub fn len(&self) -> usize {

@@ -21,7 +21,7 @@ pub struct EvalReport {
 
 pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> Result<EvalReport, NetError> {
     let mut predictor = Predictor::load(model_dir)?;
-    let set = SampleSet::load(dataset)?;
+    let set = SampleSet::load_inputs(dataset, predictor.info.settings.observation.as_ref())?;
     if set.shape != predictor.info.padded_shape {
         return Err(NetError::Invalid(format!(
             "{}: grid {:?} differs from the model's {:?} ({})",

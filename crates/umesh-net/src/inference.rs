@@ -44,19 +44,20 @@ impl Predictor {
         &self.info.config
     }
 
-    /// u_s [3, X, Y, Z] (mm) -> u_v [3, X, Y, Z] (mm). The returned slice is reused by the
-    /// next call (no per-frame allocation on our side).
+    /// Input [C, X, Y, Z] (u_s or the encoded observation, mm) -> u_v [3, X, Y, Z] (mm). The
+    /// returned slice is reused by the next call (no per-frame allocation on our side).
     pub fn predict(&mut self, u_s: &[f32], shape: [usize; 3]) -> Result<&[f32], NetError> {
-        self.info.config.check_shape([1, 3, shape[0], shape[1], shape[2]]).map_err(NetError::Invalid)?;
-        let n = 3 * shape[0] * shape[1] * shape[2];
+        let c = self.info.config.in_channels;
+        self.info.config.check_shape([1, c, shape[0], shape[1], shape[2]]).map_err(NetError::Invalid)?;
+        let n = c * shape[0] * shape[1] * shape[2];
         if u_s.len() != n {
-            return Err(NetError::Invalid(format!("the input holds {} values, the grid {shape:?} x 3 needs {n}", u_s.len())));
+            return Err(NetError::Invalid(format!("the input holds {} values, the grid {shape:?} x {c} needs {n}", u_s.len())));
         }
         let s = self.info.normalization.input_scale_mm;
         self.input.clear();
         self.input.extend(u_s.iter().map(|v| v / s));
         let x =
-            Tensor::<5>::from_data(TensorData::new(std::mem::take(&mut self.input), [1, 3, shape[0], shape[1], shape[2]]), &self.device);
+            Tensor::<5>::from_data(TensorData::new(std::mem::take(&mut self.input), [1, c, shape[0], shape[1], shape[2]]), &self.device);
         let y = self.model.forward(x);
         let data = y.into_data().try_to_vec::<f32>().map_err(|e| NetError::Invalid(format!("{e:?}")))?;
         let o = self.info.normalization.output_scale_mm;
@@ -69,6 +70,9 @@ impl Predictor {
 impl umesh_core::register::pipeline::DisplacementModel for Predictor {
     fn name(&self) -> String {
         format!("U-Net ({} steps, {} channels)", self.info.config.steps, self.info.config.channels)
+    }
+    fn observation(&self) -> Option<umesh_core::observation::ObservationSettings> {
+        self.info.settings.observation.clone()
     }
     fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
         let shape = self.info.padded_shape;

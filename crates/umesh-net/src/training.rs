@@ -21,11 +21,16 @@ pub struct TrainSettings {
     pub seed: u64,
     /// Virtual markers per sample for the validation TRE.
     pub markers: usize,
+    /// The network input: None, the exact displacement of the visible nodes (u_s, 3
+    /// channels); Some, the encoded simulated camera view of each sample (`observation`,
+    /// `observation::CHANNELS` channels), as registration encodes each frame.
+    #[serde(default)]
+    pub observation: Option<umesh_core::observation::ObservationSettings>,
 }
 
 impl Default for TrainSettings {
     fn default() -> Self {
-        Self { model: UNetConfig::cpu(), epochs: 30, batch_size: 4, learning_rate: 1e-3, seed: 0, markers: 10 }
+        Self { model: UNetConfig::cpu(), epochs: 30, batch_size: 4, learning_rate: 1e-3, seed: 0, markers: 10, observation: None }
     }
 }
 
@@ -50,12 +55,13 @@ pub struct TrainReport {
 }
 
 pub(crate) fn batch(set: &[Vec<f32>], ids: &[usize], shape: [usize; 3], scale: f32, device: &Device) -> Tensor<5> {
-    let n = 3 * shape[0] * shape[1] * shape[2];
-    let mut data = Vec::with_capacity(ids.len() * n);
+    let cells = shape[0] * shape[1] * shape[2];
+    let channels = ids.first().map(|&k| set[k].len() / cells.max(1)).unwrap_or(3);
+    let mut data = Vec::with_capacity(ids.len() * channels * cells);
     for &k in ids {
         data.extend(set[k].iter().map(|v| v / scale));
     }
-    Tensor::from_data(TensorData::new(data, [ids.len(), 3, shape[0], shape[1], shape[2]]), device)
+    Tensor::from_data(TensorData::new(data, [ids.len(), channels, shape[0], shape[1], shape[2]]), device)
 }
 
 pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
@@ -103,13 +109,13 @@ pub fn run_train(
     on_epoch: &(dyn Fn(&EpochMetrics) + Sync),
     cancel: &Cancel,
 ) -> Result<TrainReport, NetError> {
-    let set = SampleSet::load(dataset)?;
+    let set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
     let (train, val) = set.split();
     if train.is_empty() || val.is_empty() {
         return Err(NetError::Invalid(format!("{}: {} samples are too few for an 80/20 split", dataset.display(), set.len())));
     }
     let cfg = &settings.model;
-    cfg.check_shape([1, 3, set.shape[0], set.shape[1], set.shape[2]])
+    cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
         .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
     std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
     let device = Device::flex();

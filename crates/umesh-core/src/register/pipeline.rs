@@ -16,8 +16,13 @@ use std::time::{Duration, Instant};
 /// Volume displacement from surface displacement: the network, or the FE model.
 pub trait DisplacementModel {
     fn name(&self) -> String;
-    /// u_s [3, X, Y, Z] (mm) -> u_v [3, X, Y, Z] (mm), written into `out`.
+    /// u_s [3, X, Y, Z] (mm), or the encoded observation when `observation` is Some ->
+    /// u_v [3, X, Y, Z] (mm), written into `out`.
     fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String>;
+    /// The observation encoding the model takes; None: the surface displacement u_s.
+    fn observation(&self) -> Option<crate::observation::ObservationSettings> {
+        None
+    }
 }
 
 /// The co-rotational FE model driven by the same surface displacements (prescribed at the
@@ -185,6 +190,8 @@ pub struct Registrar<'c> {
     prev_field: Vec<f32>,
     u_s: Vec<f32>,
     field: Vec<f32>,
+    /// Built on the first frame of a model that takes observations.
+    observer: Option<crate::observation::Observer>,
 }
 
 impl<'c> Registrar<'c> {
@@ -198,6 +205,7 @@ impl<'c> Registrar<'c> {
             prev_field: vec![0.0; 3 * x * y * z],
             u_s: Vec::new(),
             field: Vec::new(),
+            observer: None,
         }
     }
 
@@ -250,7 +258,25 @@ impl<'c> Registrar<'c> {
         let mut measured = 0;
         let start = if self.settings.warm_start { self.prev_field.clone() } else { vec![0.0; self.prev_field.len()] };
         let mut current = start;
-        for _ in 0..self.settings.iterations.max(1) {
+        let observation = model.observation();
+        if let Some(o) = observation.clone() {
+            // Correspondence-free: the frame's organ points in the world, encoded on the rest
+            // grid as the training views were; one prediction, no iteration.
+            let t = Instant::now();
+            if self.observer.as_ref().is_none_or(|x| x.settings != o) {
+                self.observer = Some(crate::observation::Observer::new(&self.ctx.grid, &self.ctx.surface, o)?);
+            }
+            let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
+            let stats = self.observer.as_mut().map(|x| x.encode(&world, &mut self.u_s)).unwrap_or_default();
+            measured = stats.nodes_observed;
+            surface_ms += ms(t);
+            if measured > 0 {
+                let t = Instant::now();
+                model.predict(&self.u_s, &mut self.field).map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+                predict_ms += ms(t);
+            }
+        }
+        for _ in 0..if observation.is_some() { 0 } else { self.settings.iterations.max(1) } {
             let t = Instant::now();
             measured = self.surface_input(&depth, &k, &camera_from_world, &current);
             surface_ms += ms(t);

@@ -61,8 +61,23 @@ impl Plugin for ViewPlugins {
     }
 }
 
-/// bevy_pbr's SSAO compute pipeline (unused here) fails to compile on Mesa's GL; every other
-/// render error stops the app as bevy's default handler does.
+/// The renderer, without bevy_pbr's screen-space ambient occlusion (unused here; its compute
+/// shader does not compile on Mesa's GL, logged an error on every start and preceded the
+/// occasional heap-corruption abort): the SSAO plugin skips itself on devices with fewer than 5
+/// storage textures per shader stage, so the device is asked for 4.
+pub fn render_plugin(synchronous_pipeline_compilation: bool) -> bevy::render::RenderPlugin {
+    use bevy::render::settings::{RenderCreation, WgpuLimits, WgpuSettings};
+    let limits = WgpuLimits { max_storage_textures_per_shader_stage: 4, ..WgpuLimits::default() };
+    bevy::render::RenderPlugin {
+        render_creation: RenderCreation::Automatic(Box::new(WgpuSettings { constrained_limits: Some(limits), ..Default::default() })),
+        synchronous_pipeline_compilation,
+        ..Default::default()
+    }
+}
+
+/// bevy_pbr's SSAO compute pipeline (left out, see `render_plugin`) failed to compile on Mesa's
+/// GL; should it come back, it is ignored. Every other render error stops the app as bevy's
+/// default handler does.
 fn render_error_policy(error: &RenderError, main_world: &mut World, _render: &mut World) -> RenderErrorPolicy {
     let d = error.description.to_lowercase();
     if d.contains("ssao") || d.contains("screen_space_ambient_occlusion") {
@@ -152,10 +167,14 @@ fn request_redraws(
 /// Open the app window on a patient folder, or on the bundled phantom.
 pub fn run_gui(patient: Option<std::path::PathBuf>) -> AppExit {
     App::new()
-        .add_plugins(DefaultPlugins.set(WindowPlugin {
-            primary_window: Some(Window { title: "umesh".into(), resolution: (1400u32, 900u32).into(), ..default() }),
-            ..default()
-        }))
+        .add_plugins(
+            DefaultPlugins
+                .set(WindowPlugin {
+                    primary_window: Some(Window { title: "umesh".into(), resolution: (1400u32, 900u32).into(), ..default() }),
+                    ..default()
+                })
+                .set(render_plugin(false)),
+        )
         .add_plugins(ViewPlugins)
         .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
         .insert_resource(StartWith(patient))

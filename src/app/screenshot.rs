@@ -10,7 +10,6 @@ use super::state::*;
 use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
 use bevy::prelude::*;
-use bevy::render::RenderPlugin;
 use bevy::render::render_resource::TextureFormat;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
 use bevy::window::ExitCondition;
@@ -251,7 +250,7 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
     app.add_plugins(
         DefaultPlugins
             .set(WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..default() })
-            .set(RenderPlugin { synchronous_pipeline_compilation: true, ..default() })
+            .set(super::render_plugin(true))
             // wgpu's GL backend logs a harmless texture-view heuristic every frame.
             .set(bevy::log::LogPlugin { filter: "wgpu=error,wgpu_hal=off,naga=warn".into(), ..default() })
             .disable::<WinitPlugin>(),

@@ -13,6 +13,7 @@ pub struct TriMesh {
 /// How a mesh fails to be a closed, consistently oriented surface.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TopologyReport {
+    pub triangles: usize,
     pub boundary_edges: usize,
     pub non_manifold_edges: usize,
     pub inconsistent_edges: usize,
@@ -20,7 +21,8 @@ pub struct TopologyReport {
 
 impl TopologyReport {
     pub fn is_watertight(&self) -> bool {
-        self.boundary_edges == 0 && self.non_manifold_edges == 0 && self.inconsistent_edges == 0
+        // A surface with no triangle encloses nothing.
+        self.triangles > 0 && self.boundary_edges == 0 && self.non_manifold_edges == 0 && self.inconsistent_edges == 0
     }
 }
 
@@ -37,7 +39,8 @@ impl TriMesh {
                 *directed.entry((t[e], t[(e + 1) % 3])).or_insert(0) += 1;
             }
         }
-        let mut report = TopologyReport { boundary_edges: 0, non_manifold_edges: 0, inconsistent_edges: 0 };
+        let mut report =
+            TopologyReport { triangles: self.triangles.len(), boundary_edges: 0, non_manifold_edges: 0, inconsistent_edges: 0 };
         for (&(a, b), &n_ab) in &directed {
             let n_ba = directed.get(&(b, a)).copied().unwrap_or(0);
             if n_ba > 0 && a > b {

@@ -405,7 +405,15 @@ fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> R
     if h.bitpix != 0 && h.bitpix as usize != bpv * 8 {
         return Err(bad(format!("bitpix {} does not match datatype {}", h.bitpix, h.datatype)));
     }
-    let (affine, _) = h.world_from_voxel();
+    let (affine, source) = h.world_from_voxel();
+    // The qform and the fallback scale by pixdim: a zero, negative or non-finite voxel size is
+    // an error, not 1 mm (the sform carries its own scale).
+    if source != AffineSource::Sform {
+        let d = [h.pixdim[1], h.pixdim[2], h.pixdim[3]];
+        if !d.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return Err(bad(format!("pixdim[1..4] = {d:?}: voxel sizes must be positive and finite (no sform to take them from)")));
+        }
+    }
     if !affine.iter().all(|v| v.is_finite()) || affine.fixed_view::<3, 3>(0, 0).determinant().abs() < 1e-12 {
         return Err(bad("the voxel-to-world affine is singular or not finite".into()));
     }

@@ -289,6 +289,16 @@ fn bad_nifti_input_gives_one_clear_error_naming_the_file() {
     s = Spec::new([2, 3, 4], 2, 8, vec![0; 24]);
     s.srow = [[0.0; 4]; 3];
     check(&s.bytes(), "singular");
+    // Without an sform the voxel sizes come from pixdim: zero, negative or NaN is an error,
+    // not a silent 1 mm.
+    for bad_size in [0.0, -2.0, f64::NAN] {
+        s = Spec::new([2, 3, 4], 2, 8, vec![0; 24]);
+        s.sform_code = 0;
+        s.pixdim[2] = bad_size;
+        check(&s.bytes(), "pixdim");
+        s.qform_code = 1;
+        check(&s.bytes(), "pixdim");
+    }
     let missing = read_volume(Path::new("/nonexistent/seg.nii.gz"), &ReadOptions::default()).unwrap_err().to_string();
     assert!(missing.contains("/nonexistent/seg.nii.gz"));
     // A truncated gzip stream.
@@ -362,6 +372,8 @@ fn cube() -> umesh_core::mesh::TriMesh {
 fn meshes_round_trip_in_every_format_and_open_meshes_are_refused() {
     let m = cube();
     assert!(m.topology().is_watertight());
+    // A surface with no triangle (a one-voxel organ sampled away) encloses nothing.
+    assert!(!umesh_core::mesh::TriMesh { positions: vec![], triangles: vec![] }.topology().is_watertight());
     assert!((m.signed_volume_mm3() - 1000.0).abs() < 1e-9);
     for ext in ["obj", "ply", "stl"] {
         let p = tmp(&format!("cube.{ext}"));

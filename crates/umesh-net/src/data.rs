@@ -57,7 +57,10 @@ impl SampleSet {
             Some(o) => {
                 let npz = Npz::read(&dir.join("grid.npz"))?;
                 let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
-                Some(Observer::new(&grid, &surface, o.clone()).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?)
+                Some(
+                    Observer::new(&grid, &surface, o.clone())
+                        .map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?,
+                )
             }
             None => None,
         };

@@ -242,7 +242,13 @@ pub fn run_prepare(
     settings
         .train
         .model
-        .check_shape([1, settings.train.model.in_channels, ctx.grid.padded_shape()[0], ctx.grid.padded_shape()[1], ctx.grid.padded_shape()[2]])
+        .check_shape([
+            1,
+            settings.train.model.in_channels,
+            ctx.grid.padded_shape()[0],
+            ctx.grid.padded_shape()[1],
+            ctx.grid.padded_shape()[2],
+        ])
         .map_err(|e| NetError::Invalid(format!("{}: {e}", seg.source.display())))?;
     if settings.dataset.samples < 10 {
         return Err(NetError::Invalid(format!(

@@ -25,7 +25,8 @@ pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "camera"
 /// A folder for data a scene generates (a small dataset, a short recording), kept between
 /// runs: the generation is deterministic and is skipped when the folder is complete.
 fn scene_cache(name: &str) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("umesh-scene-{name}"))
+    // Keyed by the dataset format: a cache written by an older umesh is not reused.
+    std::env::temp_dir().join(format!("umesh-scene-{name}-v{}", umesh_core::dataset::FORMAT_VERSION))
 }
 
 fn run(job: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String>) -> Result<JobOutput, String> {

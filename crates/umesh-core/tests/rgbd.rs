@@ -223,6 +223,11 @@ fn recordings_with_bad_files_give_clear_errors() {
     image::GrayImage::new(160, 120).save(d.join("mask/00000.png")).unwrap();
     let e = rec.read_frame(0).unwrap_err().to_string();
     assert!(e.contains("00000.png") && e.contains("mask is empty"), "{e}");
+    // An 8-bit depth image: refused with its reason, not read as "no organ pixel".
+    let depth8 = d.join("depth8.png");
+    image::GrayImage::from_pixel(160, 120, image::Luma([200u8])).save(&depth8).unwrap();
+    let e = umesh_core::rgbd::read_depth_png(&depth8, 1000.0).unwrap_err().to_string();
+    assert!(e.contains("depth8.png") && e.contains("8-bit") && e.contains("16-bit"), "{e}");
     // The recording source skips both with log lines, never panics.
     let mut src = RecordingSource::new(rec);
     assert!(matches!(src.poll(Duration::ZERO), Poll::Ended(None)));

@@ -184,8 +184,9 @@ impl ColorImage {
 
 use image::ImageEncoder;
 
-/// Read a 16-bit (or 8-bit) single-channel depth PNG; `depth_scale` raw units per metre
-/// (1000: millimetres, 5000: TUM).
+/// Read a 16-bit single-channel depth PNG; `depth_scale` raw units per metre (1000:
+/// millimetres, 5000: TUM). 8-bit images are refused: at most 255 mm (or 51 mm at 5000 per
+/// metre) cannot hold an organ's depth, and they are usually a visualisation, not the data.
 pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, RgbdError> {
     if !(depth_scale.is_finite() && depth_scale > 0.0) {
         return Err(invalid(path, format!("depth scale {depth_scale} must be finite and positive")));
@@ -193,7 +194,13 @@ pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, RgbdE
     let img = image::open(path).map_err(|e| invalid(path, format!("cannot decode the depth image: {e}")))?;
     let gray = match img {
         image::DynamicImage::ImageLuma16(g) => g,
-        image::DynamicImage::ImageLuma8(_) => img.to_luma16(),
+        image::DynamicImage::ImageLuma8(_) => {
+            return Err(invalid(
+                path,
+                "the depth image is 8-bit: depth needs a 16-bit single-channel PNG (8 bits hold at most 255 raw units, \
+                 a visualisation rather than the camera's depth)",
+            ));
+        }
         other => return Err(invalid(path, format!("depth must be a single-channel 16-bit PNG, found {:?}", other.color()))),
     };
     let (w, h) = gray.dimensions();

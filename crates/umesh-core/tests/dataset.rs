@@ -416,6 +416,9 @@ fn a_dataset_of_the_previous_format_names_the_command_that_regenerates_it() {
     let path = dir.join("manifest.json");
     let text = std::fs::read_to_string(&path).unwrap().replace("\"format_version\": 2", "\"format_version\": 1");
     std::fs::write(&path, text).unwrap();
-    let err = Dataset::open(&dir).err().expect("an old dataset is refused").to_string();
+    let err = match Dataset::open(&dir) {
+        Ok(_) => panic!("an old dataset is refused"),
+        Err(e) => e.to_string(),
+    };
     assert!(err.contains("v1") && err.contains("umesh dataset generate") && err.contains("manifest.json"), "{err}");
 }

@@ -802,6 +802,15 @@ pub fn run_generate(
         }
         // Keep what the old manifest knows (timings, reasons) for shards still on disk.
         manifest.samples = old.samples;
+    } else if (0..config.shard_count()).any(|s| out.join(shard_file_name(s)).exists())
+        || std::fs::read_dir(out).map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_"))).unwrap_or(false)
+    {
+        // The manifest is written before the first shard: shards without one are left over from
+        // another run (or its manifest was deleted), and their settings cannot be checked.
+        return Err(invalid(
+            out,
+            "holds shard files but no manifest.json, so what made them cannot be checked; choose an empty folder (or restore its manifest.json)",
+        ));
     }
     let grid_path = out.join("grid.npz");
     crate::write_atomic(&grid_path, &ctx.grid_npz).map_err(|source| DatasetError::Io { path: grid_path.clone(), source })?;
@@ -1069,13 +1078,94 @@ pub struct MergeReport {
 pub fn run_merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, DatasetError> {
     let first = inputs.first().ok_or_else(|| invalid(out, "no input dataset"))?;
     let m0 = Manifest::read(first)?;
-    std::fs::create_dir_all(out).map_err(|source| DatasetError::Io { path: out.into(), source })?;
+    let same = |m: &Manifest| m.config_hash == m0.config_hash && m.grid_hash == m0.grid_hash && m.segmentation_hash == m0.segmentation_hash;
+    // The target: absent, empty, or the same dataset (its shards then join the merge).
+    let mut sources: Vec<PathBuf> = inputs.to_vec();
+    let non_empty = std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if non_empty {
+        match Manifest::read(out) {
+            Ok(m) if same(&m) => {
+                if !inputs.iter().any(|i| crate::same_path(i, out)) {
+                    sources.push(out.to_path_buf());
+                }
+            }
+            Ok(_) => {
+                return Err(invalid(
+                    out,
+                    format!(
+                        "holds another dataset than {} (other configuration, grid or segmentation); choose an empty folder",
+                        first.display()
+                    ),
+                ));
+            }
+            Err(_) => return Err(invalid(out, "is not empty and holds no dataset manifest; choose an empty folder")),
+        }
+    }
+    // Everything is written into a staging folder beside the target, which replaces it only at
+    // the end: a merge that fails leaves the target as it was.
+    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "dataset".into());
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(|source| DatasetError::Io { path: parent.into(), source })?;
+    let stage = parent.join(format!(".{name}.merge-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&stage);
+    let staged = merge_into(&m0, &sources, first, &stage, same);
+    let merged = match staged {
+        Ok(m) => m,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&stage);
+            return Err(e);
+        }
+    };
+    if out.exists() {
+        // Other files of the target (a job record, notes) move along.
+        for e in std::fs::read_dir(out).map_err(|source| DatasetError::Io { path: out.into(), source })?.flatten() {
+            let dst = stage.join(e.file_name());
+            if e.path().is_file() && !dst.exists() && std::fs::copy(e.path(), &dst).is_err() {
+                let _ = std::fs::remove_dir_all(&stage);
+                return Err(invalid(&e.path(), "could not be carried over into the merged dataset"));
+            }
+        }
+        let old = parent.join(format!(".{name}.old-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&old);
+        std::fs::rename(out, &old).map_err(|source| {
+            let _ = std::fs::remove_dir_all(&stage);
+            DatasetError::Io { path: out.into(), source }
+        })?;
+        if let Err(source) = std::fs::rename(&stage, out) {
+            let _ = std::fs::rename(&old, out);
+            let _ = std::fs::remove_dir_all(&stage);
+            return Err(DatasetError::Io { path: out.into(), source });
+        }
+        let _ = std::fs::remove_dir_all(&old);
+    } else {
+        std::fs::rename(&stage, out).map_err(|source| {
+            let _ = std::fs::remove_dir_all(&stage);
+            DatasetError::Io { path: out.into(), source }
+        })?;
+    }
+    Ok(MergeReport {
+        out: out.into(),
+        shards: merged.shards.len(),
+        samples: merged.samples.len(),
+        accepted: merged.accepted().count(),
+        complete: merged.complete,
+    })
+}
+
+fn merge_into(
+    m0: &Manifest,
+    sources: &[PathBuf],
+    first: &Path,
+    stage: &Path,
+    same: impl Fn(&Manifest) -> bool,
+) -> Result<Manifest, DatasetError> {
+    std::fs::create_dir_all(stage).map_err(|source| DatasetError::Io { path: stage.into(), source })?;
     let grid = std::fs::read(first.join("grid.npz")).map_err(|source| DatasetError::Io { path: first.join("grid.npz"), source })?;
     let mut merged = Manifest { shards: Vec::new(), samples: Vec::new(), ..m0.clone() };
     let mut have = std::collections::BTreeSet::new();
-    for dir in inputs {
+    for dir in sources {
         let m = Manifest::read(dir)?;
-        if m.config_hash != m0.config_hash || m.grid_hash != m0.grid_hash || m.segmentation_hash != m0.segmentation_hash {
+        if !same(&m) {
             return Err(invalid(dir, format!("was made with another configuration than {}", first.display())));
         }
         for s in &m.shards {
@@ -1087,22 +1177,16 @@ pub fn run_merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, DatasetE
             if fnv_hex(&bytes) != s.hash {
                 return Err(invalid(&src, "is corrupted or truncated (its hash differs from the manifest's)"));
             }
-            let dst = out.join(&s.file);
+            let dst = stage.join(&s.file);
             crate::write_atomic(&dst, &bytes).map_err(|source| DatasetError::Io { path: dst, source })?;
             merged.shards.push(s.clone());
             merged.samples.extend(m.samples.iter().filter(|r| r.shard == s.file).cloned());
         }
     }
-    crate::write_atomic(&out.join("grid.npz"), &grid).map_err(|source| DatasetError::Io { path: out.join("grid.npz"), source })?;
+    crate::write_atomic(&stage.join("grid.npz"), &grid).map_err(|source| DatasetError::Io { path: stage.join("grid.npz"), source })?;
     finalize(&mut merged);
-    merged.write(out)?;
-    Ok(MergeReport {
-        out: out.into(),
-        shards: merged.shards.len(),
-        samples: merged.samples.len(),
-        accepted: merged.accepted().count(),
-        complete: merged.complete,
-    })
+    merged.write(stage)?;
+    Ok(merged)
 }
 
 #[derive(Clone, Debug, serde::Serialize)]

@@ -151,11 +151,11 @@ fn shards_merge_into_exactly_the_single_run_dataset_and_resume_completes_it() {
         assert!(*s == 0.0 || s == v);
     }
 
-    // Resume: lose a shard and the manifest, run again, get the same files.
+    // Resume: lose a shard, run again, get the same files (shards without their manifest are
+    // refused: see shards_without_their_manifest_are_refused_not_adopted).
     let resumed = tmp("resumed");
     run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
     std::fs::remove_file(resumed.join(shard_file_name(1))).unwrap();
-    std::fs::remove_file(resumed.join("manifest.json")).unwrap();
     let r2 = run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
     assert_eq!(r2.samples_computed, 2, "{r2:?}");
     assert_eq!(r2.samples_reused, 3);
@@ -421,4 +421,64 @@ fn a_dataset_of_the_previous_format_names_the_command_that_regenerates_it() {
         Err(e) => e.to_string(),
     };
     assert!(err.contains("v1") && err.contains("umesh dataset generate") && err.contains("manifest.json"), "{err}");
+}
+
+fn folder_bytes(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
+        .unwrap()
+        .flatten()
+        .map(|e| (e.file_name().to_string_lossy().into_owned(), std::fs::read(e.path()).unwrap()))
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn shards_without_their_manifest_are_refused_not_adopted() {
+    let seg = phantom();
+    let dir = tmp("no-manifest");
+    run_generate(&seg, &dir, &small_config(2), ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    std::fs::remove_file(dir.join("manifest.json")).unwrap();
+    let before = folder_bytes(&dir);
+    let mut other = small_config(2);
+    other.seed = 99;
+    let err = run_generate(&seg, &dir, &other, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    assert!(err.contains("no manifest.json") && err.contains(&dir.display().to_string()), "{err}");
+    assert_eq!(before, folder_bytes(&dir), "the folder was changed");
+}
+
+#[test]
+fn merge_refuses_another_dataset_in_the_target_and_a_failed_merge_leaves_it_intact() {
+    let seg = phantom();
+    let a = tmp("merge-a");
+    let b = tmp("merge-b");
+    run_generate(&seg, &a, &small_config(4), ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let mut cb = small_config(2);
+    cb.seed = 11;
+    run_generate(&seg, &b, &cb, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let b_before = folder_bytes(&b);
+    let err = run_merge(std::slice::from_ref(&a), &b).unwrap_err().to_string();
+    assert!(err.contains("another dataset"), "{err}");
+    assert_eq!(b_before, folder_bytes(&b));
+    // Into a folder of the same dataset: allowed; then a merge whose input is corrupted fails
+    // and leaves that target, and its parent, as they were.
+    let t = tmp("merge-target");
+    run_merge(std::slice::from_ref(&a), &t).unwrap();
+    std::fs::write(t.join("notes.txt"), b"kept").unwrap();
+    run_merge(std::slice::from_ref(&a), &t).unwrap();
+    assert_eq!(std::fs::read(t.join("notes.txt")).unwrap(), b"kept", "other files of the target are kept");
+    let t_before = folder_bytes(&t);
+    let shard = a.join(shard_file_name(1));
+    let mut bytes = std::fs::read(&shard).unwrap();
+    bytes.truncate(bytes.len() / 2);
+    std::fs::write(&shard, bytes).unwrap();
+    let err = run_merge(std::slice::from_ref(&a), &t).unwrap_err().to_string();
+    assert!(err.contains("corrupted"), "{err}");
+    assert_eq!(t_before, folder_bytes(&t), "the target changed");
+    let leftovers: Vec<_> = std::fs::read_dir(t.parent().unwrap())
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&format!(".{}", t.file_name().unwrap().to_string_lossy())))
+        .collect();
+    assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
 }

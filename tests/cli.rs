@@ -81,6 +81,10 @@ fn bad_inputs_fail_with_one_clear_error_and_a_nonzero_exit() {
     assert!(!ok && err.contains("forces.json"), "{err}");
     let (ok, _, err) = umesh(&["simulate", "--material", "rubber"]);
     assert!(!ok && err.contains("rubber"), "{err}");
+    // A force 1 m away from the organ: refused, not moved onto the grid's edge.
+    std::fs::write(&forces, r#"[{"point_mm": [1000, 0, 0], "force_n": [0, 0, -0.1]}]"#).unwrap();
+    let (ok, _, err) = umesh(&["simulate", "--forces", forces.to_str().unwrap(), "--out", tmp("far-force").to_str().unwrap()]);
+    assert!(!ok && err.contains("outside the organ"), "{err}");
 }
 
 #[test]

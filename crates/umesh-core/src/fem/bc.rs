@@ -99,7 +99,20 @@ impl BoundaryConditions {
     /// Apply a point force at a world point, spread over the enclosing cell's nodes with the
     /// trilinear weights (this conserves the total force).
     pub fn add_point_force(&mut self, grid: &ImmersedGrid, point_mm: &Vector3<f64>, force_n: &Vector3<f64>) -> Result<(), String> {
+        if !(point_mm.iter().chain(force_n.iter()).all(|v| v.is_finite())) {
+            return Err(format!("a force of {force_n:?} N at {point_mm:?} mm: every number must be finite"));
+        }
         let e = grid.embed(point_mm).ok_or_else(|| format!("the point {point_mm:?} is not near the grid"))?;
+        // `embed` clamps a point outside the grid into the nearest cell: beyond one cell the
+        // force is not on the organ, and moving it there silently would be another load.
+        let at: Vector3<f64> = e.nodes.iter().zip(e.weights).map(|(&n, w)| grid.node_position(n as usize) * w).sum();
+        let off = (at - point_mm).norm();
+        if off > grid.cell_size_mm {
+            return Err(format!(
+                "the force at [{:.1}, {:.1}, {:.1}] mm lies {off:.1} mm outside the organ's grid (more than one {} mm cell): not on the organ",
+                point_mm.x, point_mm.y, point_mm.z, grid.cell_size_mm
+            ));
+        }
         for (n, w) in e.nodes.iter().zip(e.weights) {
             self.forces_n[*n as usize] += force_n * w;
         }

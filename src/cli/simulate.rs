@@ -170,7 +170,7 @@ pub fn run(a: Args) -> Result<()> {
     let settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces };
     let bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
     if let Some(p) = &a.export_problem {
-        write_problem(p, &grid, &material, &bc)?;
+        write_problem(p, &grid, &material, &bc, settings.solver.stabilization)?;
     }
     let (pb, progress) = super::progress_bar("solving");
     let sol = solve_bc(&grid, &bc, &settings, &progress, &cancel);
@@ -238,7 +238,9 @@ fn report(out: &Path, json: bool, sol: &umesh_core::fem::Solution, nodes: usize,
 
 fn run_problem(a: &Args, path: &Path, method: SolveMethod) -> Result<()> {
     let p = read_problem(path)?;
-    let settings = SimulationSettings { material: p.material, solver: a.fe.solver(), method, fixed: vec![], forces: vec![] };
+    // The file's stabilisation, not the command line's: the file is the whole problem.
+    let solver = umesh_core::fem::solver::SolverSettings { stabilization: p.stabilization, ..a.fe.solver() };
+    let settings = SimulationSettings { material: p.material, solver, method, fixed: vec![], forces: vec![] };
     let (pb, progress) = super::progress_bar("solving");
     let sol = solve_bc(&p.grid, &p.bc, &settings, &progress, &super::cancel());
     pb.finish_and_clear();

@@ -321,3 +321,43 @@ fn fe_solver_reuses_its_pattern_for_new_loads() {
     let cr = solver.solve(&bc, SolveMethod::Corotational, &Progress::none(), &Cancel::new()).unwrap();
     assert!((cr.max_displacement_mm() - last).abs() / last < 0.05, "corotational {} vs svk {last}", cr.max_displacement_mm());
 }
+
+#[test]
+fn an_exported_problem_carries_its_stabilisation_and_solves_the_same_only_with_it() {
+    use umesh_core::fem::problem_io::{read_problem, write_problem};
+    // A bar not aligned with its 6 mm cells: its end cells are partly outside, so stabilised.
+    let grid = box_grid(Vector3::zeros(), Vector3::new(40.0, 10.0, 10.0), 6.0, 1);
+    let m = mat(MaterialKind::Linear);
+    let mut bc = BoundaryConditions::new(grid.node_count());
+    bc.fix_region(&grid, &FixedRegion::Plane { normal: [1.0, 0.0, 0.0], offset_mm: 0.0, thickness_mm: 0.5 }, None).unwrap();
+    bc.add_point_force(&grid, &Vector3::new(39.0, 5.0, 5.0), &Vector3::new(0.0, 0.0, -2.0)).unwrap();
+    let settings = SolverSettings::default();
+    let alpha = settings.stabilization;
+    let u0 = solve(&grid, &m, &bc, SolveMethod::Linear, &settings, &Progress::none(), &Cancel::new()).unwrap().displacement_mm;
+    let path = std::env::temp_dir().join(format!("umesh-stab-{}.npz", std::process::id()));
+    write_problem(&path, &grid, &m, &bc, alpha).unwrap();
+    let solve_file = |p: &umesh_core::fem::problem_io::LoadedProblem, stab: f64| -> Vec<Vector3<f64>> {
+        let s = SolverSettings { stabilization: stab, ..SolverSettings::default() };
+        let u = solve(&p.grid, &p.material, &p.bc, SolveMethod::Linear, &s, &Progress::none(), &Cancel::new()).unwrap().displacement_mm;
+        p.node_map.iter().map(|&g| u[g]).collect()
+    };
+    let max_diff = |a: &[Vector3<f64>], b: &[Vector3<f64>]| a.iter().zip(b).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max);
+    let p = read_problem(&path).unwrap();
+    assert!((p.stabilization - alpha).abs() < 1e-12, "the file says alpha = {}", p.stabilization);
+    let with = solve_file(&p, p.stabilization);
+    assert!(max_diff(&with, &u0) < 1e-9, "the exported problem solves differently: {} mm", max_diff(&with, &u0));
+    // Without the arrays the file has no stabilisation: another answer, and adding alpha back
+    // (what the arrays said) gives the original one.
+    let mut npz = umesh_core::npz::Npz::read(&path).unwrap();
+    npz.arrays.remove("stab_cell");
+    npz.arrays.remove("stab_scale");
+    let arrays: Vec<(&str, umesh_core::npz::Array)> = npz.arrays.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
+    let bare = std::env::temp_dir().join(format!("umesh-stab-bare-{}.npz", std::process::id()));
+    umesh_core::npz::write_npz(&bare, &arrays).unwrap();
+    let p2 = read_problem(&bare).unwrap();
+    assert_eq!(p2.stabilization, 0.0);
+    let without = solve_file(&p2, p2.stabilization);
+    let scale = u0.iter().map(|v| v.norm()).fold(0.0, f64::max);
+    assert!(max_diff(&without, &u0) > 1e-4 * scale, "the stabilisation made no difference: {}", max_diff(&without, &u0));
+    assert!(max_diff(&solve_file(&p2, alpha), &u0) < 1e-9);
+}

@@ -2,7 +2,12 @@
 //! (and this one can solve theirs). Arrays: `nodes` [N,3] mm, `hexes` [M,8] (VTK order),
 //! `qp_cell` [Q], `qp_xi` [Q,3] in [-1,1]^3, `qp_w` [Q] mm^3, `fixed` [F] node indices,
 //! `forces` [N,3] N, `young_pa`, `poisson`, `material` (uint8 text: svk, linear,
-//! neo-hookean); optional `prescribed_nodes` [P] and `prescribed_mm` [P,3].
+//! neo-hookean); optional `prescribed_nodes` [P] and `prescribed_mm` [P,3]; the finite-cell
+//! stabilisation as `stab_cell` [S] int64 (indices into `hexes`) and `stab_scale` [S] float64:
+//! each listed cell adds a small-strain linear-elastic stiffness with the problem's E and nu,
+//! integrated over the whole cell with 2x2x2 Gauss points, times `stab_scale` (umesh writes
+//! alpha * (1 - the cell's volume fraction) for every cell where that is positive). A file
+//! without them has no stabilisation.
 
 use super::bc::BoundaryConditions;
 use super::material::{MaterialKind, MaterialParams};
@@ -19,7 +24,12 @@ pub enum ProblemError {
     Invalid { path: String, reason: String },
 }
 
-pub fn problem_arrays(grid: &ImmersedGrid, material: &MaterialParams, bc: &BoundaryConditions) -> Vec<(&'static str, Array)> {
+pub fn problem_arrays(
+    grid: &ImmersedGrid,
+    material: &MaterialParams,
+    bc: &BoundaryConditions,
+    stabilization: f64,
+) -> Vec<(&'static str, Array)> {
     let mut arrays: Vec<(&'static str, Array)> =
         grid.to_npz_arrays().into_iter().filter(|(n, _)| matches!(*n, "nodes" | "hexes" | "qp_cell" | "qp_xi" | "qp_w")).collect();
     let fixed: Vec<i64> = bc.fixed.iter().enumerate().filter(|(_, f)| **f).map(|(i, _)| i as i64).collect();
@@ -29,6 +39,17 @@ pub fn problem_arrays(grid: &ImmersedGrid, material: &MaterialParams, bc: &Bound
     arrays.push(("poisson", Array::scalar_f64(material.poisson)));
     let name = material.kind.name().as_bytes().to_vec();
     arrays.push(("material", Array::new(vec![name.len()], ArrayData::U8(name))));
+    let stab: Vec<(i64, f64)> = grid
+        .cells
+        .iter()
+        .enumerate()
+        .map(|(c, cell)| (c as i64, stabilization * (1.0 - cell.volume_fraction).max(0.0)))
+        .filter(|(_, s)| *s > 0.0)
+        .collect();
+    if !stab.is_empty() {
+        arrays.push(("stab_cell", Array::i64(vec![stab.len()], stab.iter().map(|x| x.0).collect())));
+        arrays.push(("stab_scale", Array::f64(vec![stab.len()], stab.iter().map(|x| x.1).collect())));
+    }
     if !bc.prescribed_mm.is_empty() {
         let p = &bc.prescribed_mm;
         arrays.push(("prescribed_nodes", Array::i64(vec![p.len()], p.iter().map(|(n, _)| *n as i64).collect())));
@@ -37,8 +58,14 @@ pub fn problem_arrays(grid: &ImmersedGrid, material: &MaterialParams, bc: &Bound
     arrays
 }
 
-pub fn write_problem(path: &Path, grid: &ImmersedGrid, material: &MaterialParams, bc: &BoundaryConditions) -> Result<(), NpzError> {
-    crate::npz::write_npz(path, &problem_arrays(grid, material, bc))
+pub fn write_problem(
+    path: &Path,
+    grid: &ImmersedGrid,
+    material: &MaterialParams,
+    bc: &BoundaryConditions,
+    stabilization: f64,
+) -> Result<(), NpzError> {
+    crate::npz::write_npz(path, &problem_arrays(grid, material, bc, stabilization))
 }
 
 /// A problem read from a file: the grid, the material, the conditions, and the map from the
@@ -50,6 +77,9 @@ pub struct LoadedProblem {
     pub bc: BoundaryConditions,
     /// file node index -> grid node index
     pub node_map: Vec<usize>,
+    /// The stabilisation factor alpha the file's `stab_scale` encodes (0 without the arrays):
+    /// the solver's `SolverSettings::stabilization` for this problem.
+    pub stabilization: f64,
 }
 
 pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
@@ -168,5 +198,33 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
             bc.prescribed_mm.push((node_map[node(p)?], Vector3::new(pd[3 * k], pd[3 * k + 1], pd[3 * k + 2])));
         }
     }
-    Ok(LoadedProblem { grid, material, bc, node_map })
+    // The stabilisation: umesh's solver applies alpha * (1 - volume fraction) per cell, so the
+    // file's scales must be that for one alpha (any other pattern is refused, not approximated).
+    let mut stabilization = 0.0;
+    if npz.arrays.contains_key("stab_cell") || npz.arrays.contains_key("stab_scale") {
+        let (_, sc) = npz.f64_with_shape("stab_cell", &[None])?;
+        let (_, ss) = npz.f64_with_shape("stab_scale", &[Some(sc.len())])?;
+        let mut per_cell = vec![0.0; m];
+        for (&c, &v) in sc.iter().zip(&ss) {
+            if c < 0.0 || c.fract() != 0.0 || c as usize >= m {
+                return Err(bad(format!("stab_cell {c} out of range 0..{m}")));
+            }
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(format!("stab_scale {v}: must be finite and non-negative")));
+            }
+            per_cell[c as usize] += v;
+        }
+        let frac = |c: usize| 1.0 - occupied[c].2.min(1.0);
+        let (num, den) = (0..m).fold((0.0, 0.0), |(a, b), c| (a + per_cell[c] * frac(c), b + frac(c) * frac(c)));
+        let alpha = if den > 0.0 { num / den } else { 0.0 };
+        if let Some(c) = (0..m).find(|&c| (per_cell[c] - alpha * frac(c)).abs() > 1e-9 * (1.0 + alpha)) {
+            return Err(bad(format!(
+                "stab_scale of hexahedron {c} is {} where alpha (1 - volume fraction) = {}: only that pattern can be solved here",
+                per_cell[c],
+                alpha * frac(c)
+            )));
+        }
+        stabilization = alpha;
+    }
+    Ok(LoadedProblem { grid, material, bc, node_map, stabilization })
 }

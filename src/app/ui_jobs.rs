@@ -544,17 +544,11 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
             d.target_displacement_mm
         ));
     }
+    // The report's binning: (bar centre, width, count).
     let hist = |values: &[f64], bins: usize| -> Vec<(f64, f64, f64)> {
-        let (lo, hi) = values.iter().fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
-        if values.is_empty() || !(hi > lo) {
-            return values.first().map(|&v| vec![(v, 1.0, values.len() as f64)]).unwrap_or_default();
-        }
-        let w = (hi - lo) / bins as f64;
-        let mut counts = vec![0.0; bins];
-        for v in values {
-            counts[(((v - lo) / w) as usize).min(bins - 1)] += 1.0;
-        }
-        counts.into_iter().enumerate().map(|(i, c)| (lo + (i as f64 + 0.5) * w, w, c)).collect()
+        let (lo, hi, counts) = umesh_net::report::histogram_bins(values, bins, None);
+        let w = (hi - lo) / counts.len() as f64;
+        counts.into_iter().enumerate().map(|(i, c)| (lo + (i as f64 + 0.5) * w, w, c as f64)).collect()
     };
     ui.columns(2, |cols| {
         let achieved: Vec<f64> = fig.mean_vs_target_mm.iter().map(|x| x.0).collect();

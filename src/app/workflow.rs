@@ -197,19 +197,11 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
             let src = seg.source.display().to_string();
             let input = if src.contains("phantom") && !Path::new(&src).exists() { String::new() } else { format!("{src} ") };
             let command = format!(
-                "umesh dataset generate {input}--samples {} --seed {} --shard-size {} --probes {} --target-displacement-mm {} \
-                 --visible-fraction {} --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {}{} --out {}",
+                "umesh dataset generate {input}--samples {} --seed {} --shard-size {} {} --out {}",
                 c.samples,
                 c.seed,
                 c.shard_size,
-                c.forces.probes,
-                c.forces.target_displacement_mm,
-                c.visibility.max_fraction,
-                c.material.young_pa,
-                c.material.poisson,
-                c.grid.cell_size_mm,
-                c.grid.subdivisions,
-                camera_and_fixed_options(c),
+                dataset_options(c),
                 out.display()
             );
             (serde_json::json!({ "kind": "dataset", "segmentation": src, "config": c }), command)
@@ -234,24 +226,32 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
             let c = &settings.dataset;
             let input = inputs.iter().map(|p| format!("{} ", p.display())).collect::<String>();
             let command = format!(
-                "umesh prepare {input}--samples {} --epochs {} --preset {} --probes {} --target-displacement-mm {} --visible-fraction {} \
-                 --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {}{} --out {}",
+                "umesh prepare {input}--samples {} --epochs {} --preset {} {} --out {}",
                 c.samples,
                 settings.train.epochs,
                 if settings.train.model == umesh_net::UNetConfig::paper() { "paper" } else { "cpu" },
-                c.forces.probes,
-                c.forces.target_displacement_mm,
-                c.visibility.max_fraction,
-                c.material.young_pa,
-                c.material.poisson,
-                c.grid.cell_size_mm,
-                c.grid.subdivisions,
-                camera_and_fixed_options(c),
+                dataset_options(c),
                 out.display()
             );
             (serde_json::json!({ "kind": "patient", "inputs": inputs, "settings": settings }), command)
         }
     }
+}
+
+/// The loads, material, grid, camera and fixed-region options of a configuration (shared by
+/// `dataset generate` and `prepare`).
+fn dataset_options(c: &DatasetConfig) -> String {
+    format!(
+        "--probes {} --target-displacement-mm {} --visible-fraction {} --young-pa {} --poisson {} --cell-size-mm {} --subdivisions {}{}",
+        c.forces.probes,
+        c.forces.target_displacement_mm,
+        c.visibility.max_fraction,
+        c.material.young_pa,
+        c.material.poisson,
+        c.grid.cell_size_mm,
+        c.grid.subdivisions,
+        camera_and_fixed_options(c)
+    )
 }
 
 /// The camera and fixed-region options of a configuration, as typed on the command line

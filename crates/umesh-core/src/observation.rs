@@ -180,32 +180,71 @@ impl Observer {
     }
 
     fn corner(&mut self, points: &[Vector3<f64>], out: &mut [f32], cells: usize) -> usize {
+        self.clear_sums();
+        let mut used = 0;
+        for p in points.iter().filter(|p| p.iter().all(|v| v.is_finite())) {
+            if self.splat(p, |x| p - x) {
+                used += 1;
+            }
+        }
+        self.write_means(out, cells);
+        used
+    }
+
+    fn nearest(&mut self, points: &[Vector3<f64>], out: &mut [f32], cells: usize) -> usize {
+        let band = self.settings.band_mm;
+        let used = self.buckets.fill(points, self.origin_mm, band, self.shape, self.h_mm);
+        if used == 0 {
+            return 0;
+        }
+        self.clear_sums();
+        for k in 0..self.rest_points.len() {
+            let (r, n) = self.rest_points[k];
+            let Some(q) = self.buckets.nearest(&r, band) else { continue };
+            let d = q - r;
+            let dn = d.dot(&n);
+            // Mostly sideways: this rest point lies beyond the seen patch (or in a hole).
+            if (d - n * dn).norm() > TANGENTIAL_MM + dn.abs() {
+                continue;
+            }
+            self.splat(&r, |_| n * dn);
+        }
+        self.write_means(out, cells);
+        used
+    }
+
+    fn clear_sums(&mut self) {
         self.acc.iter_mut().for_each(|a| *a = Vector3::zeros());
         self.wsum.iter_mut().for_each(|w| *w = 0.0);
         self.wmax.iter_mut().for_each(|w| *w = 0.0);
+    }
+
+    /// Add `value(node position)` to the 8 lattice nodes of the cell holding `p`, with p's
+    /// trilinear weights; false (nothing added) when p lies outside the lattice.
+    fn splat(&mut self, p: &Vector3<f64>, value: impl Fn(Vector3<f64>) -> Vector3<f64>) -> bool {
         let [sx, sy, sz] = self.shape;
-        let mut used = 0;
-        for p in points.iter().filter(|p| p.iter().all(|v| v.is_finite())) {
-            let l = (p - self.origin_mm) / self.h_mm;
-            let (fi, fj, fk) = (l.x.floor(), l.y.floor(), l.z.floor());
-            if fi < 0.0 || fj < 0.0 || fk < 0.0 || fi + 1.0 >= sx as f64 || fj + 1.0 >= sy as f64 || fk + 1.0 >= sz as f64 {
-                continue;
-            }
-            used += 1;
-            let (i, j, k) = (fi as usize, fj as usize, fk as usize);
-            let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
-            for a in 0..8 {
-                let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
-                let w = (if di == 1 { t.x } else { 1.0 - t.x })
-                    * (if dj == 1 { t.y } else { 1.0 - t.y })
-                    * (if dk == 1 { t.z } else { 1.0 - t.z });
-                let d = self.dense(i + di, j + dj, k + dk);
-                let x = self.node_position(i + di, j + dj, k + dk);
-                self.acc[d] += (p - x) * w;
-                self.wsum[d] += w;
-                self.wmax[d] = self.wmax[d].max(w);
-            }
+        let l = (p - self.origin_mm) / self.h_mm;
+        let (fi, fj, fk) = (l.x.floor(), l.y.floor(), l.z.floor());
+        if fi < 0.0 || fj < 0.0 || fk < 0.0 || fi + 1.0 >= sx as f64 || fj + 1.0 >= sy as f64 || fk + 1.0 >= sz as f64 {
+            return false;
         }
+        let (i, j, k) = (fi as usize, fj as usize, fk as usize);
+        let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
+        for a in 0..8 {
+            let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
+            let w =
+                (if di == 1 { t.x } else { 1.0 - t.x }) * (if dj == 1 { t.y } else { 1.0 - t.y }) * (if dk == 1 { t.z } else { 1.0 - t.z });
+            let d = self.dense(i + di, j + dj, k + dk);
+            let v = value(self.node_position(i + di, j + dj, k + dk));
+            self.acc[d] += v * w;
+            self.wsum[d] += w;
+            self.wmax[d] = self.wmax[d].max(w);
+        }
+        true
+    }
+
+    /// The weighted means into `out`, with the mask channel.
+    fn write_means(&self, out: &mut [f32], cells: usize) {
         for d in 0..cells {
             // A node only seen by points at the far corners of its cells gets a noisy mean: it
             // needs one point with weight 1/8 (the largest weight, not the sum, so that the
@@ -218,56 +257,6 @@ impl Observer {
                 out[3 * cells + d] = (0.5 * self.h_mm) as f32;
             }
         }
-        used
-    }
-
-    fn nearest(&mut self, points: &[Vector3<f64>], out: &mut [f32], cells: usize) -> usize {
-        let band = self.settings.band_mm;
-        let used = self.buckets.fill(points, self.origin_mm, band, self.shape, self.h_mm);
-        if used == 0 {
-            return 0;
-        }
-        self.acc.iter_mut().for_each(|a| *a = Vector3::zeros());
-        self.wsum.iter_mut().for_each(|w| *w = 0.0);
-        self.wmax.iter_mut().for_each(|w| *w = 0.0);
-        let [sx, sy, sz] = self.shape;
-        for k in 0..self.rest_points.len() {
-            let (r, n) = self.rest_points[k];
-            let Some(q) = self.buckets.nearest(&r, band) else { continue };
-            let d = q - r;
-            let dn = d.dot(&n);
-            // Mostly sideways: this rest point lies beyond the seen patch (or in a hole).
-            if (d - n * dn).norm() > TANGENTIAL_MM + dn.abs() {
-                continue;
-            }
-            let l = (r - self.origin_mm) / self.h_mm;
-            let (fi, fj, fk) = (l.x.floor(), l.y.floor(), l.z.floor());
-            if fi < 0.0 || fj < 0.0 || fk < 0.0 || fi + 1.0 >= sx as f64 || fj + 1.0 >= sy as f64 || fk + 1.0 >= sz as f64 {
-                continue;
-            }
-            let (i, j, kk) = (fi as usize, fj as usize, fk as usize);
-            let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
-            for a in 0..8 {
-                let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
-                let w = (if di == 1 { t.x } else { 1.0 - t.x })
-                    * (if dj == 1 { t.y } else { 1.0 - t.y })
-                    * (if dk == 1 { t.z } else { 1.0 - t.z });
-                let dd = self.dense(i + di, j + dj, kk + dk);
-                self.acc[dd] += n * (dn * w);
-                self.wsum[dd] += w;
-                self.wmax[dd] = self.wmax[dd].max(w);
-            }
-        }
-        for d in 0..cells {
-            if self.wmax[d] >= 0.125 {
-                let m = self.acc[d] / self.wsum[d];
-                for c in 0..3 {
-                    out[c * cells + d] = m[c] as f32;
-                }
-                out[3 * cells + d] = (0.5 * self.h_mm) as f32;
-            }
-        }
-        used
     }
 }
 

@@ -59,6 +59,27 @@ fn axes(svg: &mut String, x0: f64, x1: f64, y0: f64, y1: f64, xlabel: &str, ylab
     );
 }
 
+/// Histogram bins of the finite `values` over [min(0, values, mark), max(values, mark)]:
+/// (lo, hi, counts). The report and the app's jobs view bin alike.
+pub fn histogram_bins(values: &[f64], bins: usize, mark: Option<f64>) -> (f64, f64, Vec<usize>) {
+    let v = values.iter().copied().filter(|x| x.is_finite());
+    let mut lo = v.clone().fold(f64::INFINITY, f64::min).min(mark.unwrap_or(f64::INFINITY)).min(0.0);
+    let mut hi = v.clone().fold(f64::NEG_INFINITY, f64::max).max(mark.unwrap_or(f64::NEG_INFINITY));
+    if !hi.is_finite() {
+        (lo, hi) = (0.0, 1.0);
+    }
+    if hi - lo < 1e-9 {
+        hi = lo + 1.0;
+    }
+    let bins = bins.max(1);
+    let mut counts = vec![0usize; bins];
+    for x in v {
+        let b = (((x - lo) / (hi - lo)) * bins as f64).floor() as usize;
+        counts[b.min(bins - 1)] += 1;
+    }
+    (lo, hi, counts)
+}
+
 /// A histogram of `values` with an optional vertical line (a target).
 pub fn histogram_svg(values: &[f64], bins: usize, xlabel: &str, mark: Option<(f64, &str)>) -> String {
     let v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
@@ -67,22 +88,8 @@ pub fn histogram_svg(values: &[f64], bins: usize, xlabel: &str, mark: Option<(f6
         svg.push_str(r#"<text x="20" y="40">no values</text></svg>"#);
         return svg;
     }
-    let mut lo = v.iter().copied().fold(f64::INFINITY, f64::min);
-    let mut hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if let Some((m, _)) = mark {
-        lo = lo.min(m);
-        hi = hi.max(m);
-    }
-    lo = lo.min(0.0);
-    if hi - lo < 1e-9 {
-        hi = lo + 1.0;
-    }
-    let bins = bins.max(1);
-    let mut counts = vec![0usize; bins];
-    for x in &v {
-        let b = (((x - lo) / (hi - lo)) * bins as f64).floor() as usize;
-        counts[b.min(bins - 1)] += 1;
-    }
+    let (lo, hi, counts) = histogram_bins(&v, bins, mark.map(|m| m.0));
+    let bins = counts.len();
     // Whole counts on the four y ticks.
     let cmax = (*counts.iter().max().unwrap_or(&1)).div_ceil(4).max(1) as f64 * 4.0;
     axes(&mut svg, lo, hi, 0.0, cmax, xlabel, "samples");

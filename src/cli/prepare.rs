@@ -30,6 +30,10 @@ pub struct Args {
     /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
+    /// Network input: "corner" or "nearest" (the simulated camera views, encoded) or "exact"
+    /// (the visible nodes' displacement), as `umesh train --input`.
+    #[arg(long = "input", default_value = "corner")]
+    pub network_input: String,
     /// Frames of the synthetic registration-check recording.
     #[arg(long, default_value_t = 20)]
     pub check_frames: usize,
@@ -50,6 +54,7 @@ pub fn run(a: Args) -> Result<()> {
         "paper" => UNetConfig::paper(),
         p => anyhow::bail!("--preset {p:?}: cpu or paper"),
     };
+    settings.train.observation = super::train::parse_input(&a.network_input)?;
     anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
     settings.check.frames = a.check_frames;
     if !a.json {

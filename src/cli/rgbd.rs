@@ -54,6 +54,25 @@ pub struct SynthArgs {
     pub load_scale: f64,
     #[arg(long, default_value_t = SynthSettings::default().seed)]
     pub seed: u64,
+    /// The camera moves sideways by this much over the sequence (mm); the trajectory records it.
+    #[arg(long, default_value_t = 0.0)]
+    pub camera_motion_mm: f64,
+    /// The camera turns by this much over the sequence (degrees).
+    #[arg(long, default_value_t = 0.0)]
+    pub camera_motion_deg: f64,
+    /// Instrument shafts occluding the organ.
+    #[arg(long, default_value_t = 0)]
+    pub instruments: usize,
+    /// The truth's material (svk, neo-hookean, linear; default: the dataset's), a test off the
+    /// training distribution.
+    #[arg(long)]
+    pub material: Option<String>,
+    /// The truth's Poisson ratio (with --material; default: the dataset's).
+    #[arg(long)]
+    pub poisson: Option<f64>,
+    /// The truth's Young's modulus (Pa; with --material; default: the dataset's).
+    #[arg(long)]
+    pub young_pa: Option<f64>,
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long)]
@@ -92,7 +111,26 @@ fn synth(a: SynthArgs) -> Result<()> {
         anyhow::bail!("{}: not a model folder (model.json)", model_dir.display());
     }
     let config = model_dataset_config(info.as_ref(), &seg);
+    let material = match (&a.material, a.poisson, a.young_pa) {
+        (None, None, None) => None,
+        (m, p, e) => {
+            let kind = match m {
+                Some(m) => umesh_core::fem::MaterialKind::parse(m)
+                    .with_context(|| format!("--material {m}: expected svk, neo-hookean or linear"))?,
+                None => config.material.kind,
+            };
+            Some(umesh_core::fem::MaterialParams {
+                kind,
+                poisson: p.unwrap_or(config.material.poisson),
+                young_pa: e.unwrap_or(config.material.young_pa),
+            })
+        }
+    };
     let settings = SynthSettings {
+        camera_motion_mm: a.camera_motion_mm,
+        camera_motion_deg: a.camera_motion_deg,
+        instruments: a.instruments,
+        material,
         frames: a.frames,
         fps: a.fps,
         width: a.width,

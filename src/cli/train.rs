@@ -35,8 +35,12 @@ pub struct Args {
     /// Network input: "exact" (the visible nodes' displacement u_s), or the dataset's simulated
     /// camera views encoded by "nearest" (nearest-point normal offsets) or "corner" (cell-corner
     /// mean offsets), as registration encodes each frame.
-    #[arg(long, default_value = "exact")]
+    #[arg(long, default_value = "corner")]
     pub input: String,
+    /// Train on the stored camera view of each sample only (default: a new simulated view of
+    /// each training sample every epoch after the first).
+    #[arg(long)]
+    pub stored_views: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -57,6 +61,17 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
+/// `--input`: "exact" (u_s) or an observation encoding.
+pub fn parse_input(s: &str) -> Result<Option<umesh_core::observation::ObservationSettings>> {
+    Ok(match s {
+        "exact" => None,
+        e => Some(umesh_core::observation::ObservationSettings {
+            encoding: umesh_core::observation::Encoding::parse(e).map_err(|m| anyhow::anyhow!("--input: {m} (or exact)"))?,
+            ..Default::default()
+        }),
+    })
+}
+
 pub fn run(a: Args) -> Result<()> {
     let mut model = match a.preset.as_str() {
         "cpu" => UNetConfig::cpu(),
@@ -69,16 +84,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(s) = a.steps {
         model.steps = s;
     }
-    let observation = match a.input.as_str() {
-        "exact" => None,
-        e => Some(umesh_core::observation::ObservationSettings {
-            encoding: umesh_core::observation::Encoding::parse(e).map_err(|m| anyhow::anyhow!("--input: {m} (or exact)"))?,
-            ..Default::default()
-        }),
-    };
-    if observation.is_some() {
-        model.in_channels = umesh_core::observation::CHANNELS;
-    }
+    let observation = parse_input(&a.input)?;
     let settings = TrainSettings {
         model,
         epochs: a.epochs,
@@ -86,6 +92,7 @@ pub fn run(a: Args) -> Result<()> {
         learning_rate: a.learning_rate,
         seed: a.seed,
         observation,
+        fresh_views: !a.stored_views,
         ..Default::default()
     };
     let (pb, progress) = super::progress_bar("training");

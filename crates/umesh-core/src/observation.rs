@@ -60,7 +60,7 @@ pub struct ObservationSettings {
 
 impl Default for ObservationSettings {
     fn default() -> Self {
-        Self { encoding: Encoding::Nearest, band_mm: 10.0, rest_density_per_mm2: 0.25 }
+        Self { encoding: Encoding::Corner, band_mm: 10.0, rest_density_per_mm2: 0.25 }
     }
 }
 
@@ -200,7 +200,7 @@ impl Observer {
         self.clear_sums();
         for k in 0..self.rest_points.len() {
             let (r, n) = self.rest_points[k];
-            let Some(q) = self.buckets.nearest(&r, band) else { continue };
+            let Some((_, q)) = self.buckets.nearest(&r, band) else { continue };
             let d = q - r;
             let dn = d.dot(&n);
             // Mostly sideways: this rest point lies beyond the seen patch (or in a hole).
@@ -265,16 +265,18 @@ const TANGENTIAL_MM: f64 = 3.0;
 
 /// Points bucketed on a uniform grid of cells `band` wide, for nearest-point queries.
 #[derive(Default)]
-struct Buckets {
+pub(crate) struct Buckets {
     origin: Vector3<f64>,
     size: f64,
     dims: [usize; 3],
     start: Vec<u32>,
     points: Vec<Vector3<f64>>,
+    /// Index of each bucketed point in the filled slice.
+    index: Vec<u32>,
 }
 
 impl Buckets {
-    fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
+    pub(crate) fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
         // The lattice's box grown by the band: points beyond cannot be nearest to a node.
         self.origin = lattice_origin - Vector3::repeat(band);
         self.size = band;
@@ -301,20 +303,24 @@ impl Buckets {
         let used = counts[n] as usize;
         self.points.clear();
         self.points.resize(used, Vector3::zeros());
+        self.index.clear();
+        self.index.resize(used, 0);
         let mut fill = counts;
-        for (p, b) in points.iter().zip(&keys) {
+        for (i, (p, b)) in points.iter().zip(&keys).enumerate() {
             if let Some(b) = b {
                 self.points[fill[*b] as usize] = *p;
+                self.index[fill[*b] as usize] = i as u32;
                 fill[*b] += 1;
             }
         }
         used
     }
 
-    fn nearest(&self, x: &Vector3<f64>, band: f64) -> Option<Vector3<f64>> {
+    /// The nearest bucketed point within `band` of `x`: its index in the filled slice and position.
+    pub(crate) fn nearest(&self, x: &Vector3<f64>, band: f64) -> Option<(usize, Vector3<f64>)> {
         let l = (x - self.origin) / self.size;
         let c = [l.x.floor() as i64, l.y.floor() as i64, l.z.floor() as i64];
-        let mut best: Option<(f64, Vector3<f64>)> = None;
+        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
         for di in -1..=1 {
             for dj in -1..=1 {
                 for dk in -1..=1 {
@@ -323,21 +329,22 @@ impl Buckets {
                         continue;
                     }
                     let b = (i as usize * self.dims[1] + j as usize) * self.dims[2] + k as usize;
-                    for q in &self.points[self.start[b] as usize..self.start[b + 1] as usize] {
+                    for s in self.start[b] as usize..self.start[b + 1] as usize {
+                        let q = &self.points[s];
                         let d2 = (q - x).norm_squared();
                         // Ties go to the smaller coordinates, so the result is independent of order.
                         let better = match best {
                             None => true,
-                            Some((bd, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z) < (bq.x, bq.y, bq.z)),
+                            Some((bd, _, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z) < (bq.x, bq.y, bq.z)),
                         };
                         if better {
-                            best = Some((d2, *q));
+                            best = Some((d2, self.index[s] as usize, *q));
                         }
                     }
                 }
             }
         }
-        best.filter(|(d2, _)| *d2 <= band * band).map(|(_, q)| q)
+        best.filter(|(d2, _, _)| *d2 <= band * band).map(|(_, i, q)| (i, q))
     }
 }
 

@@ -335,3 +335,106 @@ fn open3d_recording_is_read_with_its_intrinsics_and_trajectory() {
     eprintln!("TUM frame: mean depth {mean:.0} mm");
     assert!((300.0..6000.0).contains(&mean));
 }
+
+#[test]
+fn moving_camera_with_instruments_registers_every_frame_through_the_tracked_pose() {
+    let seg = phantom();
+    let d = tmp("moving");
+    let config = small_config(&seg);
+    let s = SynthSettings {
+        frames: 3,
+        width: 320,
+        height: 240,
+        focal_px: 262.5,
+        load_scale: 1.8,
+        camera_motion_mm: 30.0,
+        camera_motion_deg: 6.0,
+        instruments: 2,
+        ..Default::default()
+    };
+    run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
+    let still = tmp("still");
+    run_rgbd_synth(
+        &seg,
+        &config,
+        &SynthSettings { camera_motion_mm: 0.0, camera_motion_deg: 0.0, instruments: 0, ..s.clone() },
+        &still,
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap();
+    let rec = Recording::open(&d, None).unwrap();
+    let traj = rec.trajectory.clone().unwrap();
+    let moved = (traj[2].fixed_view::<3, 1>(0, 3) - traj[0].fixed_view::<3, 1>(0, 3)).norm();
+    // Tolerance: the 30 mm offset and 6 degrees about an axis through the camera.
+    assert!((moved - 30.0).abs() < 1e-6, "the camera moved {moved} mm");
+    let truth = GroundTruth::read(&d.join("ground_truth.json")).unwrap();
+    assert_eq!(truth.world_from_camera_frames.len(), 3);
+    // The instruments hide organ pixels: the mask is smaller than the still recording's.
+    let organ = |r: &Recording, i: usize| r.read_frame(i).unwrap().mask.unwrap().iter().filter(|&&m| m).count();
+    let still_rec = Recording::open(&still, None).unwrap();
+    assert!(organ(&rec, 0) < organ(&still_rec, 0), "instruments occlude nothing: {} vs {}", organ(&rec, 0), organ(&still_rec, 0));
+    let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
+    let mut fe = FeDisplacementModel::new(&ctx, config.material).unwrap();
+    let mut src = RecordingSource::new(rec);
+    let settings = RegisterSettings { overlay: false, ..Default::default() };
+    let report =
+        run_register(&mut src, &ctx, &mut fe, traj[0], Some(&truth), &settings, &mut |_| Ok(()), &Progress::none(), &Cancel::new())
+            .unwrap();
+    assert_eq!(report.frames.len(), 3, "{:?}", report.log);
+    let last = report.frames.last().unwrap();
+    eprintln!("{last:?}");
+    // Without the tracked pose the 30 mm camera motion would read as 30 mm of error.
+    assert!(last.tre_rigid_mean_mm.unwrap() < last.marker_displacement_mean_mm.unwrap() + 1.0, "{last:?}");
+    assert!(last.tre_mean_mm.unwrap() < last.tre_rigid_mean_mm.unwrap(), "the deformation must help: {last:?}");
+}
+
+#[test]
+fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on() {
+    use umesh_core::register::pipeline::Registrar;
+    let seg = phantom();
+    let d = tmp("bad-clouds");
+    let config = small_config(&seg);
+    let s = SynthSettings { frames: 2, width: 320, height: 240, focal_px: 262.5, ..Default::default() };
+    run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
+    let rec = Recording::open(&d, None).unwrap();
+    let pose = rec.trajectory.as_ref().unwrap()[0];
+    let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
+    let mut fe = FeDisplacementModel::new(&ctx, config.material).unwrap();
+    let mut reg = Registrar::new(&ctx, RegisterSettings { overlay: false, ..Default::default() }, pose);
+    let good = rec.read_frame(0).unwrap();
+    // Empty: no depth at all (first frame, so not even the rigid alignment can run).
+    let mut empty = good.clone();
+    empty.depth.depth_mm.iter_mut().for_each(|v| *v = 0.0);
+    let e = reg.process(&empty, &mut fe, None, None, None).unwrap_err();
+    assert!(e.contains("no organ pixel") || e.contains("no organ point"), "{e}");
+    // Far from the organ: the first frame's rigid alignment fails.
+    let mut far = good.clone();
+    far.depth.depth_mm.iter_mut().for_each(|v| {
+        if *v > 0.0 {
+            *v += 400.0
+        }
+    });
+    far.mask = None;
+    let e = reg.process(&far, &mut fe, None, None, None).unwrap_err();
+    assert!(e.contains("rigid alignment failed"), "{e}");
+    let first = reg.process(&good, &mut fe, None, None, None).unwrap();
+    // After the alignment the same far cloud covers nothing of the organ.
+    let e = reg.process(&far, &mut fe, None, None, None).unwrap_err();
+    assert!(e.contains("cover") && e.contains("previous overlay"), "{e}");
+    // A small patch: the organ pixels of a 12 x 12 pixel window only.
+    let mut tiny = good.clone();
+    let (w, cu, cv) = (good.intrinsics.width, 160, 120);
+    for (i, v) in tiny.depth.depth_mm.iter_mut().enumerate() {
+        let (u, vv) = (i % w, i / w);
+        if u.abs_diff(cu) > 6 || vv.abs_diff(cv) > 6 {
+            *v = 0.0;
+        }
+    }
+    let e = reg.process(&tiny, &mut fe, None, None, None).unwrap_err();
+    assert!(e.contains("under 5 %"), "{e}");
+    // And the next sound frame registers as before (coverage of the good frame stated).
+    let again = reg.process(&good, &mut fe, None, None, None).unwrap();
+    assert!(first.report.surface_coverage > 0.1, "{:?}", first.report);
+    assert_eq!(again.report.measured_vertices > 0, true);
+}

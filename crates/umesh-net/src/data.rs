@@ -131,3 +131,74 @@ impl Normalization {
         Self { input_scale_mm: rms(&set.u_s), output_scale_mm: rms(&set.u_v) }
     }
 }
+
+/// Fresh simulated camera views of the training samples, one per epoch and sample: the
+/// rest surface deformed by the sample's u_v, seen as the dataset's generation saw it (the
+/// dataset's camera and view settings, a new random stream), encoded by the observation
+/// operator. One SVK solve then gives many camera views, as a moving laparoscope would.
+pub struct ViewRefresher {
+    surface: TriMesh,
+    camera: umesh_core::visible::Camera,
+    view: umesh_core::observation::ViewSettings,
+    observation: ObservationSettings,
+    seed: u64,
+}
+
+impl ViewRefresher {
+    /// For the dataset in `dir` (its manifest's camera and view settings).
+    pub fn new(dir: &std::path::Path, observation: &ObservationSettings) -> Result<Self, DatasetError> {
+        let manifest = umesh_core::dataset::Manifest::read(dir)?;
+        let npz = Npz::read(&dir.join("grid.npz"))?;
+        let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
+        let camera = manifest.config.visibility.camera.clone().unwrap_or_else(|| umesh_core::visible::Camera::anterior(&surface));
+        Ok(Self { surface, camera, view: manifest.config.view.clone(), observation: observation.clone(), seed: manifest.config.seed })
+    }
+
+    /// Replace the inputs of samples `ids` (positions in `set`) by new views for `epoch`.
+    /// Deterministic for (dataset seed, epoch, sample index); a sample whose view fails keeps
+    /// its input.
+    pub fn refresh(&self, set: &mut SampleSet, ids: &[usize], epoch: usize) -> Result<usize, String> {
+        use rayon::prelude::*;
+        use umesh_core::phantom::SplitMix64;
+        let [x, y, z] = set.shape;
+        let cells = x * y * z;
+        let grid = &set.grid;
+        Observer::new(grid, &self.surface, self.observation.clone())?;
+        let fresh: Vec<(usize, Option<Vec<f32>>)> = ids
+            .par_iter()
+            .map_init(
+                || Observer::new(grid, &self.surface, self.observation.clone()),
+                |obs, &k| {
+                    let Ok(obs) = obs else { return (k, None) };
+                    let v = &set.u_v[k];
+                    let u: Vec<nalgebra::Vector3<f64>> = (0..grid.node_count())
+                        .map(|n| {
+                            let d = grid.dense_index(n);
+                            nalgebra::Vector3::new(v[d] as f64, v[cells + d] as f64, v[2 * cells + d] as f64)
+                        })
+                        .collect();
+                    let deformed = umesh_core::loads::deform_mesh(grid, &self.surface, &u);
+                    let i = set.indices[k] as u64;
+                    let mut rng =
+                        SplitMix64(self.seed ^ i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (epoch as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+                    match umesh_core::observation::simulated_view(&deformed, &self.camera, &self.view, &mut rng) {
+                        Ok(points) if points.len() >= 10 => {
+                            let mut out = Vec::new();
+                            obs.encode(&points, &mut out);
+                            (k, Some(out))
+                        }
+                        _ => (k, None),
+                    }
+                },
+            )
+            .collect();
+        let mut n = 0;
+        for (k, x) in fresh {
+            if let Some(x) = x {
+                set.u_s[k] = x;
+                n += 1;
+            }
+        }
+        Ok(n)
+    }
+}

@@ -241,10 +241,10 @@ pub fn run_prepare(
     let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
     settings
         .train
-        .model
+        .network()
         .check_shape([
             1,
-            settings.train.model.in_channels,
+            settings.train.network().in_channels,
             ctx.grid.padded_shape()[0],
             ctx.grid.padded_shape()[1],
             ctx.grid.padded_shape()[2],

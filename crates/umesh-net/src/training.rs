@@ -26,11 +26,32 @@ pub struct TrainSettings {
     /// `observation::CHANNELS` channels), as registration encodes each frame.
     #[serde(default)]
     pub observation: Option<umesh_core::observation::ObservationSettings>,
+    /// With `observation`: from the second epoch on, every training sample gets a new
+    /// simulated camera view of its deformation each epoch (validation keeps the stored ones).
+    #[serde(default)]
+    pub fresh_views: bool,
 }
 
 impl Default for TrainSettings {
     fn default() -> Self {
-        Self { model: UNetConfig::cpu(), epochs: 30, batch_size: 4, learning_rate: 1e-3, seed: 0, markers: 10, observation: None }
+        Self {
+            model: UNetConfig::cpu(),
+            epochs: 30,
+            batch_size: 4,
+            learning_rate: 1e-3,
+            seed: 0,
+            markers: 10,
+            observation: Some(umesh_core::observation::ObservationSettings::default()),
+            fresh_views: true,
+        }
+    }
+}
+
+impl TrainSettings {
+    /// The network as trained: `model` with the input channels of the chosen input.
+    pub fn network(&self) -> UNetConfig {
+        let in_channels = if self.observation.is_some() { umesh_core::observation::CHANNELS } else { 3 };
+        UNetConfig { in_channels, ..self.model.clone() }
     }
 }
 
@@ -109,12 +130,16 @@ pub fn run_train(
     on_epoch: &(dyn Fn(&EpochMetrics) + Sync),
     cancel: &Cancel,
 ) -> Result<TrainReport, NetError> {
-    let set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
+    let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
+    let refresher = match (&settings.observation, settings.fresh_views) {
+        (Some(o), true) => Some(crate::data::ViewRefresher::new(dataset, o)?),
+        _ => None,
+    };
     let (train, val) = set.split();
     if train.is_empty() || val.is_empty() {
         return Err(NetError::Invalid(format!("{}: {} samples are too few for an 80/20 split", dataset.display(), set.len())));
     }
-    let cfg = &settings.model;
+    let cfg = &settings.network();
     cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
         .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
     std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
@@ -174,6 +199,12 @@ pub fn run_train(
         let mut rng = SplitMix64(settings.seed.wrapping_add(epoch as u64));
         for i in (1..order.len()).rev() {
             order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+        }
+        if let Some(r) = &refresher
+            && epoch > 1
+        {
+            progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}: new camera views", settings.epochs));
+            r.refresh(&mut set, &train, epoch).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
         }
         let mut train_loss = 0.0;
         let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();

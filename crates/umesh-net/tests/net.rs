@@ -191,6 +191,39 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     let ev = umesh_net::eval::run_eval(&out, &ds, 10).unwrap();
     assert_eq!(ev.samples, r.val_samples);
     assert!(ev.tre_mean_mm > 0.0 && ev.marker_displacement_mean_mm > 0.0);
+    // The prediction from a camera view does not depend on the order of its points or on
+    // repeating them, and little on their density.
+    assert_eq!(info.settings.observation.as_ref().map(|o| o.encoding), Some(umesh_core::observation::Encoding::Corner));
+    let dataset = umesh_core::dataset::Dataset::open(&ds).unwrap();
+    let view = dataset.load_views(&dataset.manifest.shards[0]).unwrap().remove(0);
+    let grid_npz = umesh_core::npz::Npz::read(&out.join("grid.npz")).unwrap();
+    let surface = umesh_net::data::rest_surface(&grid_npz).unwrap();
+    let grid = umesh_core::grid::ImmersedGrid::from_npz(&grid_npz).unwrap();
+    let mut obs = umesh_core::observation::Observer::new(&grid, &surface, info.settings.observation.clone().unwrap()).unwrap();
+    let mut p = Predictor::load(&out).unwrap();
+    let mut predict = |pts: &[Vector3<f64>]| {
+        let mut x = Vec::new();
+        obs.encode(pts, &mut x);
+        p.predict(&x, manifest.padded_shape).unwrap().to_vec()
+    };
+    let base = predict(&view);
+    let mut shuffled = view.clone();
+    let mut rng = umesh_core::phantom::SplitMix64(5);
+    for i in (1..shuffled.len()).rev() {
+        shuffled.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+    }
+    let doubled: Vec<Vector3<f64>> = view.iter().flat_map(|p| [*p, *p]).collect();
+    let half: Vec<Vector3<f64>> = view.iter().step_by(2).copied().collect();
+    let max_diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    let range = base.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+    let (d_shuffle, d_double, d_half) =
+        (max_diff(&base, &predict(&shuffled)), max_diff(&base, &predict(&doubled)), max_diff(&base, &predict(&half)));
+    eprintln!(
+        "prediction change (mm, largest node component; prediction up to {range:.2}): shuffled {d_shuffle:.2e}, doubled {d_double:.2e}, every second point {d_half:.3}"
+    );
+    // Tolerances: float summation order (1e-3 mm); half the points, 10 % of the largest predicted value.
+    assert!(d_shuffle < 1e-3 && d_double < 1e-3, "{d_shuffle} {d_double}");
+    assert!(d_half < 0.1 * range.max(1.0), "{d_half} of {range}");
     // Resume continues from the last epoch.
     let more = TrainSettings { epochs: 3, ..settings };
     let r2 = run_train(&ds, &out, &more, true, &Default::default(), &|_| {}, &Default::default()).unwrap();

@@ -169,6 +169,15 @@ impl<'g> Assembler<'g> {
         self.values.len()
     }
 
+    /// Add `v` to the matrix entry of cell `cell`'s local dofs (`r`, `c`) (0..24, node-major),
+    /// when both are free.
+    pub fn add_to_cell_entry(&mut self, cell: usize, r: usize, c: usize, v: f64) {
+        let m = self.scatter[576 * cell + 24 * r + c];
+        if m != NONE {
+            self.values[m as usize] += v;
+        }
+    }
+
     fn ensure_linear_stiffness(&mut self) {
         if !self.k_lin.is_empty() {
             return;

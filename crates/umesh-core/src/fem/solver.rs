@@ -18,6 +18,8 @@ use faer::{Mat, Side};
 use nalgebra::Vector3;
 use std::time::Instant;
 
+pub mod fit;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SolveMethod {

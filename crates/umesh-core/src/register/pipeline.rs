@@ -3,8 +3,8 @@
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{depth_preview, draw_overlay};
 use super::{RegistrationContext, displacement_at};
-use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
-use crate::fem::{BoundaryConditions, MaterialParams};
+use crate::fem::MaterialParams;
+use crate::fem::solver::fit::{PointFit, PointFitReport, PointFitSettings};
 use crate::progress::{Cancel, Progress};
 use crate::rgbd::segment::{SegmentSettings, segment_frame};
 use crate::rgbd::stream::{FrameSource, Poll};
@@ -23,64 +23,69 @@ pub trait DisplacementModel {
     fn observation(&self) -> Option<crate::observation::ObservationSettings> {
         None
     }
+    /// Fit the frame's organ points (world, mm) directly, for models that do (the FE
+    /// baseline): Some(surface samples matched) with the field in `out`.
+    fn fit_points(&mut self, _points_world_mm: &[Vector3<f64>], _out: &mut Vec<f32>) -> Option<Result<usize, String>> {
+        None
+    }
 }
 
-/// The co-rotational FE model driven by the same surface displacements (prescribed at the
-/// visible nodes, the fixed region held), for comparison with the network.
+/// The FE baseline: a co-rotational FE registration of the rest grid to the frame's organ
+/// points (world, after the rigid alignment) by closest-point soft springs on the surface the
+/// training camera sees, warm-started from the previous frame; no network, no encoding.
 pub struct FeDisplacementModel<'g> {
     ctx: &'g RegistrationContext,
-    solver: FeSolver<'g>,
-    bc: BoundaryConditions,
+    fit: PointFit<'g>,
+    u: Vec<Vector3<f64>>,
+    pub last: PointFitReport,
 }
 
 impl<'g> FeDisplacementModel<'g> {
     pub fn new(ctx: &'g RegistrationContext, material: MaterialParams) -> Result<Self, String> {
-        let mut constrained = ctx.fixed.clone();
-        for &n in &ctx.visible_nodes {
-            constrained[n] = true;
-        }
-        let solver = FeSolver::new(&ctx.grid, material, &constrained, SolverSettings { max_iterations: 10, ..Default::default() })
-            .map_err(|e| e.to_string())?;
-        let mut bc = BoundaryConditions::new(ctx.grid.node_count());
-        bc.fixed = ctx.fixed.clone();
-        Ok(Self { ctx, solver, bc })
+        Self::with_settings(ctx, material, PointFitSettings::default())
     }
-}
 
-impl FeDisplacementModel<'_> {
-    fn solve(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
-        let [x, y, z] = self.ctx.padded_shape();
-        let cells = x * y * z;
-        let g = &self.ctx.grid;
-        self.bc.prescribed_mm = self
-            .ctx
-            .visible_nodes
-            .iter()
-            .filter(|&&n| !self.ctx.fixed[n])
-            .map(|&n| {
-                let d = g.dense_index(n);
-                (n, Vector3::new(u_s[d] as f64, u_s[cells + d] as f64, u_s[2 * cells + d] as f64))
-            })
-            .collect();
-        let sol = self.solver.solve(&self.bc, SolveMethod::Corotational, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
-        out.clear();
-        out.resize(3 * cells, 0.0);
-        for (n, u) in sol.displacement_mm.iter().enumerate() {
-            let d = g.dense_index(n);
-            for c in 0..3 {
-                out[c * cells + d] = u[c] as f32;
-            }
+    pub fn with_settings(ctx: &'g RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, String> {
+        // Samples of the rest surface where all three corners are seen by the training camera.
+        let mut seen = vec![false; ctx.surface.positions.len()];
+        for &v in &ctx.visible_vertices {
+            seen[v] = true;
         }
-        Ok(())
+        let part = crate::mesh::TriMesh {
+            positions: ctx.surface.positions.clone(),
+            triangles: ctx.surface.triangles.iter().copied().filter(|t| t.iter().all(|&v| seen[v as usize])).collect(),
+        };
+        let samples: Vec<Vector3<f64>> = crate::observation::dense_surface_points(&part, 0.05).into_iter().map(|p| p.0).collect();
+        let fit = PointFit::new(&ctx.grid, material, &ctx.fixed, &samples, settings).map_err(|e| e.to_string())?;
+        Ok(Self { ctx, fit, u: vec![Vector3::zeros(); ctx.grid.node_count()], last: PointFitReport::default() })
     }
 }
 
 impl DisplacementModel for FeDisplacementModel<'_> {
     fn name(&self) -> String {
-        "co-rotational FE".into()
+        "co-rotational FE (closest-point springs)".into()
     }
-    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
-        self.solve(u_s, out)
+    fn predict(&mut self, _u_s: &[f32], _out: &mut Vec<f32>) -> Result<(), String> {
+        Err("the FE registration takes the observed points".into())
+    }
+    fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, String>> {
+        let r = match self.fit.fit(points_world_mm, &mut self.u) {
+            Ok(r) => r,
+            Err(e) => return Some(Err(e.to_string())),
+        };
+        self.last = r;
+        let g = &self.ctx.grid;
+        let [x, y, z] = self.ctx.padded_shape();
+        let cells = x * y * z;
+        out.clear();
+        out.resize(3 * cells, 0.0);
+        for (n, u) in self.u.iter().enumerate() {
+            let d = g.dense_index(n);
+            for c in 0..3 {
+                out[c * cells + d] = u[c] as f32;
+            }
+        }
+        Some(Ok(r.samples_matched))
     }
 }
 
@@ -102,6 +107,17 @@ pub struct RegisterSettings {
     /// Draw the overlay image.
     pub overlay: bool,
     pub overlay_alpha: f32,
+    /// Frames whose organ points cover less of the surface than this (within
+    /// COVERAGE_RADIUS_MM) are not registered.
+    #[serde(default = "default_min_coverage")]
+    pub min_coverage: f64,
+}
+
+/// A surface point counts as seen when an organ point lies this close (mm).
+pub const COVERAGE_RADIUS_MM: f64 = 5.0;
+
+fn default_min_coverage() -> f64 {
+    0.05
 }
 
 impl Default for RegisterSettings {
@@ -116,6 +132,7 @@ impl Default for RegisterSettings {
             iterations: 1,
             overlay: true,
             overlay_alpha: 0.6,
+            min_coverage: default_min_coverage(),
         }
     }
 }
@@ -123,8 +140,11 @@ impl Default for RegisterSettings {
 /// Ground truth of a synthetic recording (`ground_truth.json`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GroundTruth {
-    /// The true camera pose, row-major 4x4 (mm).
+    /// The true camera pose, row-major 4x4 (mm); of the first frame when the camera moves.
     pub world_from_camera: [f64; 16],
+    /// The true camera pose of each frame when the camera moves (row-major 4x4, mm).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub world_from_camera_frames: Vec<[f64; 16]>,
     /// Marker positions at rest (world, mm).
     pub markers_rest_mm: Vec<[f64; 3]>,
     /// True marker positions per frame (world, mm).
@@ -135,6 +155,9 @@ impl GroundTruth {
     pub fn read(path: &Path) -> Result<Self, String> {
         let t = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
         let g: Self = serde_json::from_str(&t).map_err(|e| format!("{}: not a ground-truth file: {e}", path.display()))?;
+        if !g.world_from_camera_frames.is_empty() && g.world_from_camera_frames.len() != g.markers_mm.len() {
+            return Err(format!("{}: {} camera poses for {} frames", path.display(), g.world_from_camera_frames.len(), g.markers_mm.len()));
+        }
         if g.markers_mm.iter().any(|f| f.len() != g.markers_rest_mm.len()) {
             return Err(format!("{}: a frame has a different number of markers", path.display()));
         }
@@ -142,6 +165,13 @@ impl GroundTruth {
     }
     pub fn pose(&self) -> Matrix4<f64> {
         Matrix4::from_row_slice(&self.world_from_camera)
+    }
+    /// The true camera pose of frame `i`.
+    pub fn pose_at(&self, i: usize) -> Matrix4<f64> {
+        match self.world_from_camera_frames.get(i) {
+            Some(m) => Matrix4::from_row_slice(m),
+            None => self.pose(),
+        }
     }
 }
 
@@ -160,6 +190,8 @@ pub struct FrameReport {
     pub frame: usize,
     pub timestamp_s: f64,
     pub observed_points: usize,
+    /// Share of the organ's surface within COVERAGE_RADIUS_MM of an organ point.
+    pub surface_coverage: f64,
     /// Visible surface vertices whose displacement was measured.
     pub measured_vertices: usize,
     pub icp: Option<IcpReport>,
@@ -187,6 +219,9 @@ pub struct Registrar<'c> {
     pub settings: RegisterSettings,
     pub world_from_camera: Matrix4<f64>,
     posed: bool,
+    /// world_from_camera of the last rigid alignment times the inverse of the tracked pose
+    /// of that frame: applied to later tracked poses (a tracked, moving laparoscope).
+    correction: Option<Matrix4<f64>>,
     prev_field: Vec<f32>,
     u_s: Vec<f32>,
     field: Vec<f32>,
@@ -202,6 +237,7 @@ impl<'c> Registrar<'c> {
             settings,
             world_from_camera: initial_world_from_camera,
             posed: false,
+            correction: None,
             prev_field: vec![0.0; 3 * x * y * z],
             u_s: Vec::new(),
             field: Vec::new(),
@@ -213,6 +249,7 @@ impl<'c> Registrar<'c> {
     pub fn reset(&mut self, world_from_camera: Matrix4<f64>) {
         self.world_from_camera = world_from_camera;
         self.posed = false;
+        self.correction = None;
         self.prev_field.iter_mut().for_each(|v| *v = 0.0);
     }
 
@@ -236,9 +273,15 @@ impl<'c> Registrar<'c> {
             }
         }
         let points = depth_to_points(&depth, &k, None, self.settings.point_stride);
+        if points.is_empty() {
+            return Err(format!("frame {}: no organ point in the depth image (the previous overlay stays)", frame.index));
+        }
         let points_ms = ms(t0);
         let t1 = Instant::now();
         let mut icp = None;
+        if let (Some(c), Some(t)) = (self.correction, frame.world_from_camera) {
+            self.world_from_camera = c * t;
+        }
         if !self.posed || self.settings.icp_every_frame {
             let r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp);
             if r.fitness < 0.3 {
@@ -248,6 +291,7 @@ impl<'c> Registrar<'c> {
                 ));
             }
             self.world_from_camera = r.transform;
+            self.correction = frame.world_from_camera.map(|t| r.transform * rigid_inverse(&t));
             self.posed = true;
             icp = Some(r);
         }
@@ -259,14 +303,31 @@ impl<'c> Registrar<'c> {
         let start = if self.settings.warm_start { self.prev_field.clone() } else { vec![0.0; self.prev_field.len()] };
         let mut current = start;
         let observation = model.observation();
-        if let Some(o) = observation.clone() {
+        let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
+        // Too little of the organ seen (a cloud off the organ, a camera looking away): no
+        // deformation can be inferred from it.
+        let coverage = self.ctx.surface_coverage(&world, COVERAGE_RADIUS_MM);
+        if coverage < self.settings.min_coverage {
+            return Err(format!(
+                "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
+                frame.index,
+                100.0 * coverage,
+                100.0 * self.settings.min_coverage
+            ));
+        }
+        let t = Instant::now();
+        let fitted = model.fit_points(&world, &mut self.field);
+        let direct = fitted.is_some() || observation.is_some();
+        if let Some(r) = fitted {
+            measured = r.map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+            predict_ms += ms(t);
+        } else if let Some(o) = observation.clone() {
             // Correspondence-free: the frame's organ points in the world, encoded on the rest
             // grid as the training views were; one prediction, no iteration.
             let t = Instant::now();
             if self.observer.as_ref().is_none_or(|x| x.settings != o) {
                 self.observer = Some(crate::observation::Observer::new(&self.ctx.grid, &self.ctx.surface, o)?);
             }
-            let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
             let stats = self.observer.as_mut().map(|x| x.encode(&world, &mut self.u_s)).unwrap_or_default();
             measured = stats.nodes_observed;
             surface_ms += ms(t);
@@ -276,7 +337,7 @@ impl<'c> Registrar<'c> {
                 predict_ms += ms(t);
             }
         }
-        for _ in 0..if observation.is_some() { 0 } else { self.settings.iterations.max(1) } {
+        for _ in 0..if direct { 0 } else { self.settings.iterations.max(1) } {
             let t = Instant::now();
             measured = self.surface_input(&depth, &k, &camera_from_world, &current);
             surface_ms += ms(t);
@@ -325,6 +386,7 @@ impl<'c> Registrar<'c> {
                 frame: frame.index,
                 timestamp_s: frame.timestamp_s,
                 observed_points: points.len(),
+                surface_coverage: coverage,
                 measured_vertices: measured,
                 icp,
                 latency,
@@ -506,7 +568,6 @@ pub fn run_register(
     let mut frames = Vec::new();
     let mut log = Vec::new();
     let mut skipped = 0;
-    let true_pose = truth.map(|g| g.pose());
     let rest = truth.map(|g| g.markers_rest_mm.as_slice());
     let mut n = 0u64;
     loop {
@@ -530,6 +591,7 @@ pub fn run_register(
         n += 1;
         progress.report(n, 0, &format!("frame {}", frame.index));
         let gt = truth.and_then(|g| g.markers_mm.get(frame.index)).map(|v| v.as_slice());
+        let true_pose = truth.map(|g| g.pose_at(frame.index));
         match reg.process(&frame, model, gt, rest, true_pose.as_ref()) {
             Ok(out) => {
                 on_frame(&out).map_err(crate::rgbd::RgbdError::Stream)?;

@@ -5,8 +5,8 @@
 use super::recording::{RecordingMeta, write_frame, write_trajectory_log};
 use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse};
 use crate::dataset::{DatasetConfig, DatasetContext};
-use crate::fem::BoundaryConditions;
 use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
+use crate::fem::{BoundaryConditions, MaterialParams};
 use crate::loads::{apply_forces, deform_mesh};
 use crate::phantom::SplitMix64;
 use crate::progress::{Cancel, Progress};
@@ -35,6 +35,19 @@ pub struct SynthSettings {
     pub seed: u64,
     /// Scale of the final load relative to the dataset's random forces.
     pub load_scale: f64,
+    /// The camera moves by this much over the sequence (mm, sideways to its view).
+    #[serde(default)]
+    pub camera_motion_mm: f64,
+    /// and turns by this much (degrees, about a random axis through its position).
+    #[serde(default)]
+    pub camera_motion_deg: f64,
+    /// Instrument shafts occluding the organ, sweeping across it over the sequence.
+    #[serde(default)]
+    pub instruments: usize,
+    /// The truth's material, when it differs from the dataset's (a test off the training
+    /// distribution); the loads are still the dataset's.
+    #[serde(default)]
+    pub material: Option<MaterialParams>,
 }
 
 impl Default for SynthSettings {
@@ -51,6 +64,10 @@ impl Default for SynthSettings {
             markers: 10,
             seed: 7,
             load_scale: 1.0,
+            camera_motion_mm: 0.0,
+            camera_motion_deg: 0.0,
+            instruments: 0,
+            material: None,
         }
     }
 }
@@ -85,12 +102,51 @@ fn gaussian(rng: &mut SplitMix64) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
+/// An instrument shaft in the image: from where it enters the view to its tip, `clearance_mm`
+/// in front of the organ's nearest point at the tip.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shaft {
+    pub entry_px: [f64; 2],
+    pub tip_px: [f64; 2],
+    pub radius_px: f64,
+    pub clearance_mm: f64,
+}
+
+/// Random instrument sweeps: each shaft's start and end of the sequence.
+fn instrument_sweeps(n: usize, k: &Intrinsics, rng: &mut SplitMix64) -> Vec<(Shaft, Shaft)> {
+    let (w, h) = (k.width as f64, k.height as f64);
+    (0..n)
+        .map(|_| {
+            // Enter from the left or right border; the tip sweeps across the middle of the view.
+            let left = rng.next_f64() < 0.5;
+            let entry = [if left { -20.0 } else { w + 20.0 }, h * (0.2 + 0.6 * rng.next_f64())];
+            let tip = |rng: &mut SplitMix64| [w * (0.3 + 0.4 * rng.next_f64()), h * (0.3 + 0.4 * rng.next_f64())];
+            let radius_px = w * (0.025 + 0.02 * rng.next_f64());
+            let clearance_mm = 10.0 + 20.0 * rng.next_f64();
+            let a = Shaft { entry_px: entry, tip_px: tip(rng), radius_px, clearance_mm };
+            let b = Shaft { tip_px: tip(rng), ..a };
+            (a, b)
+        })
+        .collect()
+}
+
+/// The camera pose at sequence position `t` in [0, 1]: moved sideways by `t` times the
+/// offset and turned by `t` times the angle about `axis` (camera frame).
+fn moved_pose(pose: &Matrix4<f64>, offset_cam_mm: &Vector3<f64>, axis_cam: &Vector3<f64>, angle_rad: f64, t: f64) -> Matrix4<f64> {
+    let r = nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(*axis_cam), angle_rad * t);
+    let mut local = Matrix4::identity();
+    local.fixed_view_mut::<3, 3>(0, 0).copy_from(r.matrix());
+    local.fixed_view_mut::<3, 1>(0, 3).copy_from(&(offset_cam_mm * t));
+    pose * local
+}
+
 /// Render depth (mm), colour and the organ mask of `mesh` from `world_from_camera`.
 pub fn render_frame(
     mesh: &crate::mesh::TriMesh,
     world_from_camera: &Matrix4<f64>,
     k: &Intrinsics,
     s: &SynthSettings,
+    instruments: &[Shaft],
     rng: &mut SplitMix64,
 ) -> (DepthImage, ColorImage, Vec<bool>) {
     let n = k.width * k.height;
@@ -98,13 +154,36 @@ pub fn render_frame(
     let mut z = vec![f32::INFINITY; n];
     let mut shade = vec![0f32; n];
     rasterize(mesh, &cam, k, &mut z, |i, _, nrm| shade[i] = nrm.z.abs() as f32);
-    let mask: Vec<bool> = z.iter().map(|d| d.is_finite()).collect();
     let far = z.iter().copied().filter(|d| d.is_finite()).fold(0.0f32, f32::max) + 40.0;
+    let near = z.iter().copied().filter(|d| d.is_finite()).fold(f32::INFINITY, f32::min);
+    // Instrument shafts between the camera and the organ: not organ pixels.
+    let mut tool = vec![false; n];
+    for sh in instruments {
+        let (dx, dy) = (sh.tip_px[0] - sh.entry_px[0], sh.tip_px[1] - sh.entry_px[1]);
+        let len2 = (dx * dx + dy * dy).max(1e-9);
+        for v in 0..k.height {
+            for u in 0..k.width {
+                let t = (((u as f64 - sh.entry_px[0]) * dx + (v as f64 - sh.entry_px[1]) * dy) / len2).clamp(0.0, 1.0);
+                let (px, py) = (sh.entry_px[0] + t * dx, sh.entry_px[1] + t * dy);
+                if (u as f64 - px).powi(2) + (v as f64 - py).powi(2) <= sh.radius_px * sh.radius_px {
+                    let i = v * k.width + u;
+                    tool[i] = true;
+                    // The shaft rises toward the camera from its tip.
+                    z[i] = (near as f64 - sh.clearance_mm - (1.0 - t) * 40.0).max(10.0) as f32;
+                    shade[i] = (1.0 - ((u as f64 - px).powi(2) + (v as f64 - py).powi(2)).sqrt() / sh.radius_px) as f32;
+                }
+            }
+        }
+    }
+    let mask: Vec<bool> = z.iter().zip(&tool).map(|(d, &t)| d.is_finite() && !t).collect();
     let mut depth = vec![0f32; n];
     let mut color = ColorImage::new(k.width, k.height, [0, 0, 0]);
     for i in 0..n {
         let tex = (rng.next_f64() * 12.0) as f32;
-        let (d, rgb) = if mask[i] {
+        let (d, rgb) = if tool[i] {
+            let l = 0.4 + 0.6 * shade[i];
+            (z[i], [(150.0 * l + tex) as u8, (155.0 * l + tex) as u8, (165.0 * l + tex) as u8])
+        } else if mask[i] {
             let l = 0.3 + 0.7 * shade[i];
             (z[i], [(150.0 * l + tex) as u8, (60.0 * l + tex * 0.5) as u8, (50.0 * l + tex * 0.5) as u8])
         } else {
@@ -152,6 +231,19 @@ pub fn run_rgbd_synth(
         cy: (settings.height as f64 - 1.0) / 2.0,
     };
     k.validate().map_err(bad)?;
+    let finite_in = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
+    if !finite_in(settings.camera_motion_mm, 0.0, 500.0) || !finite_in(settings.camera_motion_deg, 0.0, 90.0) {
+        return Err(bad(format!(
+            "camera motion {} mm, {} degrees: between 0 and 500 mm, 0 and 90 degrees",
+            settings.camera_motion_mm, settings.camera_motion_deg
+        )));
+    }
+    if settings.instruments > 10 {
+        return Err(bad(format!("{} instruments: at most 10", settings.instruments)));
+    }
+    if let Some(m) = &settings.material {
+        m.validate().map_err(|e| bad(format!("truth material: {e}")))?;
+    }
     progress.report(0, settings.frames as u64, "preparing the grid");
     let ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
@@ -180,10 +272,35 @@ pub fn run_rgbd_synth(
     let grid = &reg.grid;
     // The truth is solved without the dataset's rejection budget: a frame must not be dropped.
     let truth_solver = SolverSettings { max_total_iterations: None, max_halvings: 8, reject_indefinite: false, ..config.solver.clone() };
-    let mut solver = FeSolver::new(grid, config.material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
+    let material = settings.material.unwrap_or(config.material);
+    let mut solver = FeSolver::new(grid, material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
     let mut rng = SplitMix64(settings.seed);
+    let row_major = |m: &Matrix4<f64>| -> [f64; 16] { m.transpose().as_slice().try_into().unwrap_or([0.0; 16]) };
+    // Camera motion and instruments from their own stream, so that a recording without them
+    // is the one this seed always gave.
+    let mut motion_rng = SplitMix64(settings.seed ^ 0x00C0_FFEE);
+    let unit = |rng: &mut SplitMix64| loop {
+        let v = Vector3::new(rng.next_f64() * 2.0 - 1.0, rng.next_f64() * 2.0 - 1.0, rng.next_f64() * 2.0 - 1.0);
+        if v.norm() > 0.1 && v.norm() <= 1.0 {
+            break v.normalize();
+        }
+    };
+    let mut side = unit(&mut motion_rng);
+    side.z = 0.0;
+    let offset_cam =
+        if side.norm() > 1e-6 { side.normalize() * settings.camera_motion_mm } else { Vector3::x() * settings.camera_motion_mm };
+    let axis_cam = unit(&mut motion_rng);
+    let sweeps = instrument_sweeps(settings.instruments, &k, &mut motion_rng);
+    let moving = settings.camera_motion_mm > 0.0 || settings.camera_motion_deg > 0.0;
+    let poses: Vec<Matrix4<f64>> = (0..settings.frames)
+        .map(|f| {
+            let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 0.0 };
+            moved_pose(&pose, &offset_cam, &axis_cam, settings.camera_motion_deg.to_radians(), t)
+        })
+        .collect();
     let mut truth = GroundTruth {
-        world_from_camera: pose.transpose().as_slice().try_into().unwrap_or([0.0; 16]),
+        world_from_camera: row_major(&pose),
+        world_from_camera_frames: if moving { poses.iter().map(row_major).collect() } else { Vec::new() },
         markers_rest_mm: markers.iter().map(|m| [m.x, m.y, m.z]).collect(),
         markers_mm: Vec::new(),
     };
@@ -208,7 +325,14 @@ pub fn run_rgbd_synth(
             sol.displacement_mm
         };
         let surface = deform_mesh(grid, &rest_surface, &u);
-        let (depth, color, mask) = render_frame(&surface, &pose, &k, settings, &mut rng);
+        let shafts: Vec<Shaft> = sweeps
+            .iter()
+            .map(|(a, b)| Shaft {
+                tip_px: [a.tip_px[0] + (b.tip_px[0] - a.tip_px[0]) * ramp, a.tip_px[1] + (b.tip_px[1] - a.tip_px[1]) * ramp],
+                ..*a
+            })
+            .collect();
+        let (depth, color, mask) = render_frame(&surface, &poses[f], &k, settings, &shafts, &mut rng);
         let m: Vec<[f64; 3]> = markers
             .iter()
             .map(|p| {
@@ -226,7 +350,7 @@ pub fn run_rgbd_synth(
             depth,
             color: Some(color),
             mask: Some(mask),
-            world_from_camera: Some(pose),
+            world_from_camera: Some(poses[f]),
         };
         write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
     }
@@ -237,7 +361,7 @@ pub fn run_rgbd_synth(
     };
     w("intrinsics.json", k.to_open3d_json())?;
     w("recording.json", json(&RecordingMeta { depth_scale: 1000.0, fps: settings.fps }))?;
-    w("trajectory.log", write_trajectory_log(&vec![pose; settings.frames]))?;
+    w("trajectory.log", write_trajectory_log(&poses))?;
     w("ground_truth.json", json(&truth))?;
     w("synth.json", json(settings))?;
     progress.report(settings.frames as u64, settings.frames as u64, "done");

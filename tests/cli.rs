@@ -471,3 +471,49 @@ fn prepare_on_the_real_ct_and_mr_livers_accepts_the_samples_at_the_target() {
         assert!(patient.contains("portal_vein_and_splenic_vein"), "{file}: the portal vein is not a structure");
     }
 }
+
+#[test]
+fn the_live_path_without_masks_registers_every_frame() {
+    let rec = tmp("live-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "4", "--instruments", "1", "--out", rec.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    // A recording's frames without its masks: the organ found from depth and colour.
+    let reg = tmp("live-nomask");
+    let (ok, out, err) =
+        umesh(&["register", "--recording", rec.to_str().unwrap(), "--no-mask", "--no-overlay", "--json", "--out", reg.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let r = json(&out);
+    assert_eq!((r["frames"].as_u64(), r["skipped"].as_u64()), (Some(4), Some(0)), "{r}");
+    // A camera bridge on loopback (no masks on the wire), slow enough that no frame is dropped.
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let log = tmp("live-serve.log");
+    let mut serve = Command::new(env!("CARGO_BIN_EXE_umesh"))
+        .args(["rgbd", "serve", "--recording", rec.to_str().unwrap(), "--listen", &addr, "--fps", "1"])
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !std::fs::read_to_string(&log).unwrap_or_default().contains("serving") {
+        assert!(t0.elapsed().as_secs() < 30, "the server did not start: {}", std::fs::read_to_string(&log).unwrap_or_default());
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let live = tmp("live-source");
+    let pose = rec.join("trajectory.log");
+    let (ok, out, err) = umesh(&[
+        "register",
+        "--source",
+        &addr,
+        "--initial-pose",
+        pose.to_str().unwrap(),
+        "--no-overlay",
+        "--json",
+        "--out",
+        live.to_str().unwrap(),
+    ]);
+    let _ = serve.wait();
+    assert!(ok, "{err}");
+    let r = json(&out);
+    assert_eq!((r["frames"].as_u64(), r["skipped"].as_u64()), (Some(4), Some(0)), "{r}");
+}

@@ -361,3 +361,47 @@ fn an_exported_problem_carries_its_stabilisation_and_solves_the_same_only_with_i
     assert!(max_diff(&without, &u0) > 1e-4 * scale, "the stabilisation made no difference: {}", max_diff(&without, &u0));
     assert!(max_diff(&solve_file(&p2, alpha), &u0) < 1e-9);
 }
+
+#[test]
+fn a_problem_file_with_bad_quadrature_data_is_refused_with_the_array_named() {
+    use umesh_core::fem::problem_io::{read_problem, write_problem};
+    let grid = box_grid(Vector3::zeros(), Vector3::new(20.0, 10.0, 10.0), 5.0, 1);
+    let m = mat(MaterialKind::Linear);
+    let mut bc = BoundaryConditions::new(grid.node_count());
+    bc.fix_region(&grid, &FixedRegion::Plane { normal: [1.0, 0.0, 0.0], offset_mm: 0.0, thickness_mm: 0.5 }, None).unwrap();
+    let path = std::env::temp_dir().join(format!("umesh-quad-{}.npz", std::process::id()));
+    write_problem(&path, &grid, &m, &bc, 0.01).unwrap();
+    assert!(read_problem(&path).is_ok());
+    let base = umesh_core::npz::Npz::read(&path).unwrap();
+    let cases: [(&str, &dyn Fn(&mut Vec<f64>), &str); 4] = [
+        ("qp_cell", &|v| v[3] = -1.0, "qp_cell[3]"),
+        ("qp_cell", &|v| v[0] = 1e6, "qp_cell[0]"),
+        ("qp_xi", &|v| v[4] = 1.5, "qp_xi[1]"),
+        ("qp_w", &|v| v[2] = -v[2], "qp_w[2]"),
+    ];
+    for (name, edit, expect) in cases {
+        let mut npz = base.clone();
+        let a = npz.arrays.get_mut(name).unwrap();
+        let mut v: Vec<f64> = match &a.data {
+            umesh_core::npz::ArrayData::F64(v) => v.clone(),
+            umesh_core::npz::ArrayData::I64(v) => v.iter().map(|&x| x as f64).collect(),
+            other => panic!("{name}: {other:?}"),
+        };
+        edit(&mut v);
+        a.data = umesh_core::npz::ArrayData::F64(v);
+        let arrays: Vec<(&str, umesh_core::npz::Array)> = npz.arrays.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
+        let bad = std::env::temp_dir().join(format!("umesh-quad-bad-{}.npz", std::process::id()));
+        umesh_core::npz::write_npz(&bad, &arrays).unwrap();
+        let e = read_problem(&bad).unwrap_err().to_string();
+        assert!(e.contains(expect) && e.contains("umesh-quad-bad"), "{name}: {e}");
+    }
+    // Weights that sum to more than a cell's volume.
+    let mut npz = base.clone();
+    if let umesh_core::npz::ArrayData::F64(v) = &mut npz.arrays.get_mut("qp_w").unwrap().data {
+        v.iter_mut().for_each(|w| *w *= 3.0);
+    }
+    let arrays: Vec<(&str, umesh_core::npz::Array)> = npz.arrays.iter().map(|(k, v)| (k.as_str(), v.clone())).collect();
+    umesh_core::npz::write_npz(&path, &arrays).unwrap();
+    let e = read_problem(&path).unwrap_err().to_string();
+    assert!(e.contains("more than the cell's volume"), "{e}");
+}

@@ -140,11 +140,18 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
     }
     let mut weight = vec![0.0; m];
     for (i, &c) in qp_cell.iter().enumerate() {
-        let c = c as usize;
-        if c >= m {
-            return Err(bad(format!("qp_cell {c} out of range")));
+        // Stored as integers or floats: a negative or fractional index is an error, not cell 0.
+        if !(c >= 0.0 && c.fract() == 0.0 && (c as usize) < m) {
+            return Err(bad(format!("qp_cell[{i}] = {c}: not a hexahedron index in 0..{m}")));
         }
-        weight[c] += qp_w[i];
+        let xi = &qp_xi[3 * i..3 * i + 3];
+        if xi.iter().any(|v| v.abs() > 1.0 + 1e-9) {
+            return Err(bad(format!("qp_xi[{i}] = {xi:?}: reference coordinates must lie in [-1, 1]")));
+        }
+        if qp_w[i] < 0.0 {
+            return Err(bad(format!("qp_w[{i}] = {}: a quadrature weight cannot be negative", qp_w[i])));
+        }
+        weight[c as usize] += qp_w[i];
     }
     let mut occupied = Vec::with_capacity(m);
     for c in 0..m {
@@ -157,6 +164,13 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
             }
         }
         let frac = weight[c] / h.powi(3);
+        if frac > 1.0 + 1e-6 {
+            return Err(bad(format!(
+                "hexahedron {c}: its quadrature weights sum to {:.4} mm^3, more than the cell's volume {:.4} mm^3",
+                weight[c],
+                h.powi(3)
+            )));
+        }
         let kind = if (frac - 1.0).abs() < 1e-9 { CellKind::Inside } else { CellKind::Boundary };
         occupied.push((node_ijk[corner0], kind, frac));
     }

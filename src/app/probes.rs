@@ -138,6 +138,10 @@ pub struct RehearsalModel {
     pub predictor: umesh_net::inference::Predictor,
     pub ctx: DatasetContext,
     pub field: Vec<f32>,
+    /// The network input: a camera view of the probed surface, or u_s.
+    pub encoder: umesh_net::inference::InputEncoder,
+    /// Points of the rest surface the dataset's camera sees (what a view of the probes samples).
+    pub view_rest_mm: Vec<Vector3<f64>>,
 }
 
 impl RehearsalModel {
@@ -152,7 +156,32 @@ impl RehearsalModel {
         let config = crate::cli::input::model_dataset_config(Some(&predictor.info), &organ.seg);
         let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
         predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).map_err(|e| format!("{}: {e}", dir.display()))?;
-        Ok(Self { predictor, ctx, field: Vec::new() })
+        let encoder = umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface)
+            .map_err(|e| format!("{}: {e}", dir.display()))?;
+        let seen = umesh_core::mesh::TriMesh {
+            positions: ctx.surface.positions.clone(),
+            triangles: ctx.surface.triangles.iter().zip(&ctx.visible.visible).filter(|(_, v)| **v).map(|(t, _)| *t).collect(),
+        };
+        let view_rest_mm = umesh_core::observation::dense_surface_points(&seen, 0.05).into_iter().map(|p| p.0).collect();
+        Ok(Self { predictor, ctx, field: Vec::new(), encoder, view_rest_mm })
+    }
+
+    /// The probes' displacement (each probe's force over the drag stiffness, spread with a
+    /// Gaussian of `radius_mm`) at `p`.
+    fn probe_displacement(probes: &[Probe], newtons_per_mm: f64, radius_mm: f64, p: &Vector3<f64>) -> Vector3<f64> {
+        probes.iter().map(|q| q.force_n / newtons_per_mm * (-(p - q.point_mm).norm_squared() / (2.0 * radius_mm * radius_mm)).exp()).sum()
+    }
+
+    /// The network input for the probes: a camera view of the surface they move (models
+    /// trained on camera views) or u_s.
+    pub fn network_input(&mut self, probes: &[Probe], newtons_per_mm: f64, radius_mm: f64) -> Result<Vec<f32>, String> {
+        if self.encoder.takes_points() {
+            let pts: Vec<Vector3<f64>> =
+                self.view_rest_mm.iter().map(|p| p + Self::probe_displacement(probes, newtons_per_mm, radius_mm, p)).collect();
+            self.encoder.input(Some(&pts), None).map_err(|e| e.to_string())
+        } else {
+            Ok(self.surface_input(probes, newtons_per_mm, radius_mm))
+        }
     }
 
     /// u_s from the probes: each probe's displacement (its force over the drag stiffness)
@@ -163,12 +192,7 @@ impl RehearsalModel {
         let cells = x * y * z;
         let mut u_s = vec![0f32; 3 * cells];
         for &n in &self.ctx.visible_nodes {
-            let pos = g.node_position(n);
-            let mut u = Vector3::zeros();
-            for p in probes {
-                let w = (-(pos - p.point_mm).norm_squared() / (2.0 * radius_mm * radius_mm)).exp();
-                u += p.force_n / newtons_per_mm * w;
-            }
+            let u = Self::probe_displacement(probes, newtons_per_mm, radius_mm, &g.node_position(n));
             let d = g.dense_index(n);
             for c in 0..3 {
                 u_s[c * cells + d] = u[c] as f32;
@@ -205,10 +229,10 @@ fn rehearse(
     reh.shown_generation = probes.generation;
     let Ok(mut m) = model.lock() else { return };
     let t = std::time::Instant::now();
-    let u_s = m.surface_input(&probes.list, settings.newtons_per_mm, reh.radius_mm.max(1.0));
+    let input = m.network_input(&probes.list, settings.newtons_per_mm, reh.radius_mm.max(1.0));
     let shape = m.ctx.grid.padded_shape();
-    let field = match m.predictor.predict(&u_s, shape) {
-        Ok(f) => f.to_vec(),
+    let field = match input.and_then(|x| m.predictor.predict(&x, shape).map(|f| f.to_vec()).map_err(|e| e.to_string())) {
+        Ok(f) => f,
         Err(e) => {
             messages.error(format!("prediction failed: {e}"));
             reh.enabled = false;

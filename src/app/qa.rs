@@ -243,6 +243,21 @@ fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {
     e.iter().sum::<f64>() / e.len().max(1) as f64
 }
 
+/// The network input of sample `index` (its stored camera view encoded, or its u_s).
+fn model_input(ds: &QaDataset, m: &Manifest, index: usize, p: &Predictor, u_s: &[f32]) -> Result<Vec<f32>, String> {
+    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface).map_err(|e| e.to_string())?;
+    if !enc.takes_points() {
+        return enc.input(None, Some(u_s)).map_err(|e| e.to_string());
+    }
+    let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
+    let shard = m.shards.iter().find(|s| s.file == rec.shard).ok_or_else(|| format!("no shard {}", rec.shard))?;
+    let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
+    let (idx, _, _) = data.load_shard(shard).map_err(|e| e.to_string())?;
+    let views = data.load_views(shard).map_err(|e| e.to_string())?;
+    let k = idx.iter().position(|&i| i == index).ok_or_else(|| format!("{}: sample {index} missing", shard.file))?;
+    enc.input(Some(&views[k]), None).map_err(|e| e.to_string())
+}
+
 pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> Result<QaSample, String> {
     let (u_s, u_v, pr, fo) = read_sample(ds, m, index)?;
     let ctx = &ds.ctx;
@@ -266,7 +281,8 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
     let (predicted, tre_mm) = match predictor {
         Some(p) => {
             let mut p = p.lock().map_err(|_| "the model is poisoned")?;
-            let pred = p.predict(&u_s, g.padded_shape()).map_err(|e| e.to_string())?.to_vec();
+            let x = model_input(ds, m, index, &p, &u_s)?;
+            let pred = p.predict(&x, g.padded_shape()).map_err(|e| e.to_string())?.to_vec();
             let surface = ctx.deformed_surface(&pred);
             let err: Vec<f32> = surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
             let structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &pred), s.color)).collect();
@@ -295,11 +311,14 @@ pub fn evaluate_dataset(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> R
     let mut p = p.lock().map_err(|_| "the model is poisoned")?;
     let shape = ds.ctx.grid.padded_shape();
     let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
+    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface).map_err(|e| e.to_string())?;
     for shard in &m.shards {
         let (idx, u_s, u_v) = data.load_shard(shard).map_err(|e| e.to_string())?;
+        let views = if enc.takes_points() { data.load_views(shard).map_err(|e| e.to_string())? } else { Vec::new() };
         let n = u_s.len() / idx.len().max(1);
         for (k, &i) in idx.iter().enumerate() {
-            let pred = p.predict(&u_s[k * n..(k + 1) * n], shape).map_err(|e| e.to_string())?.to_vec();
+            let x = enc.input(views.get(k).map(|v| v.as_slice()), Some(&u_s[k * n..(k + 1) * n])).map_err(|e| e.to_string())?;
+            let pred = p.predict(&x, shape).map_err(|e| e.to_string())?.to_vec();
             out.insert(i, sample_tre(ds, &pred, &u_v[k * n..(k + 1) * n]));
         }
     }

@@ -128,6 +128,18 @@ pub struct TrainForm {
     pub learning_rate: f64,
     pub seed: u64,
     pub resume: bool,
+    /// The network input: "corner", "nearest" (encoded camera views) or "exact" (u_s).
+    pub input: &'static str,
+}
+
+/// The network inputs the training form offers (`umesh train --input`).
+pub const TRAIN_INPUTS: [&str; 3] = ["corner", "nearest", "exact"];
+
+/// The observation settings of a `--input` name (None: exact u_s).
+pub fn observation_of(input: &str) -> Option<umesh_core::observation::ObservationSettings> {
+    umesh_core::observation::Encoding::parse(input)
+        .ok()
+        .map(|encoding| umesh_core::observation::ObservationSettings { encoding, ..Default::default() })
 }
 
 impl Default for TrainForm {
@@ -142,6 +154,7 @@ impl Default for TrainForm {
             learning_rate: t.learning_rate,
             seed: 0,
             resume: false,
+            input: "corner",
         }
     }
 }
@@ -154,6 +167,7 @@ impl TrainForm {
             batch_size: self.batch_size.max(1),
             learning_rate: self.learning_rate,
             seed: self.seed,
+            observation: observation_of(self.input),
             ..Default::default()
         }
     }
@@ -296,6 +310,13 @@ pub fn forms_panel(
         ui.horizontal(|ui| {
             ui.radio_value(&mut t.paper_preset, false, "cpu");
             ui.radio_value(&mut t.paper_preset, true, "paper");
+        });
+        ui.end_row();
+        ui.label("input").on_hover_text("corner / nearest: the simulated camera views, encoded as registration encodes each frame; exact: the visible nodes' displacement (u_s), which a camera cannot give");
+        ui.horizontal(|ui| {
+            for i in TRAIN_INPUTS {
+                ui.radio_value(&mut t.input, i, i);
+            }
         });
         ui.end_row();
         ui.label("epochs");

@@ -209,15 +209,17 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
         WorkKind::Train { dataset, settings, resume } => {
             let s = settings;
             let command = format!(
-                "umesh train --dataset {} --out {} --channels {} --steps {} --epochs {} --batch-size {} --learning-rate {} --seed {}{}",
+                "umesh train --dataset {} --out {} --input {} --channels {} --steps {} --epochs {} --batch-size {} --learning-rate {} --seed {}{}{}",
                 dataset.display(),
                 out.display(),
+                s.observation.as_ref().map(|o| o.encoding.name()).unwrap_or("exact"),
                 s.model.channels,
                 s.model.steps,
                 s.epochs,
                 s.batch_size,
                 s.learning_rate,
                 s.seed,
+                if s.observation.is_some() && !s.fresh_views { " --stored-views" } else { "" },
                 if *resume { " --resume" } else { "" }
             );
             (serde_json::json!({ "kind": "training", "dataset": dataset, "settings": s, "resume": resume }), command)
@@ -226,10 +228,11 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
             let c = &settings.dataset;
             let input = inputs.iter().map(|p| format!("{} ", p.display())).collect::<String>();
             let command = format!(
-                "umesh prepare {input}--samples {} --epochs {} --preset {} {} --out {}",
+                "umesh prepare {input}--samples {} --epochs {} --preset {} --input {} {} --out {}",
                 c.samples,
                 settings.train.epochs,
                 if settings.train.model == umesh_net::UNetConfig::paper() { "paper" } else { "cpu" },
+                settings.train.observation.as_ref().map(|o| o.encoding.name()).unwrap_or("exact"),
                 dataset_options(c),
                 out.display()
             );

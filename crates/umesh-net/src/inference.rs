@@ -82,3 +82,45 @@ impl umesh_core::register::pipeline::DisplacementModel for Predictor {
         Ok(())
     }
 }
+
+/// What a model takes as its input, made from what a caller has: for models trained on camera
+/// views, the observed organ points (world, mm) encoded by the observation operator; for
+/// models trained on the exact surface displacement, u_s itself.
+pub struct InputEncoder {
+    observer: Option<umesh_core::observation::Observer>,
+}
+
+impl InputEncoder {
+    /// For `info`'s input on `grid`, with `rest_surface` the organ's rest surface.
+    pub fn new(
+        info: &ModelInfo,
+        grid: &umesh_core::grid::ImmersedGrid,
+        rest_surface: &umesh_core::mesh::TriMesh,
+    ) -> Result<Self, NetError> {
+        let observer = match &info.settings.observation {
+            Some(o) => Some(umesh_core::observation::Observer::new(grid, rest_surface, o.clone()).map_err(NetError::Invalid)?),
+            None => None,
+        };
+        Ok(Self { observer })
+    }
+
+    /// Whether the model takes observed points (else u_s).
+    pub fn takes_points(&self) -> bool {
+        self.observer.is_some()
+    }
+
+    /// The network input from the observed points `points_mm` or, for an exact-input model,
+    /// `u_s` (whichever the model takes must be given).
+    pub fn input(&mut self, points_mm: Option<&[nalgebra::Vector3<f64>]>, u_s: Option<&[f32]>) -> Result<Vec<f32>, NetError> {
+        match (&mut self.observer, points_mm, u_s) {
+            (Some(o), Some(p), _) => {
+                let mut out = Vec::new();
+                o.encode(p, &mut out);
+                Ok(out)
+            }
+            (None, _, Some(u)) => Ok(u.to_vec()),
+            (Some(_), None, _) => Err(NetError::Invalid("this model takes observed surface points (a camera view)".into())),
+            (None, _, None) => Err(NetError::Invalid("this model takes the surface displacement u_s".into())),
+        }
+    }
+}

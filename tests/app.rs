@@ -72,6 +72,8 @@ fn jobs_run_in_the_background_finish_into_the_state_and_can_be_cancelled() {
     finish_jobs(&mut app, Duration::from_secs(60));
     let grid = app.world().resource::<GridState>().grid.clone().expect("the grid job delivered its grid");
     assert!(app.world().resource::<GridState>().stats.as_ref().unwrap().cells > 100);
+    // Built, the grid stays out of the way of the organ until G shows it.
+    assert!(!app.world().resource::<GridState>().show);
     // A simulation, cancelled at once.
     let probe = Probe { point_mm: organ.surface.positions[0], normal: Vector3::y(), force_n: Vector3::new(0.0, -0.5, 0.0) };
     let id = app

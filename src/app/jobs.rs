@@ -190,6 +190,8 @@ pub fn poll_jobs(
                 grid.stats = Some(s);
                 grid.grid = Some(g);
                 grid.generation += 1;
+                // The cells would hide the organ and its deformation: off once built (G shows them).
+                grid.show = false;
                 sim.clear();
                 messages.info(msg.clone());
                 msg

@@ -131,6 +131,8 @@ pub fn run(a: Args) -> Result<()> {
             "model": r.model, "frames": s.frames, "skipped": s.skipped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
             "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
             "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
+            "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
+            "last_marker_displacement_mm": s.last_marker_displacement_mm,
             "latency_ms_median": latency_medians(r),
         })
     };

@@ -522,6 +522,11 @@ pub struct Summary {
     pub tre_max_mm: Option<f64>,
     pub tre_rigid_mean_mm: Option<f64>,
     pub marker_displacement_mean_mm: Option<f64>,
+    /// The last registered frame's TRE, rigid-only TRE and mean marker motion (the largest
+    /// deformation of a ramped recording).
+    pub last_tre_mm: Option<f64>,
+    pub last_tre_rigid_mm: Option<f64>,
+    pub last_marker_displacement_mm: Option<f64>,
 }
 
 pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
@@ -541,6 +546,9 @@ pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
         tre_max_mm: frames.iter().filter_map(|f| f.tre_max_mm).reduce(f64::max),
         tre_rigid_mean_mm: mean_of(&|f| f.tre_rigid_mean_mm),
         marker_displacement_mean_mm: mean_of(&|f| f.marker_displacement_mean_mm),
+        last_tre_mm: frames.last().and_then(|f| f.tre_mean_mm),
+        last_tre_rigid_mm: frames.last().and_then(|f| f.tre_rigid_mean_mm),
+        last_marker_displacement_mm: frames.last().and_then(|f| f.marker_displacement_mean_mm),
     }
 }
 

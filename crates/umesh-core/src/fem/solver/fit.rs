@@ -31,7 +31,7 @@ pub struct PointFitSettings {
 
 impl Default for PointFitSettings {
     fn default() -> Self {
-        Self { iterations: 4, cg_iterations: 20, band_mm: 10.0, spring_scale: 500.0 }
+        Self { iterations: 4, cg_iterations: 10, band_mm: 10.0, spring_scale: 500.0 }
     }
 }
 
@@ -107,6 +107,16 @@ impl<'g> PointFit<'g> {
         self.samples.len()
     }
 
+    /// Energy of the springs toward `targets` (N mm).
+    fn spring_energy(&self, u: &[Vector3<f64>], targets: &[Option<Vector3<f64>>]) -> f64 {
+        self.samples
+            .iter()
+            .zip(&self.rest_mm)
+            .zip(targets)
+            .filter_map(|((e, x), t)| t.map(|t| 0.5 * self.k_n_per_mm * (x + interpolate(e, u) - t).norm_squared()))
+            .sum()
+    }
+
     fn deformed(&self, u: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
         self.samples.iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate(e, u)).collect()
     }
@@ -164,14 +174,30 @@ impl<'g> PointFit<'g> {
             }
             let (du, iters) = self.pcg(&b, &matched, &free);
             report.cg_iterations += iters;
-            for (n, un) in u.iter_mut().enumerate() {
-                for c in 0..3 {
-                    let f = free[3 * n + c];
-                    if f != NONE {
-                        un[c] += du[f as usize];
+            // The step comes from the rest stiffness: under large rotations it can overshoot,
+            // so it is halved until the energy (elastic plus the matched springs) decreases.
+            let targets: Vec<Option<Vector3<f64>>> = (0..ns).map(|s| matched[s].then(|| acc[s] / count[s] as f64)).collect();
+            let e0 = a.energy + self.spring_energy(u, &targets);
+            let mut step = 1.0;
+            let mut trial = u.to_vec();
+            for _ in 0..4 {
+                for (n, (tn, un)) in trial.iter_mut().zip(u.iter()).enumerate() {
+                    for c in 0..3 {
+                        let f = free[3 * n + c];
+                        tn[c] = un[c] + if f != NONE { step * du[f as usize] } else { 0.0 };
                     }
                 }
+                let e1 = self.solver.asm.assemble(ElementModel::Corotational, &trial, false).energy + self.spring_energy(&trial, &targets);
+                if e1 <= e0 {
+                    break;
+                }
+                step *= 0.5;
             }
+            if step < 0.1 {
+                // No decrease even at a sixteenth of the step: this update changes nothing.
+                continue;
+            }
+            u.copy_from_slice(&trial);
         }
         let pos = self.deformed(u);
         let (mut sq, mut n) = (0.0, 0usize);

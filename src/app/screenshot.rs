@@ -181,7 +181,11 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             ar.show_points = true;
             let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
             s.send(super::ar::ArCommand::ShowPoints(true));
-            s.send(super::ar::ArCommand::Seek(3));
+            // Through the frames in order: the rigid alignment is made on the undeformed first
+            // frame, as when a recording plays (aligning on a deformed frame absorbs the motion).
+            for f in 0..=3 {
+                s.send(super::ar::ArCommand::Seek(f));
+            }
             ar.session = Some(s);
         }
         other => return Err(format!("unknown scene {other:?}; scenes: {}", SCENES.join(", "))),
@@ -206,7 +210,7 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     }
     // The AR view waits for its worker's first overlay (a minute at most).
     let t0 = std::time::Instant::now();
-    while scene == "ar" && app.world().resource::<super::ar::Ar>().last.is_none() {
+    while scene == "ar" && app.world().resource::<super::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
         if t0.elapsed().as_secs() > 60 {
             return Err("the AR view showed no frame within 60 s".into());
         }

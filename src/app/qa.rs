@@ -214,8 +214,9 @@ fn f32s(npz: &Npz, name: &str, path: &Path) -> Result<Vec<f32>, String> {
     }
 }
 
-/// (u_s, u_v, probes, forces) of sample `index` from its shard.
-fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>), String> {
+/// (u_s, u_v, probes, forces) of sample `index` and its position among its shard's samples.
+#[allow(clippy::type_complexity)]
+fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, usize), String> {
     let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
     let path = ds.dir.join(&rec.shard);
     let npz = Npz::read(&path).map_err(|e| e.to_string())?;
@@ -234,6 +235,7 @@ fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, 
         u_v[k * n..(k + 1) * n].to_vec(),
         pr[k * p..(k + 1) * p].to_vec(),
         fo[k * p..(k + 1) * p].to_vec(),
+        k,
     ))
 }
 
@@ -243,8 +245,9 @@ fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {
     e.iter().sum::<f64>() / e.len().max(1) as f64
 }
 
-/// The network input of sample `index` (its stored camera view encoded, or its u_s).
-fn model_input(ds: &QaDataset, m: &Manifest, index: usize, p: &Predictor, u_s: &[f32]) -> Result<Vec<f32>, String> {
+/// The network input of sample `index`, the `k`-th of its shard: its stored camera view
+/// encoded, or its u_s.
+fn model_input(ds: &QaDataset, m: &Manifest, index: usize, k: usize, p: &Predictor, u_s: &[f32]) -> Result<Vec<f32>, String> {
     let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface).map_err(|e| e.to_string())?;
     if !enc.takes_points() {
         return enc.input(None, Some(u_s)).map_err(|e| e.to_string());
@@ -252,14 +255,14 @@ fn model_input(ds: &QaDataset, m: &Manifest, index: usize, p: &Predictor, u_s: &
     let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
     let shard = m.shards.iter().find(|s| s.file == rec.shard).ok_or_else(|| format!("no shard {}", rec.shard))?;
     let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
-    let (idx, _, _) = data.load_shard(shard).map_err(|e| e.to_string())?;
+    // The views come in the order of the shard's sample indices, as read_sample's `k`.
     let views = data.load_views(shard).map_err(|e| e.to_string())?;
-    let k = idx.iter().position(|&i| i == index).ok_or_else(|| format!("{}: sample {index} missing", shard.file))?;
-    enc.input(Some(&views[k]), None).map_err(|e| e.to_string())
+    let view = views.get(k).ok_or_else(|| format!("{}: no camera view for sample {index}", shard.file))?;
+    enc.input(Some(view), None).map_err(|e| e.to_string())
 }
 
 pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> Result<QaSample, String> {
-    let (u_s, u_v, pr, fo) = read_sample(ds, m, index)?;
+    let (u_s, u_v, pr, fo, k) = read_sample(ds, m, index)?;
     let ctx = &ds.ctx;
     let g = &ctx.grid;
     let v3 = |v: &[f32]| -> Vec<Vector3<f64>> { v.chunks_exact(3).map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect() };
@@ -281,7 +284,7 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
     let (predicted, tre_mm) = match predictor {
         Some(p) => {
             let mut p = p.lock().map_err(|_| "the model is poisoned")?;
-            let x = model_input(ds, m, index, &p, &u_s)?;
+            let x = model_input(ds, m, index, k, &p, &u_s)?;
             let pred = p.predict(&x, g.padded_shape()).map_err(|e| e.to_string())?.to_vec();
             let surface = ctx.deformed_surface(&pred);
             let err: Vec<f32> = surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();

@@ -200,9 +200,44 @@ pub fn right_panel(ui: &mut egui::Ui, ar: &Ar) {
         ui.weak("No ground truth: TRE needs ground_truth.json in the recording.");
     }
     ui.separator();
+    confidence_panel(ui, &r.confidence);
+    ui.separator();
     ui.strong("Log");
     for l in ar.log.iter().rev().take(10) {
         ui.label(egui::RichText::new(l).small());
+    }
+}
+
+/// How far the overlay can be trusted, without ground truth: the fit of the prediction to the
+/// observed points and the seen share of the organ, against the range seen in training.
+fn confidence_panel(ui: &mut egui::Ui, c: &umesh_core::register::confidence::Confidence) {
+    let (colour, state) = if !c.calibrated {
+        (egui::Color32::GRAY, "not calibrated")
+    } else if c.warning() {
+        (egui::Color32::from_rgb(235, 90, 60), "do not trust the overlay")
+    } else {
+        (egui::Color32::from_rgb(90, 200, 110), "within the training range")
+    };
+    ui.horizontal(|ui| {
+        ui.strong("Confidence");
+        ui.colored_label(colour, egui::RichText::new(state).strong());
+    });
+    egui::Grid::new("confidence").num_columns(2).show(ui, |ui| {
+        ui.label("points to surface");
+        ui.label(format!("{:.2} mm mean, {:.2} p95", c.residual_mean_mm, c.residual_p95_mm));
+        ui.end_row();
+        ui.label("surface seen");
+        ui.label(format!("{:.0} %", 100.0 * c.surface_coverage));
+        ui.end_row();
+        ui.label("largest motion");
+        ui.label(format!("{:.1} mm", c.displacement_max_mm));
+        ui.end_row();
+    });
+    for w in &c.warnings {
+        ui.colored_label(colour, egui::RichText::new(w).small());
+    }
+    if !c.calibrated {
+        ui.weak("The model has no confidence.json: `umesh eval --calibrate --model M --dataset D` writes it.");
     }
 }
 

@@ -209,7 +209,7 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
         WorkKind::Train { dataset, settings, resume } => {
             let s = settings;
             let command = format!(
-                "umesh train --dataset {} --out {} --input {} --channels {} --steps {} --epochs {} --batch-size {} --learning-rate {} --seed {}{}{}",
+                "umesh train --dataset {} --out {} --input {} --channels {} --steps {} --epochs {} --batch-size {} --learning-rate {} --seed {}{}{}{}",
                 dataset.display(),
                 out.display(),
                 s.observation.as_ref().map(|o| o.encoding.name()).unwrap_or("exact"),
@@ -220,6 +220,7 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
                 s.learning_rate,
                 s.seed,
                 if s.observation.is_some() && !s.fresh_views { " --stored-views" } else { "" },
+                if s.observation.is_some() && s.fresh_views { format!(" --rest-views {}", s.rest_views) } else { String::new() },
                 if *resume { " --resume" } else { "" }
             );
             (serde_json::json!({ "kind": "training", "dataset": dataset, "settings": s, "resume": resume }), command)

@@ -133,6 +133,8 @@ pub fn run(a: Args) -> Result<()> {
             "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
             "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
             "last_marker_displacement_mm": s.last_marker_displacement_mm,
+            "frames_with_warning": s.frames_with_warning, "residual_p95_median_mm": s.residual_p95_median_mm,
+            "confidence_calibrated": r.frames.first().is_some_and(|f| f.confidence.calibrated),
             "latency_ms_median": latency_medians(r),
         })
     };
@@ -153,13 +155,13 @@ pub fn run(a: Args) -> Result<()> {
         super::print_json(&v);
     } else {
         println!(
-            "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10}",
-            "frame", "points", "ICP", "u_s", "predict", "overlay", "total ms", "TRE mm"
+            "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10}  confidence",
+            "frame", "points", "ICP", "u_s", "predict", "overlay", "total ms", "TRE mm", "fit p95"
         );
         for f in &report.frames {
             let l = &f.latency;
             println!(
-                "{:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10}",
+                "{:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10} {:>10.2}  {}",
                 f.frame,
                 l.points_ms,
                 l.icp_ms,
@@ -167,16 +169,25 @@ pub fn run(a: Args) -> Result<()> {
                 l.predict_ms,
                 l.overlay_ms,
                 l.total_ms,
-                f.tre_mean_mm.map(|t| format!("{t:.2}")).unwrap_or_else(|| "-".into())
+                f.tre_mean_mm.map(|t| format!("{t:.2}")).unwrap_or_else(|| "-".into()),
+                f.confidence.residual_p95_mm,
+                if !f.confidence.calibrated {
+                    "not calibrated".to_string()
+                } else if f.confidence.warning() {
+                    format!("WARNING: {}", f.confidence.warnings.join("; "))
+                } else {
+                    "ok".to_string()
+                }
             );
         }
         for r in std::iter::once(&report).chain(fe_report.as_ref()) {
             let s = &r.summary;
             println!(
-                "{}: {} frames ({} skipped), {:.1} ms median, {:.1} ms p95{}",
+                "{}: {} frames ({} skipped, {} with a confidence warning), {:.1} ms median, {:.1} ms p95{}",
                 r.model,
                 s.frames,
                 s.skipped,
+                s.frames_with_warning,
                 s.frame_ms_median,
                 s.frame_ms_p95,
                 match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {

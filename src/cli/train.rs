@@ -41,6 +41,10 @@ pub struct Args {
     /// each training sample every epoch after the first).
     #[arg(long)]
     pub stored_views: bool,
+    /// With new views each epoch: the fraction of training samples seen undeformed, with a
+    /// zero target, so the network learns that an organ at rest has not moved (0 to 0.5).
+    #[arg(long, default_value_t = TrainSettings::default().rest_views)]
+    pub rest_views: f64,
     #[arg(long)]
     pub json: bool,
 }
@@ -57,6 +61,11 @@ pub struct EvalArgs {
     /// Also write the report as JSON to this file.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Also measure the confidence figures on the validation views and write them to the
+    /// model folder (`confidence.json`, what registration compares every frame with; training
+    /// writes it too).
+    #[arg(long)]
+    pub calibrate: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -93,6 +102,7 @@ pub fn run(a: Args) -> Result<()> {
         seed: a.seed,
         observation,
         fresh_views: !a.stored_views,
+        rest_views: a.rest_views,
         ..Default::default()
     };
     let (pb, progress) = super::progress_bar("training");
@@ -125,10 +135,29 @@ pub fn run(a: Args) -> Result<()> {
 
 pub fn eval(a: EvalArgs) -> Result<()> {
     let r = umesh_net::eval::run_eval(&a.model, &a.dataset, a.markers).with_context(|| format!("evaluating {}", a.model.display()))?;
-    let v = serde_json::json!({
+    let mut v = serde_json::json!({
         "samples": r.samples, "markers_per_sample": r.markers_per_sample, "tre_mean_mm": r.tre_mean_mm, "tre_std_mm": r.tre_std_mm,
         "tre_max_mm": r.tre_max_mm, "marker_displacement_mean_mm": r.marker_displacement_mean_mm,
     });
+    if a.calibrate {
+        let (pb, progress) = super::progress_bar("confidence");
+        let c = umesh_net::eval::calibrate_confidence(&a.model, &a.dataset, &progress);
+        pb.finish_and_clear();
+        let c = c.with_context(|| format!("calibrating the confidence of {}", a.model.display()))?;
+        umesh_net::eval::write_confidence(&a.model, &c)?;
+        if !a.json {
+            println!(
+                "confidence range          residual p95 <= {:.2} mm, mean <= {:.2} mm, coverage >= {:.1} %, surface motion <= {:.1} mm ({} views): {}",
+                c.residual_p95_mm,
+                c.residual_mean_mm,
+                100.0 * c.coverage_min,
+                c.displacement_max_mm,
+                c.views,
+                a.model.join(umesh_core::register::confidence::ConfidenceReference::FILE).display()
+            );
+        }
+        v["confidence"] = serde_json::to_value(&c)?;
+    }
     if let Some(p) = &a.report {
         umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes())?;
     }

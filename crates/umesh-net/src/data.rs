@@ -132,6 +132,18 @@ impl Normalization {
     }
 }
 
+/// The displacement of each grid node from a dense [3, X, Y, Z] field.
+pub fn node_displacements(grid: &ImmersedGrid, field: &[f32]) -> Vec<nalgebra::Vector3<f64>> {
+    let [x, y, z] = grid.padded_shape();
+    let cells = x * y * z;
+    (0..grid.node_count())
+        .map(|n| {
+            let d = grid.dense_index(n);
+            nalgebra::Vector3::new(field[d] as f64, field[cells + d] as f64, field[2 * cells + d] as f64)
+        })
+        .collect()
+}
+
 /// Fresh simulated camera views of the training samples, one per epoch and sample: the
 /// rest surface deformed by the sample's u_v, seen as the dataset's generation saw it (the
 /// dataset's camera and view settings, a new random stream), encoded by the observation
@@ -156,46 +168,54 @@ impl ViewRefresher {
 
     /// Replace the inputs of samples `ids` (positions in `set`) by new views for `epoch`.
     /// Deterministic for (dataset seed, epoch, sample index); a sample whose view fails keeps
-    /// its input.
-    pub fn refresh(&self, set: &mut SampleSet, ids: &[usize], epoch: usize) -> Result<usize, String> {
+    /// its input. About `rest_fraction` of them get a view of the undeformed organ instead,
+    /// whose target is zero (`rest[k]` true): every SVK sample moves 5-15 mm, and without rest
+    /// views the network predicts millimetres of deformation for an organ that has not moved.
+    /// Returns the number of new views.
+    pub fn refresh(
+        &self,
+        set: &mut SampleSet,
+        ids: &[usize],
+        epoch: usize,
+        rest_fraction: f64,
+        rest: &mut [bool],
+    ) -> Result<usize, String> {
         use rayon::prelude::*;
         use umesh_core::phantom::SplitMix64;
-        let [x, y, z] = set.shape;
-        let cells = x * y * z;
         let grid = &set.grid;
         Observer::new(grid, &self.surface, self.observation.clone())?;
-        let fresh: Vec<(usize, Option<Vec<f32>>)> = ids
+        let fresh: Vec<(usize, bool, Option<Vec<f32>>)> = ids
             .par_iter()
             .map_init(
                 || Observer::new(grid, &self.surface, self.observation.clone()),
                 |obs, &k| {
-                    let Ok(obs) = obs else { return (k, None) };
-                    let v = &set.u_v[k];
-                    let u: Vec<nalgebra::Vector3<f64>> = (0..grid.node_count())
-                        .map(|n| {
-                            let d = grid.dense_index(n);
-                            nalgebra::Vector3::new(v[d] as f64, v[cells + d] as f64, v[2 * cells + d] as f64)
-                        })
-                        .collect();
-                    let deformed = umesh_core::loads::deform_mesh(grid, &self.surface, &u);
                     let i = set.indices[k] as u64;
                     let mut rng =
                         SplitMix64(self.seed ^ i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (epoch as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+                    let at_rest = rng.next_f64() < rest_fraction;
+                    let Ok(obs) = obs else { return (k, false, None) };
+                    let deformed = if at_rest {
+                        self.surface.clone()
+                    } else {
+                        umesh_core::loads::deform_mesh(grid, &self.surface, &node_displacements(grid, &set.u_v[k]))
+                    };
                     match umesh_core::observation::simulated_view(&deformed, &self.camera, &self.view, &mut rng) {
                         Ok(points) if points.len() >= 10 => {
                             let mut out = Vec::new();
                             obs.encode(&points, &mut out);
-                            (k, Some(out))
+                            (k, at_rest, Some(out))
                         }
-                        _ => (k, None),
+                        _ => (k, false, None),
                     }
                 },
             )
             .collect();
         let mut n = 0;
-        for (k, x) in fresh {
+        for (k, at_rest, x) in fresh {
+            rest[k] = false;
             if let Some(x) = x {
                 set.u_s[k] = x;
+                rest[k] = at_rest;
                 n += 1;
             }
         }

@@ -62,3 +62,84 @@ pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> 
         per_marker_tre_mm: all.clone(),
     })
 }
+
+/// The range of the confidence figures on the model's validation views: each stored view
+/// (what the dataset's camera saw of the true deformation) against the surface the model
+/// predicts from it, and the largest surface displacement of the training targets. Written to
+/// the model folder as `confidence.json`, read by registration to flag frames outside it.
+pub fn calibrate_confidence(
+    model_dir: &Path,
+    dataset: &Path,
+    progress: &umesh_core::Progress,
+) -> Result<umesh_core::register::confidence::ConfidenceReference, NetError> {
+    use umesh_core::dataset::Dataset;
+    use umesh_core::register::confidence::{ConfidenceReference, surface_coverage, surface_residual};
+    use umesh_core::register::pipeline::COVERAGE_RADIUS_MM;
+    let mut predictor = Predictor::load(model_dir)?;
+    let Some(observation) = predictor.info.settings.observation.clone() else {
+        return Err(NetError::Invalid(format!(
+            "{}: the model takes the exact surface displacement, not camera views: there is no view to calibrate its confidence on",
+            model_dir.display()
+        )));
+    };
+    let set = SampleSet::load_inputs(dataset, Some(&observation))?;
+    if set.shape != predictor.info.padded_shape {
+        return Err(NetError::Invalid(format!(
+            "{}: grid {:?} differs from the model's {:?}",
+            dataset.display(),
+            set.shape,
+            predictor.info.padded_shape
+        )));
+    }
+    let npz = umesh_core::npz::Npz::read(&dataset.join("grid.npz")).map_err(|e| NetError::Invalid(e.to_string()))?;
+    let surface = crate::data::rest_surface(&npz).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.join("grid.npz").display())))?;
+    let ds = Dataset::open(dataset)?;
+    let (train, val) = set.split();
+    let val_index: std::collections::BTreeMap<usize, usize> = val.iter().map(|&k| (set.indices[k], k)).collect();
+    let mut r = ConfidenceReference { residual_p95_mm: 0.0, residual_mean_mm: 0.0, coverage_min: 1.0, displacement_max_mm: 0.0, views: 0 };
+    let (mut p95s, mut means, mut coverages) = (Vec::new(), Vec::new(), Vec::new());
+    for &k in &train {
+        let moved = umesh_core::loads::deform_mesh(&set.grid, &surface, &crate::data::node_displacements(&set.grid, &set.u_v[k]));
+        let d = moved.positions.iter().zip(&surface.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        r.displacement_max_mm = r.displacement_max_mm.max(d);
+    }
+    for shard in &ds.manifest.shards {
+        let (idx, _, _) = ds.load_shard(shard)?;
+        let views = ds.load_views(shard)?;
+        for (j, i) in idx.into_iter().enumerate() {
+            let Some(&k) = val_index.get(&i) else { continue };
+            let points = &views[j];
+            if points.is_empty() {
+                continue;
+            }
+            let pred = predictor.predict(&set.u_s[k], set.shape)?.to_vec();
+            let predicted = umesh_core::loads::deform_mesh(&set.grid, &surface, &crate::data::node_displacements(&set.grid, &pred));
+            let (mean, p95) = surface_residual(points, &predicted);
+            means.push(mean);
+            p95s.push(p95);
+            // Coverage as registration measures it: the points against the rest surface.
+            coverages.push(surface_coverage(&surface, points, COVERAGE_RADIUS_MM));
+            r.views += 1;
+            progress.report(r.views as u64, val.len() as u64, "confidence range on the validation views");
+        }
+    }
+    if r.views == 0 {
+        return Err(NetError::Invalid(format!("{}: no validation sample has a stored camera view", dataset.display())));
+    }
+    // The range of most views, not of the single worst one.
+    let pct = |v: &mut Vec<f64>, p: f64| {
+        v.sort_by(f64::total_cmp);
+        v[((v.len() - 1) as f64 * p).round() as usize]
+    };
+    r.residual_p95_mm = pct(&mut p95s, 0.95);
+    r.residual_mean_mm = pct(&mut means, 0.95);
+    r.coverage_min = pct(&mut coverages, 0.05);
+    Ok(r)
+}
+
+/// Write `reference` into the model folder (atomically).
+pub fn write_confidence(model_dir: &Path, reference: &umesh_core::register::confidence::ConfidenceReference) -> Result<(), NetError> {
+    let path = model_dir.join(umesh_core::register::confidence::ConfidenceReference::FILE);
+    let text = serde_json::to_string_pretty(reference).map_err(|e| NetError::Io(e.to_string()))?;
+    umesh_core::write_atomic(&path, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))
+}

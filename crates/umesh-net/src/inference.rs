@@ -10,8 +10,15 @@ pub struct Predictor {
     pub info: ModelInfo,
     model: UNet,
     device: Device,
+    /// The same weights for the per-frame forward pass (None: the layers are not the
+    /// U-Net's, burn runs them).
+    fast: Option<crate::fast::FastUNet>,
+    /// Run burn's forward pass instead of the fast one (to compare them).
+    pub use_burn: bool,
     input: Vec<f32>,
     output: Vec<f32>,
+    /// `confidence.json` of the model folder, when it has one.
+    pub confidence: Option<umesh_core::register::confidence::ConfidenceReference>,
 }
 
 impl std::fmt::Debug for Predictor {
@@ -33,11 +40,14 @@ impl Predictor {
         let device = Device::flex();
         let mut model = info.config.init(&device);
         load_weights(&mut model, &dir.join(file))?;
-        Ok(Self::from_model(info, model, device))
+        let mut p = Self::from_model(info, model, device);
+        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir);
+        Ok(p)
     }
 
     pub fn from_model(info: ModelInfo, model: UNet, device: Device) -> Self {
-        Self { info, model, device, input: Vec::new(), output: Vec::new() }
+        let fast = crate::fast::FastUNet::from_model(&model).ok();
+        Self { info, model, device, fast, use_burn: false, input: Vec::new(), output: Vec::new(), confidence: None }
     }
 
     pub fn config(&self) -> &UNetConfig {
@@ -56,11 +66,16 @@ impl Predictor {
         let s = self.info.normalization.input_scale_mm;
         self.input.clear();
         self.input.extend(u_s.iter().map(|v| v / s));
+        let o = self.info.normalization.output_scale_mm;
+        if let (Some(f), false) = (&self.fast, self.use_burn) {
+            f.forward(&self.input, shape, &mut self.output);
+            self.output.iter_mut().for_each(|v| *v *= o);
+            return Ok(&self.output);
+        }
         let x =
             Tensor::<5>::from_data(TensorData::new(std::mem::take(&mut self.input), [1, c, shape[0], shape[1], shape[2]]), &self.device);
         let y = self.model.forward(x);
         let data = y.into_data().try_to_vec::<f32>().map_err(|e| NetError::Invalid(format!("{e:?}")))?;
-        let o = self.info.normalization.output_scale_mm;
         self.output.clear();
         self.output.extend(data.iter().map(|v| v * o));
         Ok(&self.output)
@@ -80,6 +95,9 @@ impl umesh_core::register::pipeline::DisplacementModel for Predictor {
         out.clear();
         out.extend_from_slice(y);
         Ok(())
+    }
+    fn confidence_reference(&self) -> Option<umesh_core::register::confidence::ConfidenceReference> {
+        self.confidence.clone()
     }
 }
 

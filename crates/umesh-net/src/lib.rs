@@ -3,6 +3,7 @@
 
 pub mod data;
 pub mod eval;
+pub mod fast;
 pub mod inference;
 pub mod model;
 pub mod patient;

@@ -72,8 +72,8 @@ impl UNetConfig {
 
 #[derive(Module, Debug)]
 pub struct DoubleConv {
-    a: Conv3d,
-    b: Conv3d,
+    pub(crate) a: Conv3d,
+    pub(crate) b: Conv3d,
 }
 
 impl DoubleConv {
@@ -84,11 +84,11 @@ impl DoubleConv {
 
 #[derive(Module, Debug)]
 pub struct UNet {
-    down: Vec<DoubleConv>,
-    bottom: DoubleConv,
-    up: Vec<ConvTranspose3d>,
-    dec: Vec<DoubleConv>,
-    head: Conv3d,
+    pub(crate) down: Vec<DoubleConv>,
+    pub(crate) bottom: DoubleConv,
+    pub(crate) up: Vec<ConvTranspose3d>,
+    pub(crate) dec: Vec<DoubleConv>,
+    pub(crate) head: Conv3d,
     steps: usize,
 }
 

@@ -30,6 +30,10 @@ pub struct TrainSettings {
     /// simulated camera view of its deformation each epoch (validation keeps the stored ones).
     #[serde(default)]
     pub fresh_views: bool,
+    /// With `fresh_views`: the fraction of training samples whose view each epoch is of the
+    /// undeformed organ, with a zero target (0 in models trained before it existed).
+    #[serde(default)]
+    pub rest_views: f64,
 }
 
 impl Default for TrainSettings {
@@ -43,6 +47,7 @@ impl Default for TrainSettings {
             markers: 10,
             observation: Some(umesh_core::observation::ObservationSettings::default()),
             fresh_views: true,
+            rest_views: 0.05,
         }
     }
 }
@@ -83,6 +88,21 @@ pub(crate) fn batch(set: &[Vec<f32>], ids: &[usize], shape: [usize; 3], scale: f
         data.extend(set[k].iter().map(|v| v / scale));
     }
     Tensor::from_data(TensorData::new(data, [ids.len(), channels, shape[0], shape[1], shape[2]]), device)
+}
+
+/// The targets of `ids`: u_v, or zero for a sample seen at rest this epoch.
+fn target_batch(set: &SampleSet, ids: &[usize], rest: &[bool], scale: f32, device: &Device) -> Tensor<5> {
+    let [x, y, z] = set.shape;
+    let n = 3 * x * y * z;
+    let mut data = Vec::with_capacity(ids.len() * n);
+    for &k in ids {
+        if rest[k] {
+            data.resize(data.len() + n, 0.0);
+        } else {
+            data.extend(set.u_v[k].iter().map(|v| v / scale));
+        }
+    }
+    Tensor::from_data(TensorData::new(data, [ids.len(), 3, x, y, z]), device)
 }
 
 pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
@@ -130,7 +150,11 @@ pub fn run_train(
     on_epoch: &(dyn Fn(&EpochMetrics) + Sync),
     cancel: &Cancel,
 ) -> Result<TrainReport, NetError> {
+    if !(settings.rest_views.is_finite() && (0.0..=0.5).contains(&settings.rest_views)) {
+        return Err(NetError::Invalid(format!("rest_views must be in [0, 0.5], got {}", settings.rest_views)));
+    }
     let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
+    let mut rest = vec![false; set.len()];
     let refresher = match (&settings.observation, settings.fresh_views) {
         (Some(o), true) => Some(crate::data::ViewRefresher::new(dataset, o)?),
         _ => None,
@@ -204,7 +228,8 @@ pub fn run_train(
             && epoch > 1
         {
             progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}: new camera views", settings.epochs));
-            r.refresh(&mut set, &train, epoch).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
+            r.refresh(&mut set, &train, epoch, settings.rest_views, &mut rest)
+                .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
         }
         let mut train_loss = 0.0;
         let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();
@@ -213,7 +238,7 @@ pub fn run_train(
                 return Err(NetError::Cancelled);
             }
             let x = batch(&set.u_s, ids, set.shape, norm.input_scale_mm, &ad);
-            let y = batch(&set.u_v, ids, set.shape, norm.output_scale_mm, &ad);
+            let y = target_batch(&set, ids, &rest, norm.output_scale_mm, &ad);
             let loss = (model.forward(x) - y).square().mean();
             train_loss += loss.clone().into_scalar::<f32>() as f64;
             let grads = GradientsParams::from_grads(loss.backward(), &model);
@@ -251,6 +276,11 @@ pub fn run_train(
             .map_err(|e| NetError::Io(format!("{}: {e}", metrics_path.display())))?;
         on_epoch(&m);
         epochs.push(m);
+    }
+    // What registration compares each frame's fit with (camera-view models only).
+    if settings.observation.is_some() && out.join("model.safetensors").exists() {
+        let r = crate::eval::calibrate_confidence(out, dataset, progress)?;
+        crate::eval::write_confidence(out, &r)?;
     }
     Ok(TrainReport { out: out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
 }

@@ -64,6 +64,28 @@ fn info_for(config: UNetConfig, padded_shape: [usize; 3]) -> ModelInfo {
 }
 
 #[test]
+fn the_fast_forward_pass_matches_burns_within_1e_4_of_the_largest_output() {
+    let device = Device::flex();
+    for (cfg, shape, seed) in
+        [(UNetConfig { in_channels: 4, ..UNetConfig::cpu() }, [16, 8, 24], 3), (tiny(2, 3), [8, 16, 8], 5), (tiny(3, 6), [8, 8, 8], 9)]
+    {
+        device.seed(seed);
+        let info = info_for(cfg.clone(), shape);
+        let mut p = Predictor::from_model(info, cfg.init(&device), device.clone());
+        let n = cfg.in_channels * shape.iter().product::<usize>();
+        let mut rng = umesh_core::phantom::SplitMix64(seed);
+        // Inputs as sparse as an encoded view: most voxels zero.
+        let input: Vec<f32> = (0..n).map(|_| if rng.next_f64() < 0.3 { (rng.next_f64() * 4.0 - 2.0) as f32 } else { 0.0 }).collect();
+        let fast = p.predict(&input, shape).unwrap().to_vec();
+        p.use_burn = true;
+        let burn = p.predict(&input, shape).unwrap().to_vec();
+        let scale = burn.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let worst = fast.iter().zip(&burn).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(scale > 0.0 && worst <= 1e-4 * scale, "{cfg:?}: largest difference {worst} at output scale {scale}");
+    }
+}
+
+#[test]
 fn a_tiny_network_overfits_a_handful_of_samples() {
     let device = Device::flex();
     device.seed(1);

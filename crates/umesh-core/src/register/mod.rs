@@ -2,6 +2,7 @@
 //! displacement of the grid's visible nodes (u_s) -> volume displacement (network or FE)
 //! -> internal structures deformed through their grid embedding -> overlay on the image.
 
+pub mod confidence;
 pub mod icp;
 pub mod nn;
 pub mod overlay;
@@ -171,18 +172,7 @@ impl RegistrationContext {
     /// The share of the organ's surface within `radius_mm` of an observed point (world, mm):
     /// surface vertices, at most about 2000 of them, each counted once.
     pub fn surface_coverage(&self, points_world_mm: &[Vector3<f64>], radius_mm: f64) -> f64 {
-        let n = self.surface.positions.len();
-        if n == 0 || points_world_mm.is_empty() {
-            return 0.0;
-        }
-        let mut b = crate::observation::Buckets::default();
-        if b.fill(points_world_mm, self.grid.origin_mm, radius_mm, self.grid.padded_shape(), self.grid.cell_size_mm) == 0 {
-            return 0.0;
-        }
-        let step = n.div_ceil(2000);
-        let probes: Vec<&Vector3<f64>> = self.surface.positions.iter().step_by(step).collect();
-        let hit = probes.iter().filter(|v| b.nearest(v, radius_mm).is_some()).count();
-        hit as f64 / probes.len() as f64
+        confidence::surface_coverage(&self.surface, points_world_mm, radius_mm)
     }
 
     pub fn padded_shape(&self) -> [usize; 3] {

@@ -14,6 +14,24 @@ pub fn rasterize(
     zbuf: &mut [f32],
     mut shade: impl FnMut(usize, f32, Vector3<f64>),
 ) {
+    scan(mesh, camera_from_world, k, Some(zbuf), &mut shade);
+}
+
+/// Mark in `inside` every pixel that `mesh` covers (no depth test: a silhouette).
+pub fn rasterize_silhouette(mesh: &TriMesh, camera_from_world: &Matrix4<f64>, k: &Intrinsics, inside: &mut [bool]) {
+    scan(mesh, camera_from_world, k, None, &mut |i, _, _| inside[i] = true);
+}
+
+/// The scan conversion behind both: edge functions stepped along each row (one addition per
+/// pixel and edge) and 1/z interpolated linearly in the image (perspective-correct depth),
+/// evaluated only for covered pixels.
+fn scan(
+    mesh: &TriMesh,
+    camera_from_world: &Matrix4<f64>,
+    k: &Intrinsics,
+    mut zbuf: Option<&mut [f32]>,
+    shade: &mut dyn FnMut(usize, f32, Vector3<f64>),
+) {
     let (w, h) = (k.width, k.height);
     let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
     let proj: Vec<Option<(f64, f64, f64)>> = cam.iter().map(|p| k.project(p)).collect();
@@ -31,22 +49,34 @@ pub fn rasterize(
             continue;
         }
         let n = (cam[t[1] as usize] - cam[t[0] as usize]).cross(&(cam[t[2] as usize] - cam[t[0] as usize])).normalize();
+        // Barycentric weights as linear functions of the pixel: w = A qx + B qy + C.
+        let inv = 1.0 / area;
+        let (a0, b0, c0) = ((b.1 - c.1) * inv, (c.0 - b.0) * inv, (b.0 * c.1 - c.0 * b.1) * inv);
+        let (a1, b1, c1) = ((c.1 - a.1) * inv, (a.0 - c.0) * inv, (c.0 * a.1 - a.0 * c.1) * inv);
+        let (iza, izb, izc) = (1.0 / a.2, 1.0 / b.2, 1.0 / c.2);
+        let (xs, xe) = (x0 as usize, x1 as usize);
         for py in y0 as usize..=y1 as usize {
-            for px in x0 as usize..=x1 as usize {
-                let (qx, qy) = (px as f64, py as f64);
-                let w0 = ((b.0 - qx) * (c.1 - qy) - (c.0 - qx) * (b.1 - qy)) / area;
-                let w1 = ((c.0 - qx) * (a.1 - qy) - (a.0 - qx) * (c.1 - qy)) / area;
+            let qy = py as f64;
+            let mut w0 = a0 * x0 + b0 * qy + c0;
+            let mut w1 = a1 * x0 + b1 * qy + c1;
+            let row = py * w;
+            for px in xs..=xe {
                 let w2 = 1.0 - w0 - w1;
-                if w0 < 0.0 || w1 < 0.0 || w2 < 0.0 {
-                    continue;
+                if w0 >= 0.0 && w1 >= 0.0 && w2 >= 0.0 {
+                    let i = row + px;
+                    match zbuf.as_deref_mut() {
+                        Some(zb) => {
+                            let z = (1.0 / (w0 * iza + w1 * izb + w2 * izc)) as f32;
+                            if z < zb[i] {
+                                zb[i] = z;
+                                shade(i, z, n);
+                            }
+                        }
+                        None => shade(i, 0.0, n),
+                    }
                 }
-                // Perspective-correct depth: interpolate 1/z.
-                let z = 1.0 / (w0 / a.2 + w1 / b.2 + w2 / c.2);
-                let i = py * w + px;
-                if (z as f32) < zbuf[i] {
-                    zbuf[i] = z as f32;
-                    shade(i, z as f32, n);
-                }
+                w0 += a0;
+                w1 += a1;
             }
         }
     }
@@ -94,9 +124,8 @@ pub fn draw_overlay(
         }
     }
     // Organ silhouette -> its outline.
-    let mut organ_z = vec![f32::INFINITY; n];
     let mut inside = vec![false; n];
-    rasterize(organ, camera_from_world, k, &mut organ_z, |i, _, _| inside[i] = true);
+    rasterize_silhouette(organ, camera_from_world, k, &mut inside);
     for v in 1..k.height.saturating_sub(1) {
         for u in 1..k.width.saturating_sub(1) {
             let i = v * k.width + u;

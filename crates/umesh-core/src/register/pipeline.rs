@@ -1,5 +1,6 @@
 //! The per-frame registration pipeline and its latency breakdown.
 
+use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{depth_preview, draw_overlay};
 use super::{RegistrationContext, displacement_at};
@@ -26,6 +27,10 @@ pub trait DisplacementModel {
     /// Fit the frame's organ points (world, mm) directly, for models that do (the FE
     /// baseline): Some(surface samples matched) with the field in `out`.
     fn fit_points(&mut self, _points_world_mm: &[Vector3<f64>], _out: &mut Vec<f32>) -> Option<Result<usize, String>> {
+        None
+    }
+    /// The range of the confidence figures on the model's validation views, if measured.
+    fn confidence_reference(&self) -> Option<ConfidenceReference> {
         None
     }
 }
@@ -182,6 +187,7 @@ pub struct Latency {
     pub surface_ms: f64,
     pub predict_ms: f64,
     pub overlay_ms: f64,
+    pub confidence_ms: f64,
     pub total_ms: f64,
 }
 
@@ -201,6 +207,9 @@ pub struct FrameReport {
     /// TRE when the organ is taken as rigid (no deformation predicted): the baseline.
     pub tre_rigid_mean_mm: Option<f64>,
     pub marker_displacement_mean_mm: Option<f64>,
+    /// Without ground truth: the fit of the prediction to the observed points and the
+    /// warnings when it leaves the range seen in training.
+    pub confidence: Confidence,
 }
 
 /// What one frame produced (for the GUI and the overlay writer).
@@ -351,9 +360,12 @@ impl<'c> Registrar<'c> {
         }
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
+        let organ = self.ctx.deformed_surface(&self.field);
+        let confidence = frame_confidence(&world, &organ, &self.ctx.surface, coverage, model.confidence_reference().as_ref());
+        let confidence_ms = ms(t);
+        let t = Instant::now();
         let overlay = self.settings.overlay.then(|| {
             let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
-            let organ = self.ctx.deformed_surface(&self.field);
             let structures: Vec<_> = self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
             draw_overlay(&mut img, &organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
             img
@@ -380,7 +392,7 @@ impl<'c> Registrar<'c> {
                 disp = Some(mean(&d));
             }
         }
-        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, total_ms: ms(t0) };
+        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, total_ms: ms(t0) };
         Ok(FrameOutput {
             report: FrameReport {
                 frame: frame.index,
@@ -394,6 +406,7 @@ impl<'c> Registrar<'c> {
                 tre_max_mm: tre_max,
                 tre_rigid_mean_mm: tre_rigid,
                 marker_displacement_mean_mm: disp,
+                confidence,
             },
             field: self.field.clone(),
             overlay,
@@ -527,6 +540,10 @@ pub struct Summary {
     pub last_tre_mm: Option<f64>,
     pub last_tre_rigid_mm: Option<f64>,
     pub last_marker_displacement_mm: Option<f64>,
+    /// Frames whose confidence figures left the range seen in training.
+    pub frames_with_warning: usize,
+    /// The median of the frames' residual 95th percentiles (mm).
+    pub residual_p95_median_mm: f64,
 }
 
 pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
@@ -549,6 +566,12 @@ pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
         last_tre_mm: frames.last().and_then(|f| f.tre_mean_mm),
         last_tre_rigid_mm: frames.last().and_then(|f| f.tre_rigid_mean_mm),
         last_marker_displacement_mm: frames.last().and_then(|f| f.marker_displacement_mean_mm),
+        frames_with_warning: frames.iter().filter(|f| f.confidence.warning()).count(),
+        residual_p95_median_mm: {
+            let mut r: Vec<f64> = frames.iter().map(|f| f.confidence.residual_p95_mm).collect();
+            r.sort_by(f64::total_cmp);
+            if r.is_empty() { 0.0 } else { r[(r.len() - 1) / 2] }
+        },
     }
 }
 

@@ -1,0 +1,288 @@
+//! Confidence of a registered frame without ground truth: how far the observed organ points
+//! lie from the predicted surface, how much of the organ they cover, how far the prediction
+//! moved the organ, each against the range the model met on its validation views.
+
+use crate::mesh::TriMesh;
+use nalgebra::Vector3;
+
+/// At most this many observed points are measured per frame (every n-th point).
+const MAX_POINTS: usize = 2000;
+
+/// A point farther than this from every surface vertex counts as this far (mm).
+pub const RESIDUAL_CAP_MM: f64 = 20.0;
+
+/// What one frame's figures are compared with: their range on the model's validation views
+/// (written by training or `umesh eval --calibrate`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ConfidenceReference {
+    /// The 95th percentile over the views of each view's 95th percentile of the distance from
+    /// its points to the predicted surface.
+    pub residual_p95_mm: f64,
+    /// The 95th percentile over the views of that distance's mean.
+    pub residual_mean_mm: f64,
+    /// The 5th percentile over the views of the surface coverage.
+    pub coverage_min: f64,
+    /// The largest displacement of a surface vertex in the training targets.
+    pub displacement_max_mm: f64,
+    /// Views it was measured on.
+    pub views: usize,
+}
+
+impl ConfidenceReference {
+    pub const FILE: &'static str = "confidence.json";
+
+    pub fn read(model_dir: &std::path::Path) -> Option<Self> {
+        let text = std::fs::read_to_string(model_dir.join(Self::FILE)).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+}
+
+/// One frame's confidence figures and what they say.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Confidence {
+    /// Distance from the observed organ points to the predicted organ surface.
+    pub residual_mean_mm: f64,
+    pub residual_p95_mm: f64,
+    /// The observed share of the organ's surface.
+    pub surface_coverage: f64,
+    /// The largest displacement of the predicted surface.
+    pub displacement_max_mm: f64,
+    /// Why the overlay should not be trusted (empty: within the range seen in training, or
+    /// no reference to compare with).
+    pub warnings: Vec<String>,
+    /// A reference was available to compare with.
+    pub calibrated: bool,
+}
+
+impl Confidence {
+    pub fn warning(&self) -> bool {
+        !self.warnings.is_empty()
+    }
+}
+
+/// Tolerances over the reference before a figure warns: a frame is not held to the single
+/// worst validation view.
+const RESIDUAL_MARGIN: f64 = 1.5;
+const RESIDUAL_SLACK_MM: f64 = 0.5;
+const DISPLACEMENT_MARGIN: f64 = 1.25;
+
+/// The confidence of a frame: `points` (world, mm) against `predicted` (the organ surface
+/// deformed by the prediction) and `rest` (the same mesh undeformed).
+pub fn frame_confidence(
+    points: &[Vector3<f64>],
+    predicted: &TriMesh,
+    rest: &TriMesh,
+    coverage: f64,
+    reference: Option<&ConfidenceReference>,
+) -> Confidence {
+    let (residual_mean_mm, residual_p95_mm) = surface_residual(points, predicted);
+    let displacement_max_mm = predicted.positions.iter().zip(&rest.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+    let mut c = Confidence {
+        residual_mean_mm,
+        residual_p95_mm,
+        surface_coverage: coverage,
+        displacement_max_mm,
+        warnings: Vec::new(),
+        calibrated: reference.is_some(),
+    };
+    if let Some(r) = reference {
+        let p95_limit = r.residual_p95_mm * RESIDUAL_MARGIN + RESIDUAL_SLACK_MM;
+        if residual_p95_mm > p95_limit {
+            c.warnings.push(format!(
+                "the observed surface is {residual_p95_mm:.1} mm (95th percentile) from the predicted one, beyond the {p95_limit:.1} mm seen in training"
+            ));
+        }
+        let mean_limit = r.residual_mean_mm * RESIDUAL_MARGIN + RESIDUAL_SLACK_MM;
+        if residual_mean_mm > mean_limit {
+            c.warnings.push(format!(
+                "the observed surface is {residual_mean_mm:.1} mm (mean) from the predicted one, beyond the {mean_limit:.1} mm seen in training"
+            ));
+        }
+        if coverage < r.coverage_min {
+            c.warnings.push(format!(
+                "{:.0} % of the organ's surface is seen, less than the {:.0} % of 95 % of the validation views",
+                100.0 * coverage,
+                100.0 * r.coverage_min
+            ));
+        }
+        let d_limit = r.displacement_max_mm * DISPLACEMENT_MARGIN;
+        if displacement_max_mm > d_limit {
+            c.warnings.push(format!(
+                "the predicted surface moves {displacement_max_mm:.1} mm, beyond the {:.1} mm of the training deformations",
+                r.displacement_max_mm
+            ));
+        }
+    }
+    c
+}
+
+/// The share of `surface`'s vertices (at most about 2000, every n-th) within `radius_mm` of
+/// an observed point.
+pub fn surface_coverage(surface: &TriMesh, points: &[Vector3<f64>], radius_mm: f64) -> f64 {
+    let n = surface.positions.len();
+    let Some((lo, hi)) = surface.bounds() else { return 0.0 };
+    if points.is_empty() || !(radius_mm > 0.0) {
+        return 0.0;
+    }
+    let extent = hi - lo;
+    let shape = [0, 1, 2].map(|a| ((extent[a] / radius_mm).ceil() as usize).max(1));
+    let mut b = crate::observation::Buckets::default();
+    if b.fill(points, lo, radius_mm, shape, radius_mm) == 0 {
+        return 0.0;
+    }
+    let step = n.div_ceil(2000);
+    let probes: Vec<&Vector3<f64>> = surface.positions.iter().step_by(step).collect();
+    let hit = probes.iter().filter(|v| b.nearest(v, radius_mm).is_some()).count();
+    hit as f64 / probes.len() as f64
+}
+
+/// Mean and 95th percentile of the distance from `points` (at most MAX_POINTS of them, every
+/// n-th) to `mesh`: each point's nearest vertex, then the exact distance to that vertex's
+/// triangles. Points beyond RESIDUAL_CAP_MM of every vertex count as that far.
+pub fn surface_residual(points: &[Vector3<f64>], mesh: &TriMesh) -> (f64, f64) {
+    let Some((lo, hi)) = mesh.bounds() else { return (0.0, 0.0) };
+    if points.is_empty() || mesh.triangles.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mut ring_start = vec![0u32; mesh.positions.len() + 1];
+    for t in &mesh.triangles {
+        for &v in t {
+            ring_start[v as usize + 1] += 1;
+        }
+    }
+    for i in 0..mesh.positions.len() {
+        ring_start[i + 1] += ring_start[i];
+    }
+    let mut ring = vec![0u32; ring_start[mesh.positions.len()] as usize];
+    let mut fill = ring_start.clone();
+    for (ti, t) in mesh.triangles.iter().enumerate() {
+        for &v in t {
+            ring[fill[v as usize] as usize] = ti as u32;
+            fill[v as usize] += 1;
+        }
+    }
+    let band = RESIDUAL_CAP_MM;
+    // Buckets over the mesh's box; one lattice cell of `band` per bucket.
+    let extent = hi - lo;
+    let shape = [0, 1, 2].map(|a| ((extent[a] / band).ceil() as usize).max(1));
+    let mut b = crate::observation::Buckets::default();
+    b.fill(&mesh.positions, lo, band, shape, band);
+    let step = points.len().div_ceil(MAX_POINTS);
+    let mut d: Vec<f64> = points
+        .iter()
+        .step_by(step)
+        .map(|p| match b.nearest(p, band) {
+            None => band,
+            Some((v, _)) => {
+                let tris = &ring[ring_start[v] as usize..ring_start[v + 1] as usize];
+                tris.iter()
+                    .map(|&t| {
+                        let [a, bb, c] = mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
+                        (closest_on_triangle(p, &a, &bb, &c) - p).norm()
+                    })
+                    .fold(band, f64::min)
+            }
+        })
+        .collect();
+    let mean = d.iter().sum::<f64>() / d.len() as f64;
+    d.sort_by(f64::total_cmp);
+    let p95 = d[((0.95 * (d.len() - 1) as f64).round() as usize).min(d.len() - 1)];
+    (mean, p95)
+}
+
+/// The closest point to `p` on triangle (a, b, c) (Ericson, Real-Time Collision Detection 5.1.5).
+pub fn closest_on_triangle(p: &Vector3<f64>, a: &Vector3<f64>, b: &Vector3<f64>, c: &Vector3<f64>) -> Vector3<f64> {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return *a;
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(&bp), ac.dot(&bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return *b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return a + ab * (d1 / (d1 - d3));
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(&cp), ac.dot(&cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return *c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return a + ac * (d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    }
+    let denom = va + vb + vc;
+    if denom.abs() < 1e-300 {
+        return *a;
+    }
+    let (v, w) = (vb / denom, vc / denom);
+    a + ab * v + ac * w
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn square() -> TriMesh {
+        // A 40 x 40 mm square in z = 0, split into 2 x 2 x 2 triangles.
+        let mut positions = Vec::new();
+        for i in 0..3 {
+            for j in 0..3 {
+                positions.push(Vector3::new(20.0 * i as f64, 20.0 * j as f64, 0.0));
+            }
+        }
+        let mut triangles = Vec::new();
+        for i in 0..2u32 {
+            for j in 0..2u32 {
+                let v = i * 3 + j;
+                triangles.push([v, v + 3, v + 1]);
+                triangles.push([v + 1, v + 3, v + 4]);
+            }
+        }
+        TriMesh { positions, triangles }
+    }
+
+    #[test]
+    fn residual_of_points_off_a_plane_is_their_height_within_1e9_mm() {
+        let m = square();
+        let pts: Vec<_> = (0..100).map(|k| Vector3::new(3.0 + 0.3 * k as f64, 7.0 + 0.2 * k as f64, 2.5)).collect();
+        let (mean, p95) = surface_residual(&pts, &m);
+        assert!((mean - 2.5).abs() < 1e-9 && (p95 - 2.5).abs() < 1e-9, "{mean} {p95}");
+    }
+
+    #[test]
+    fn closest_point_on_a_triangle_matches_a_dense_search_within_0_01_mm() {
+        let (a, b, c) = (Vector3::new(0.0, 0.0, 0.0), Vector3::new(10.0, 0.0, 1.0), Vector3::new(2.0, 8.0, -1.0));
+        for p in [Vector3::new(-3.0, -2.0, 4.0), Vector3::new(12.0, 1.0, 0.0), Vector3::new(4.0, 3.0, 5.0), Vector3::new(7.0, 7.0, 0.0)] {
+            let q = closest_on_triangle(&p, &a, &b, &c);
+            let mut best = f64::INFINITY;
+            for i in 0..=400 {
+                for j in 0..=(400 - i) {
+                    let (u, v) = (i as f64 / 400.0, j as f64 / 400.0);
+                    best = best.min((a + (b - a) * u + (c - a) * v - p).norm());
+                }
+            }
+            assert!((q - p).norm() <= best + 1e-9 && (q - p).norm() > best - 0.01, "{p:?}");
+        }
+    }
+
+    #[test]
+    fn a_residual_beyond_the_reference_warns_and_one_within_does_not() {
+        let m = square();
+        let r = ConfidenceReference { residual_p95_mm: 1.0, residual_mean_mm: 0.8, coverage_min: 0.1, displacement_max_mm: 10.0, views: 1 };
+        let near: Vec<_> = (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, 0.5)).collect();
+        assert!(!frame_confidence(&near, &m, &m, 0.3, Some(&r)).warning());
+        let far: Vec<_> = near.iter().map(|p| p + Vector3::new(0.0, 0.0, 4.0)).collect();
+        let c = frame_confidence(&far, &m, &m, 0.05, Some(&r));
+        assert_eq!(c.warnings.len(), 3, "{:?}", c.warnings);
+        assert!(frame_confidence(&far, &m, &m, 0.05, None).warnings.is_empty());
+    }
+}

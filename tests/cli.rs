@@ -326,10 +326,44 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     assert!(moved >= 10.0, "the default recording moves the markers {moved} mm (the dataset's scale is 10)");
     assert!(last < 2.92 && last < 0.25 * rigid, "last frame: TRE {last} mm, rigid only {rigid} mm");
     assert!(reg.join("overlay/00003.png").exists());
+    // Confidence without ground truth: the bundled model is calibrated (confidence.json), and
+    // this recording, at the dataset's scale, stays within its range on every frame.
+    assert_eq!(r["confidence_calibrated"], true, "{r}");
+    assert_eq!(r["frames_with_warning"], 0, "{r}");
+    for f in frames {
+        let c = &f["confidence"];
+        let p95 = c["residual_p95_mm"].as_f64().unwrap();
+        assert!(p95.is_finite() && p95 > 0.0 && p95 < 5.0, "residual p95 {p95} mm: {c}");
+    }
     // A recording without intrinsics: one clear error naming the folder.
     std::fs::remove_file(rec.join("intrinsics.json")).unwrap();
     let (ok, _, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap()]);
     assert!(!ok && err.contains("no intrinsics") && err.contains("synth-rec"), "{err}");
+}
+
+#[test]
+fn confidence_warns_on_a_deformation_far_beyond_the_datasets_scale() {
+    // Three times the default load: about 30 mm of marker motion against the dataset's 10 mm
+    // (measured: last-frame TRE 14.7 mm, the points 10.2 mm from the predicted surface at the
+    // 95th percentile against 4.6 mm allowed).
+    let rec = tmp("far-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let (ok, _, err) =
+        umesh(&["rgbd", "synth", "--frames", "3", "--load-scale", "3", "--seed", "6", "--json", "--out", rec.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let reg = tmp("far-reg");
+    let (ok, out, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    let r = json(&out);
+    assert!(r["last_marker_displacement_mm"].as_f64().unwrap() > 20.0, "{r}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
+    let frames = report["frames"].as_array().unwrap();
+    let (first, last) = (&frames[0]["confidence"], &frames[frames.len() - 1]["confidence"]);
+    // The undeformed first frame is trusted, the far one is not, and says why.
+    assert_eq!(first["warnings"].as_array().unwrap().len(), 0, "{first}");
+    let w = last["warnings"].as_array().unwrap();
+    assert!(!w.is_empty() && w.iter().any(|m| m.as_str().unwrap().contains("seen in training")), "{last}");
+    assert!(r["frames_with_warning"].as_u64().unwrap() >= 1, "{r}");
 }
 
 fn shared_data() -> Option<PathBuf> {

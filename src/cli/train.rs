@@ -45,6 +45,10 @@ pub struct Args {
     /// zero target, so the network learns that an organ at rest has not moved (0 to 0.5).
     #[arg(long, default_value_t = TrainSettings::default().rest_views)]
     pub rest_views: f64,
+    /// Start from this model folder's weights and normalisation (fine-tuning; the same network,
+    /// input and grid).
+    #[arg(long)]
+    pub init_from: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -103,6 +107,7 @@ pub fn run(a: Args) -> Result<()> {
         observation,
         fresh_views: !a.stored_views,
         rest_views: a.rest_views,
+        init_from: a.init_from.clone(),
         ..Default::default()
     };
     let (pb, progress) = super::progress_bar("training");

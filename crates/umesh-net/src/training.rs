@@ -34,6 +34,10 @@ pub struct TrainSettings {
     /// undeformed organ, with a zero target (0 in models trained before it existed).
     #[serde(default)]
     pub rest_views: f64,
+    /// Start from this model folder's weights and normalisation (same network and grid)
+    /// instead of random weights: fine-tuning.
+    #[serde(default)]
+    pub init_from: Option<PathBuf>,
 }
 
 impl Default for TrainSettings {
@@ -48,6 +52,7 @@ impl Default for TrainSettings {
             observation: Some(umesh_core::observation::ObservationSettings::default()),
             fresh_views: true,
             rest_views: 0.05,
+            init_from: None,
         }
     }
 }
@@ -170,11 +175,38 @@ pub fn run_train(
     let device = Device::flex();
     device.seed(settings.seed);
     let ad = device.clone().autodiff();
-    let norm = Normalization::fit(&set, &train);
+    let mut norm = Normalization::fit(&set, &train);
     let mut model = cfg.init(&ad);
     let metrics_path = out.join("metrics.jsonl");
     let mut epochs: Vec<EpochMetrics> = Vec::new();
     let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
+    if let Some(init) = &settings.init_from
+        && !(resume && out.join("last.safetensors").exists())
+    {
+        let from = ModelInfo::read(init)?;
+        if from.config != *cfg || from.padded_shape != set.shape {
+            return Err(NetError::Invalid(format!(
+                "--init-from {}: its network {:?} on grid {:?} differs from this one's {:?} on {:?}",
+                init.display(),
+                from.config,
+                from.padded_shape,
+                cfg,
+                set.shape
+            )));
+        }
+        if let (Some(h), Some(m)) = (&from.grid_hash, &manifest)
+            && *h != m.grid_hash
+        {
+            return Err(NetError::Invalid(format!(
+                "--init-from {}: it was trained on another grid than {}",
+                init.display(),
+                dataset.display()
+            )));
+        }
+        load_weights(&mut model, &init.join("model.safetensors"))?;
+        // The weights expect the scales they were trained with.
+        norm = from.normalization;
+    }
     if resume && out.join("last.safetensors").exists() {
         // Resuming into a model trained on another dataset would mix both.
         if let Ok(old) = ModelInfo::read(out) {

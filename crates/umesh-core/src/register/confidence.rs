@@ -6,7 +6,7 @@ use crate::mesh::TriMesh;
 use nalgebra::Vector3;
 
 /// At most this many observed points are measured per frame (every n-th point).
-const MAX_POINTS: usize = 2000;
+const MAX_POINTS: usize = 1000;
 
 /// A point farther than this from every surface vertex counts as this far (mm).
 pub const RESIDUAL_CAP_MM: f64 = 20.0;
@@ -72,10 +72,11 @@ pub fn frame_confidence(
     points: &[Vector3<f64>],
     predicted: &TriMesh,
     rest: &TriMesh,
+    rings: &VertexRings,
     coverage: f64,
     reference: Option<&ConfidenceReference>,
 ) -> Confidence {
-    let (residual_mean_mm, residual_p95_mm) = surface_residual(points, predicted);
+    let (residual_mean_mm, residual_p95_mm) = surface_residual_with(points, predicted, rings);
     let displacement_max_mm = predicted.positions.iter().zip(&rest.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
     let mut c = Confidence {
         residual_mean_mm,
@@ -136,30 +137,57 @@ pub fn surface_coverage(surface: &TriMesh, points: &[Vector3<f64>], radius_mm: f
     hit as f64 / probes.len() as f64
 }
 
+/// The triangles around each vertex of a mesh (its topology only: built once per organ).
+#[derive(Clone, Debug, Default)]
+pub struct VertexRings {
+    start: Vec<u32>,
+    triangles: Vec<u32>,
+}
+
+impl VertexRings {
+    pub fn new(mesh: &TriMesh) -> Self {
+        let n = mesh.positions.len();
+        let mut start = vec![0u32; n + 1];
+        for t in &mesh.triangles {
+            for &v in t {
+                start[v as usize + 1] += 1;
+            }
+        }
+        for i in 0..n {
+            start[i + 1] += start[i];
+        }
+        let mut triangles = vec![0u32; start[n] as usize];
+        let mut fill = start.clone();
+        for (ti, t) in mesh.triangles.iter().enumerate() {
+            for &v in t {
+                triangles[fill[v as usize] as usize] = ti as u32;
+                fill[v as usize] += 1;
+            }
+        }
+        Self { start, triangles }
+    }
+
+    fn of(&self, v: usize) -> &[u32] {
+        &self.triangles[self.start[v] as usize..self.start[v + 1] as usize]
+    }
+
+    fn fits(&self, mesh: &TriMesh) -> bool {
+        self.start.len() == mesh.positions.len() + 1
+    }
+}
+
 /// Mean and 95th percentile of the distance from `points` (at most MAX_POINTS of them, every
 /// n-th) to `mesh`: each point's nearest vertex, then the exact distance to that vertex's
 /// triangles. Points beyond RESIDUAL_CAP_MM of every vertex count as that far.
 pub fn surface_residual(points: &[Vector3<f64>], mesh: &TriMesh) -> (f64, f64) {
+    surface_residual_with(points, mesh, &VertexRings::new(mesh))
+}
+
+/// As `surface_residual`, with the mesh's vertex rings given (the same topology every frame).
+pub fn surface_residual_with(points: &[Vector3<f64>], mesh: &TriMesh, rings: &VertexRings) -> (f64, f64) {
     let Some((lo, hi)) = mesh.bounds() else { return (0.0, 0.0) };
-    if points.is_empty() || mesh.triangles.is_empty() {
+    if points.is_empty() || mesh.triangles.is_empty() || !rings.fits(mesh) {
         return (0.0, 0.0);
-    }
-    let mut ring_start = vec![0u32; mesh.positions.len() + 1];
-    for t in &mesh.triangles {
-        for &v in t {
-            ring_start[v as usize + 1] += 1;
-        }
-    }
-    for i in 0..mesh.positions.len() {
-        ring_start[i + 1] += ring_start[i];
-    }
-    let mut ring = vec![0u32; ring_start[mesh.positions.len()] as usize];
-    let mut fill = ring_start.clone();
-    for (ti, t) in mesh.triangles.iter().enumerate() {
-        for &v in t {
-            ring[fill[v as usize] as usize] = ti as u32;
-            fill[v as usize] += 1;
-        }
     }
     let band = RESIDUAL_CAP_MM;
     // Buckets over the mesh's box; one lattice cell of `band` per bucket.
@@ -173,15 +201,14 @@ pub fn surface_residual(points: &[Vector3<f64>], mesh: &TriMesh) -> (f64, f64) {
         .step_by(step)
         .map(|p| match b.nearest(p, band) {
             None => band,
-            Some((v, _)) => {
-                let tris = &ring[ring_start[v] as usize..ring_start[v + 1] as usize];
-                tris.iter()
-                    .map(|&t| {
-                        let [a, bb, c] = mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
-                        (closest_on_triangle(p, &a, &bb, &c) - p).norm()
-                    })
-                    .fold(band, f64::min)
-            }
+            Some((v, _)) => rings
+                .of(v)
+                .iter()
+                .map(|&t| {
+                    let [a, bb, c] = mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
+                    (closest_on_triangle(p, &a, &bb, &c) - p).norm()
+                })
+                .fold(band, f64::min),
         })
         .collect();
     let mean = d.iter().sum::<f64>() / d.len() as f64;
@@ -279,10 +306,10 @@ mod tests {
         let m = square();
         let r = ConfidenceReference { residual_p95_mm: 1.0, residual_mean_mm: 0.8, coverage_min: 0.1, displacement_max_mm: 10.0, views: 1 };
         let near: Vec<_> = (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, 0.5)).collect();
-        assert!(!frame_confidence(&near, &m, &m, 0.3, Some(&r)).warning());
+        assert!(!frame_confidence(&near, &m, &m, &VertexRings::new(&m), 0.3, Some(&r)).warning());
         let far: Vec<_> = near.iter().map(|p| p + Vector3::new(0.0, 0.0, 4.0)).collect();
-        let c = frame_confidence(&far, &m, &m, 0.05, Some(&r));
+        let c = frame_confidence(&far, &m, &m, &VertexRings::new(&m), 0.05, Some(&r));
         assert_eq!(c.warnings.len(), 3, "{:?}", c.warnings);
-        assert!(frame_confidence(&far, &m, &m, 0.05, None).warnings.is_empty());
+        assert!(frame_confidence(&far, &m, &m, &VertexRings::new(&m), 0.05, None).warnings.is_empty());
     }
 }

@@ -236,6 +236,8 @@ pub struct Registrar<'c> {
     field: Vec<f32>,
     /// Built on the first frame of a model that takes observations.
     observer: Option<crate::observation::Observer>,
+    /// The organ surface's vertex rings, for the confidence residual.
+    rings: super::confidence::VertexRings,
 }
 
 impl<'c> Registrar<'c> {
@@ -251,6 +253,7 @@ impl<'c> Registrar<'c> {
             u_s: Vec::new(),
             field: Vec::new(),
             observer: None,
+            rings: super::confidence::VertexRings::new(&ctx.surface),
         }
     }
 
@@ -361,7 +364,7 @@ impl<'c> Registrar<'c> {
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
         let organ = self.ctx.deformed_surface(&self.field);
-        let confidence = frame_confidence(&world, &organ, &self.ctx.surface, coverage, model.confidence_reference().as_ref());
+        let confidence = frame_confidence(&world, &organ, &self.ctx.surface, &self.rings, coverage, model.confidence_reference().as_ref());
         let confidence_ms = ms(t);
         let t = Instant::now();
         let overlay = self.settings.overlay.then(|| {

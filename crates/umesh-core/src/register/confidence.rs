@@ -8,6 +8,9 @@ use nalgebra::Vector3;
 /// At most this many observed points are measured per frame (every n-th point).
 const MAX_POINTS: usize = 1000;
 
+/// Bucket size for the points near the surface (mm).
+const FINE_BUCKET_MM: f64 = 4.0;
+
 /// A point farther than this from every surface vertex counts as this far (mm).
 pub const RESIDUAL_CAP_MM: f64 = 20.0;
 
@@ -190,16 +193,21 @@ pub fn surface_residual_with(points: &[Vector3<f64>], mesh: &TriMesh, rings: &Ve
         return (0.0, 0.0);
     }
     let band = RESIDUAL_CAP_MM;
-    // Buckets over the mesh's box; one lattice cell of `band` per bucket.
-    let extent = hi - lo;
-    let shape = [0, 1, 2].map(|a| ((extent[a] / band).ceil() as usize).max(1));
-    let mut b = crate::observation::Buckets::default();
-    b.fill(&mesh.positions, lo, band, shape, band);
+    // Two bucket sizes: most points lie within a few mm of the surface, where small buckets
+    // hold few vertices; the rest are looked up in buckets as wide as the cap.
+    let buckets = |size: f64| {
+        let extent = hi - lo;
+        let shape = [0, 1, 2].map(|a| ((extent[a] / size).ceil() as usize).max(1));
+        let mut b = crate::observation::Buckets::default();
+        b.fill(&mesh.positions, lo, size, shape, size);
+        b
+    };
+    let (fine, coarse) = (buckets(FINE_BUCKET_MM), buckets(band));
     let step = points.len().div_ceil(MAX_POINTS);
     let mut d: Vec<f64> = points
         .iter()
         .step_by(step)
-        .map(|p| match b.nearest(p, band) {
+        .map(|p| match fine.nearest(p, FINE_BUCKET_MM).or_else(|| coarse.nearest(p, band)) {
             None => band,
             Some((v, _)) => rings
                 .of(v)

@@ -41,7 +41,7 @@ impl Predictor {
         let mut model = info.config.init(&device);
         load_weights(&mut model, &dir.join(file))?;
         let mut p = Self::from_model(info, model, device);
-        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir);
+        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir).map_err(NetError::Invalid)?;
         Ok(p)
     }
 

@@ -180,9 +180,9 @@ pub fn run_train(
     let metrics_path = out.join("metrics.jsonl");
     let mut epochs: Vec<EpochMetrics> = Vec::new();
     let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
-    if let Some(init) = &settings.init_from
-        && !(resume && out.join("last.safetensors").exists())
-    {
+    // With --init-from, the network and its scales come from that model; a resumed run keeps
+    // the scales and continues from its own last weights.
+    if let Some(init) = &settings.init_from {
         let from = ModelInfo::read(init)?;
         if from.config != *cfg || from.padded_shape != set.shape {
             return Err(NetError::Invalid(format!(
@@ -203,7 +203,9 @@ pub fn run_train(
                 dataset.display()
             )));
         }
-        load_weights(&mut model, &init.join("model.safetensors"))?;
+        if !(resume && out.join("last.safetensors").exists()) {
+            load_weights(&mut model, &init.join("model.safetensors"))?;
+        }
         // The weights expect the scales they were trained with.
         norm = from.normalization;
     }

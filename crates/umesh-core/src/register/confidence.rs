@@ -34,9 +34,20 @@ pub struct ConfidenceReference {
 impl ConfidenceReference {
     pub const FILE: &'static str = "confidence.json";
 
-    pub fn read(model_dir: &std::path::Path) -> Option<Self> {
-        let text = std::fs::read_to_string(model_dir.join(Self::FILE)).ok()?;
-        serde_json::from_str(&text).ok()
+    /// None when the model folder has no such file (an uncalibrated model); an error naming
+    /// the file when it is there but unreadable or corrupt.
+    pub fn read(model_dir: &std::path::Path) -> Result<Option<Self>, String> {
+        let path = model_dir.join(Self::FILE);
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let r: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let finite = [r.residual_p95_mm, r.residual_mean_mm, r.coverage_min, r.displacement_max_mm];
+        if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
+            return Err(format!("{}: the confidence range holds negative or non-finite values", path.display()));
+        }
+        Ok(Some(r))
     }
 }
 

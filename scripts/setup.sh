@@ -4,7 +4,8 @@
 # (wgpu's GL backend on llvmpipe, surfaceless: no X server, no GPU needed).
 set -euo pipefail
 need=()
-for p in ca-certificates pkg-config libegl1 libegl-mesa0 libgl1-mesa-dri; do
+# Xvfb, xdotool and Vulkan's software driver for the test that drives the real window.
+for p in ca-certificates pkg-config libegl1 libegl-mesa0 libgl1-mesa-dri xvfb xdotool mesa-vulkan-drivers libvulkan1; do
   dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then

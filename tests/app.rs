@@ -8,6 +8,10 @@ use umesh::app::jobs::{JobOutput, Jobs, grid_job, load_job, simulate_job};
 use umesh::app::probes::ProbeRay;
 use umesh::app::state::*;
 
+fn umesh_app() -> App {
+    app()
+}
+
 fn app() -> App {
     let mut app = App::new();
     app.add_plugins(MinimalPlugins).add_plugins(CorePlugins);
@@ -15,7 +19,7 @@ fn app() -> App {
 }
 
 fn phantom() -> OrganData {
-    let job = load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] });
+    let job = load_job(OpenRequest::default());
     match job(&Default::default(), &Default::default()) {
         Ok(JobOutput::Loaded(d)) => d,
         _ => panic!("the bundled phantom did not load"),
@@ -104,7 +108,7 @@ fn loading_errors_are_shown_in_the_ui_not_panicked_on() {
     std::fs::write(&bad, b"\x1f\x8bnot really gzip").unwrap();
     app.world_mut()
         .resource_mut::<Jobs>()
-        .spawn("load", load_job(OpenRequest { path: Some(bad.clone()), organ_labels: vec![1], structure_labels: vec![] }));
+        .spawn("load", load_job(OpenRequest { path: Some(bad.clone()), organ_labels: vec![1], ..Default::default() }));
     finish_jobs(&mut app, Duration::from_secs(30));
     let m = app.world().resource::<UiMessages>();
     assert_eq!(m.unread_errors, 1);
@@ -132,7 +136,7 @@ fn the_real_totalsegmentator_case_opens_with_liver_and_two_vessels() {
     let liver = pending.labels.iter().find(|l| l.0 == 5).unwrap();
     assert_eq!((liver.1.as_str(), liver.3), ("liver", 1));
     let mut app = app();
-    let req = OpenRequest { path: Some(path), organ_labels: vec![5], structure_labels: vec![63, 64] };
+    let req = OpenRequest { path: Some(path), organ_labels: vec![5], structure_labels: vec![63, 64], ct: None };
     app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(req));
     finish_jobs(&mut app, Duration::from_secs(60));
     let organ = app.world().resource::<Organ>();
@@ -500,4 +504,319 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     let err = wait_for_error(&mut app, Duration::from_secs(30));
     assert!(err.contains("patient.json"), "{err}");
     assert_eq!(app.world().resource::<ActiveModel>().dir, dir.join("model"));
+}
+
+/// A headless app writing its recent-files list into a temporary folder, not the user's.
+fn app_with_config(name: &str) -> App {
+    let mut app = app();
+    app.insert_resource(umesh::app::session::Recent::at(tmp_dir(&format!("config-{name}")).join("recent.json")));
+    app
+}
+
+#[test]
+fn a_saved_session_reopens_with_the_same_organ_probes_fixed_region_and_camera() {
+    use umesh::app::camera::OrbitCamera;
+    use umesh::app::session::{SaveRequest, Session, open_job};
+    let mut app = app_with_config("session");
+    app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(OpenRequest::default()));
+    finish_jobs(&mut app, Duration::from_secs(60));
+    let organ = app.world().resource::<Organ>().data.clone().unwrap();
+    let (lo, hi) = organ.surface.bounds().unwrap();
+    let c = (lo + hi) * 0.5;
+    for dx in [-20.0, 25.0] {
+        app.world_mut().write_message(ProbeRay { origin_mm: Vector3::new(c.x + dx, hi.y + 200.0, c.z), direction: -Vector3::y() });
+        app.update();
+    }
+    app.world_mut().resource_mut::<Probes>().list[1].force_n = Vector3::new(0.1, -0.2, 0.05);
+    app.world_mut().resource_mut::<Simulation>().fixed = FixedChoice::Posterior { fraction: 0.3 };
+    app.world_mut().resource_mut::<GridState>().settings.cell_size_mm = 9.0;
+    {
+        let mut cam = app.world_mut().resource_mut::<OrbitCamera>();
+        cam.yaw = 0.7;
+        cam.pitch = -0.2;
+        cam.distance = 4.5;
+    }
+    let saved_probes = app.world().resource::<Probes>().list.clone();
+    assert_eq!(saved_probes.len(), 2);
+    let dir = tmp_dir("session");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("rehearsal.json");
+    app.world_mut().resource_mut::<SaveRequest>().0 = Some(file.clone());
+    app.update();
+    let s = Session::read(&file).expect("the session file reads back");
+    assert_eq!(s.probes.len(), 2);
+
+    let mut again = app_with_config("session");
+    again.world_mut().resource_mut::<Jobs>().spawn("open session", open_job(file.clone()));
+    finish_jobs(&mut again, Duration::from_secs(120));
+    let w = again.world();
+    assert!(w.resource::<UiMessages>().unread_errors == 0, "{:?}", w.resource::<UiMessages>().last());
+    assert!(w.resource::<Organ>().data.is_some());
+    // JSON keeps 17 significant digits; serde_json's parser may round the last one.
+    let reopened = &w.resource::<Probes>().list;
+    assert_eq!(reopened.len(), saved_probes.len());
+    for (a, b) in reopened.iter().zip(&saved_probes) {
+        let d = (a.point_mm - b.point_mm).norm() + (a.normal - b.normal).norm() + (a.force_n - b.force_n).norm();
+        assert!(d < 1e-9, "a reopened probe moved by {d:e} (tolerance 1e-9 mm / N)");
+    }
+    assert_eq!(w.resource::<Simulation>().fixed, FixedChoice::Posterior { fraction: 0.3 });
+    assert_eq!(w.resource::<GridState>().settings.cell_size_mm, 9.0);
+    let cam = w.resource::<OrbitCamera>();
+    assert_eq!((cam.yaw, cam.pitch, cam.distance), (0.7, -0.2, 4.5));
+    let recent = w.resource::<umesh::app::session::Recent>();
+    assert!(recent.list.iter().any(|(p, _)| p.ends_with("rehearsal.json")), "{:?}", recent.list);
+}
+
+#[test]
+fn a_damaged_session_file_is_one_error_naming_it_and_changes_nothing() {
+    use umesh::app::session::open_job;
+    let dir = tmp_dir("bad-session");
+    std::fs::create_dir_all(&dir).unwrap();
+    let cases = [
+        ("truncated.json", "{\"format\": \"umesh-session\", \"format_ver".to_string()),
+        ("other.json", "{\"format\": \"something-else\"}".to_string()),
+        (
+            "nan.json",
+            r#"{"format":"umesh-session","format_version":1,"organ":{"kind":"phantom"},"ct":null,"cell_size_mm":7.0,"subdivisions":1,
+            "probes":[{"point_mm":[0,0,0],"normal":[0,1,0],"force_n":[0,0,1e999]}],"fixed":{"kind":"auto","with":{"distance_mm":6.0}},
+            "camera":{"focus":[0,0,0],"yaw":0,"pitch":0,"distance":5},"model":null,"rehearsal":false,"slices":null}"#
+                .to_string(),
+        ),
+    ];
+    for (name, text) in cases {
+        let f = dir.join(name);
+        std::fs::write(&f, text).unwrap();
+        let mut app = app_with_config("bad-session");
+        app.world_mut().resource_mut::<Jobs>().spawn("open session", open_job(f.clone()));
+        finish_jobs(&mut app, Duration::from_secs(30));
+        let m = app.world().resource::<UiMessages>();
+        assert_eq!(m.unread_errors, 1, "{name}");
+        assert!(m.last().unwrap().1.contains(name), "{name}: {}", m.last().unwrap().1);
+        assert!(app.world().resource::<Organ>().data.is_none(), "{name}: nothing opened");
+    }
+}
+
+#[test]
+fn the_ct_opens_under_its_segmentation_and_a_scan_elsewhere_is_refused() {
+    let d = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/totalsegmentator");
+    if !d.exists() {
+        eprintln!("SKIPPED: {} not found", d.display());
+        return;
+    }
+    let mut app = app();
+    let req = OpenRequest { path: Some(d.join("example_seg.nii.gz")), ct: Some(d.join("example_ct_sm.nii.gz")), ..Default::default() };
+    app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(req));
+    finish_jobs(&mut app, Duration::from_secs(60));
+    let organ = app.world().resource::<Organ>().data.clone().expect("loaded");
+    let ct = organ.ct.as_ref().expect("the scan is attached");
+    assert_eq!(ct.volume.dims, [122, 101, 30]);
+    assert!(ct.hounsfield, "a CT in Hounsfield units");
+    // The liver's slice through its centre: the organ's outline falls on soft tissue of the
+    // liver window (not air, not bone), at least 80 % of the outline inside the scan.
+    let (lo, hi) = organ.surface.bounds().unwrap();
+    let mid = (lo + hi) * 0.5;
+    let s = umesh_core::slices::slice(&ct.volume, umesh_core::slices::SliceAxis::Axial, mid.z, umesh_core::slices::Window::ABDOMEN, 512)
+        .unwrap();
+    let segs = umesh_core::slices::plane_section(&organ.surface, umesh_core::slices::SliceAxis::Axial, mid.z);
+    assert!(segs.len() > 20);
+    let vm = ct.volume.voxel_from_world();
+    let inside_hu: Vec<f32> = organ
+        .surface
+        .positions
+        .iter()
+        .map(|p| {
+            // 4 mm inward of the surface toward the centre: inside the liver.
+            let q = p + (mid - p).normalize() * 4.0;
+            let v = vm.transform_point(&nalgebra::Point3::from(q));
+            let (i, j, k) = (v.x.round() as usize, v.y.round() as usize, v.z.round() as usize);
+            ct.volume.data[ct.volume.index(i.min(121), j.min(100), k.min(29))]
+        })
+        .collect();
+    let soft = inside_hu.iter().filter(|h| (-20.0..=250.0).contains(*h)).count() as f64 / inside_hu.len() as f64;
+    assert!(soft > 0.8, "{:.0} % of points just inside the liver surface read soft tissue", soft * 100.0);
+    assert!(s.width > 100 && s.height > 100);
+    // The phantom is elsewhere in the world: the same scan under it is refused by name.
+    let mut other = umesh_app();
+    let req = OpenRequest { ct: Some(d.join("example_ct_sm.nii.gz")), ..Default::default() };
+    other.world_mut().resource_mut::<Jobs>().spawn("load", load_job(req));
+    finish_jobs(&mut other, Duration::from_secs(60));
+    let m = other.world().resource::<UiMessages>();
+    let text = &m.last().unwrap().1;
+    assert!(text.contains("example_ct_sm.nii.gz") && text.contains("does not overlap"), "{text}");
+}
+
+/// A command's stdout, or None when it failed.
+fn output(mut cmd: std::process::Command) -> Option<String> {
+    let o = cmd.output().ok()?;
+    o.status.success().then(|| String::from_utf8_lossy(&o.stdout).into_owned())
+}
+
+/// The real window under Xvfb, driven with xdotool as a user would: the app, its log and display.
+struct LiveApp {
+    child: std::process::Child,
+    log: std::path::PathBuf,
+    display: String,
+    window: String,
+}
+
+impl LiveApp {
+    fn start(display: &str, session: &std::path::Path, config: &std::path::Path, log: std::path::PathBuf) -> LiveApp {
+        let f = std::fs::File::create(&log).unwrap();
+        let child = std::process::Command::new(env!("CARGO_BIN_EXE_umesh"))
+            .args(["gui", "--session"])
+            .arg(session)
+            .env("DISPLAY", display)
+            .env("WGPU_BACKEND", "vulkan")
+            .env("UMESH_CONFIG_DIR", config)
+            .env("RUST_LOG", "info,wgpu=error,naga=warn")
+            .stdout(f.try_clone().unwrap())
+            .stderr(f)
+            .spawn()
+            .unwrap();
+        let mut app = LiveApp { child, log, display: display.into(), window: String::new() };
+        let t = Instant::now();
+        while app.window.is_empty() {
+            assert!(t.elapsed() < Duration::from_secs(60), "no umesh window within 60 s:\n{}", app.log_text());
+            assert!(app.child.try_wait().unwrap().is_none(), "the app exited:\n{}", app.log_text());
+            app.window = output(app.xdotool(&["search", "--name", "^umesh$"])).unwrap_or_default().lines().next().unwrap_or("").to_string();
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        app
+    }
+    fn xdotool(&self, args: &[&str]) -> std::process::Command {
+        let mut c = std::process::Command::new("xdotool");
+        c.args(args).env("DISPLAY", &self.display);
+        c
+    }
+    fn run(&self, args: &[&str]) {
+        assert!(output(self.xdotool(args)).is_some(), "xdotool {args:?} failed");
+    }
+    fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+    /// Wait until the log holds `needle` (past `after` bytes), at most `limit`; returns its end.
+    fn wait_for(&mut self, needle: &str, after: usize, limit: Duration) -> usize {
+        let t = Instant::now();
+        loop {
+            let log = self.log_text();
+            if let Some(i) = log.get(after..).and_then(|l| l.find(needle)) {
+                return after + i + needle.len();
+            }
+            assert!(self.child.try_wait().unwrap().is_none(), "the app exited waiting for {needle:?}:\n{log}");
+            assert!(t.elapsed() < limit, "no {needle:?} in the log within {limit:?}:\n{log}");
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+    /// The window's size (pixels).
+    fn size(&self) -> (i32, i32) {
+        let g = output(self.xdotool(&["getwindowgeometry", &self.window])).unwrap_or_default();
+        let dims = g.lines().find_map(|l| l.trim().strip_prefix("Geometry: ")).unwrap_or("1400x900");
+        let (w, h) = dims.split_once('x').unwrap_or(("1400", "900"));
+        (w.trim().parse().unwrap_or(1400), h.trim().parse().unwrap_or(900))
+    }
+}
+
+impl Drop for LiveApp {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Ctrl+S as a user types it: Ctrl held across a frame or two.
+fn save_keys(app: &LiveApp) {
+    app.run(&["keydown", "ctrl"]);
+    std::thread::sleep(Duration::from_millis(300));
+    app.run(&["key", "s"]);
+    std::thread::sleep(Duration::from_millis(300));
+    app.run(&["keyup", "ctrl"]);
+}
+
+#[test]
+fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens_it() {
+    let have =
+        |c: &str| std::process::Command::new("sh").args(["-c", &format!("command -v {c}")]).output().is_ok_and(|o| o.status.success());
+    if !(have("Xvfb") && have("xdotool")) {
+        let msg = "Xvfb or xdotool not installed (bash scripts/setup.sh installs them)";
+        assert!(std::env::var_os("CI").is_none(), "{msg}");
+        eprintln!("SKIPPED: {msg}");
+        return;
+    }
+    let dir = tmp_dir("live");
+    std::fs::create_dir_all(&dir).unwrap();
+    // A display number with no server (nor a stale lock) on it.
+    let n = (0..200)
+        .map(|i| 90 + (std::process::id() + i) % 400)
+        .find(|n| !std::path::Path::new(&format!("/tmp/.X{n}-lock")).exists())
+        .unwrap();
+    let display = format!(":{n}");
+    let mut xvfb = std::process::Command::new("Xvfb")
+        .args([display.as_str(), "-screen", "0", "1400x900x24", "-nolisten", "tcp"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    struct Stop<'a>(&'a mut std::process::Child);
+    impl Drop for Stop<'_> {
+        fn drop(&mut self) {
+            // SIGTERM: Xvfb removes its lock and socket.
+            let _ = std::process::Command::new("kill").arg(self.0.id().to_string()).status();
+            let _ = self.0.wait();
+        }
+    }
+    let _xvfb = Stop(&mut xvfb);
+    let t = Instant::now();
+    // Up when a client can connect.
+    while output({
+        let mut c = std::process::Command::new("xdotool");
+        c.arg("getmouselocation").env("DISPLAY", &display);
+        c
+    })
+    .is_none()
+    {
+        assert!(t.elapsed() < Duration::from_secs(20), "Xvfb did not start on {display}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let session = dir.join("session.json");
+    let config = dir.join("config");
+
+    let mut app = LiveApp::start(&display, &session, &config, dir.join("first.log"));
+    let at = app.wait_for("grid:", 0, Duration::from_secs(180));
+    // The 3-D view lies between the left (about 260 px) and right (about 280 px) panels; the
+    // organ is framed at its centre.
+    let (w, h) = app.size();
+    let (x, y) = ((260 + (w - 280)) / 2, h / 2);
+    let (xs, ys) = (x.to_string(), y.to_string());
+    app.run(&["mousemove", "--window", &app.window.clone(), &xs, &ys]);
+    std::thread::sleep(Duration::from_millis(500));
+    app.run(&["mousedown", "1"]);
+    std::thread::sleep(Duration::from_millis(300));
+    for k in 1..=6 {
+        let (dx, dy) = ((x + 8 * k).to_string(), (y - 5 * k).to_string());
+        app.run(&["mousemove", "--window", &app.window.clone(), &dx, &dy]);
+        std::thread::sleep(Duration::from_millis(120));
+    }
+    app.run(&["mouseup", "1"]);
+    std::thread::sleep(Duration::from_millis(500));
+    app.run(&["windowfocus", "--sync", &app.window.clone()]);
+    app.run(&["key", "s"]);
+    let at = app.wait_for("max displacement", at, Duration::from_secs(180));
+    save_keys(&app);
+    app.wait_for("session saved", at, Duration::from_secs(30));
+    let first = umesh::app::session::Session::read(&session).expect("the saved session reads back");
+    assert_eq!(first.probes.len(), 1, "one probe placed by the click");
+    let f = first.probes[0].force_n;
+    assert!(f.iter().map(|v| v * v).sum::<f64>().sqrt() > 1e-3, "the drag pulled the probe: {f:?}");
+    drop(app);
+
+    // Reopened: the same probes; saved again, the file holds them unchanged.
+    let mut app = LiveApp::start(&display, &session, &config, dir.join("second.log"));
+    let at = app.wait_for("(1 probes)", 0, Duration::from_secs(180));
+    std::fs::remove_file(&session).unwrap();
+    app.run(&["windowfocus", "--sync", &app.window.clone()]);
+    save_keys(&app);
+    app.wait_for("session saved", at, Duration::from_secs(30));
+    let second = umesh::app::session::Session::read(&session).expect("saved again");
+    assert_eq!(second.probes, first.probes, "the reopened session holds the same probes");
+    assert_eq!(second.camera, first.camera, "and the same camera");
 }

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 use std::process::Command;
-use umesh::app::screenshot::{SCENES, image_difference};
+use umesh::app::screenshot::{DATA_SCENES, SCENES, image_difference, shared_data};
 
 const SIZE: &str = "960x600";
 /// A pixel differs when a channel moves by more than this (0-255)...
@@ -25,7 +25,11 @@ fn named_scenes_render_headless_and_match_the_references() {
     let update = std::env::var_os("UMESH_UPDATE_SCREENSHOTS").is_some();
     let in_ci = std::env::var_os("CI").is_some();
     let mut failures = Vec::new();
-    for scene in SCENES {
+    let data = shared_data().is_dir();
+    if !data {
+        eprintln!("SKIPPED scenes {DATA_SCENES:?}: no real data at {}", shared_data().display());
+    }
+    for scene in SCENES.iter().chain(DATA_SCENES.iter().filter(|_| data)) {
         let out = out_dir.join(format!("{scene}.png"));
         let t = std::time::Instant::now();
         // No retry: with SSAO left out, headless GL rendering neither logs errors nor crashes

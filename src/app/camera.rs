@@ -33,6 +33,11 @@ impl OrbitCamera {
     }
 
     /// Fit the organ's bounds in view.
+    /// A saved view, kept for the organ of `organ_generation` (not reframed).
+    pub fn set_view(&mut self, focus: Vec3, yaw: f32, pitch: f32, distance: f32, organ_generation: u64) {
+        *self = Self { focus, yaw, pitch, distance, framed: organ_generation };
+    }
+
     pub fn frame(&mut self, organ: &Organ) {
         if let Some(d) = &organ.data
             && let Some((lo, hi)) = d.surface.bounds()

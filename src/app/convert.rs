@@ -44,24 +44,28 @@ pub fn mesh_from_trimesh(m: &TriMesh, colors: Option<Vec<[f32; 4]>>) -> Mesh {
     mesh
 }
 
+/// The displacement colour map at `t` in [0, 1] (blue -> cyan -> yellow -> red), sRGB.
+pub fn colormap_srgb(t: f32) -> [f32; 3] {
+    let t = t.clamp(0.0, 1.0);
+    if t < 0.33 {
+        let s = t / 0.33;
+        [0.1, 0.3 + 0.6 * s, 1.0 - 0.2 * s]
+    } else if t < 0.66 {
+        let s = (t - 0.33) / 0.33;
+        [0.1 + 0.85 * s, 0.9, 0.8 - 0.7 * s]
+    } else {
+        let s = (t - 0.66) / 0.34;
+        [0.95, 0.9 - 0.75 * s, 0.1]
+    }
+}
+
 /// Colour map for displacement magnitudes (0 -> blue, max -> red), linear RGBA.
 pub fn displacement_colors(values: &[f32], max: f32) -> Vec<[f32; 4]> {
     let max = max.max(1e-6);
     values
         .iter()
         .map(|&v| {
-            let t = (v / max).clamp(0.0, 1.0);
-            // blue -> cyan -> yellow -> red
-            let c = if t < 0.33 {
-                let s = t / 0.33;
-                [0.1, 0.3 + 0.6 * s, 1.0 - 0.2 * s]
-            } else if t < 0.66 {
-                let s = (t - 0.33) / 0.33;
-                [0.1 + 0.85 * s, 0.9, 0.8 - 0.7 * s]
-            } else {
-                let s = (t - 0.66) / 0.34;
-                [0.95, 0.9 - 0.75 * s, 0.1]
-            };
+            let c = colormap_srgb(v / max);
             let l = Color::srgb(c[0], c[1], c[2]).to_linear();
             [l.red, l.green, l.blue, 1.0]
         })

@@ -31,6 +31,11 @@ pub enum JobOutput {
     Model(Arc<Mutex<super::probes::RehearsalModel>>),
     /// A synthetic RGB-D recording written to this folder.
     Synthesized(std::path::PathBuf, String),
+    /// A session's organ (as `Loaded` or `Patient`), the session to apply once it is in place,
+    /// and its file.
+    Session(Box<JobOutput>, Box<super::session::Session>, std::path::PathBuf),
+    /// A scan to show under the loaded organ.
+    Ct(Arc<super::ct::CtImage>),
     /// A patient folder: its organ and what it holds.
     Patient(OrganData, Box<umesh_net::patient::PatientFigures>),
 }
@@ -104,6 +109,7 @@ impl Jobs {
 #[derive(bevy::ecs::system::SystemParam)]
 pub struct PatientState<'w> {
     setup: ResMut<'w, super::setup::ObservationSetup>,
+    session: ResMut<'w, super::session::PendingSession>,
     active: ResMut<'w, ActiveModel>,
     open: ResMut<'w, OpenPatient>,
 }
@@ -129,6 +135,14 @@ pub fn poll_jobs(
         };
         let job = jobs.running.remove(i);
         let secs = job.started.elapsed().as_secs_f64();
+        // A session opens its organ as any other; the rest is applied after (`session::apply_pending`).
+        let result = match result {
+            Ok(JobOutput::Session(inner, s, path)) => {
+                patient.session.0 = Some((*s, path));
+                Ok(*inner)
+            }
+            r => r,
+        };
         let outcome = match result {
             Ok(JobOutput::Loaded(data)) => {
                 let msg = format!("loaded {} ({} structures)", data.source, data.structures.len());
@@ -164,6 +178,19 @@ pub fn poll_jobs(
                 messages.info(msg.clone());
                 msg
             }
+            Ok(JobOutput::Ct(ct)) => match organ.data.as_mut() {
+                Some(d) => {
+                    let msg = format!("scan {} under the organ ({:?} voxels)", ct.source.display(), ct.volume.dims);
+                    d.ct = Some(ct);
+                    messages.info(msg.clone());
+                    msg
+                }
+                None => {
+                    let msg = "open a segmentation before its scan".to_string();
+                    messages.error(msg.clone());
+                    msg
+                }
+            },
             Ok(JobOutput::Model(m)) => {
                 rehearsal.model = Some(m);
                 rehearsal.enabled = true;
@@ -207,6 +234,12 @@ pub fn poll_jobs(
                 let _ = fe;
                 sim.check = Some((mean_mm, max_mm));
                 messages.info(msg.clone());
+                msg
+            }
+            // Unwrapped above; a session inside a session is no organ to open.
+            Ok(JobOutput::Session(..)) => {
+                let msg = format!("{}: no organ in the session", job.label);
+                messages.error(msg.clone());
                 msg
             }
             Err(e) if job.cancel.is_cancelled() => {
@@ -273,16 +306,34 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
         }
         progress.report(1, 3, "organ surface");
         let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
-        Ok(JobOutput::Loaded(organ_data(seg, source)?))
+        let mut data = organ_data(seg, source)?;
+        if let Some(p) = &req.path {
+            data.opened = super::session::OrganSource::File {
+                path: std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()),
+                organ_labels: req.organ_labels.clone(),
+                structure_labels: req.structure_labels.clone(),
+            };
+        }
+        if let Some(ct) = &req.ct {
+            progress.report(2, 3, "scan");
+            data.ct = Some(Arc::new(super::ct::read_ct(ct, data.surface.bounds())?));
+        }
+        Ok(JobOutput::Loaded(data))
     }
 }
 
 /// The organ's display surfaces.
 pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -> Result<OrganData, String> {
-    // Sampled every second voxel (every fourth on software rasterisers): 68k (17k)
-    // triangles instead of 272k on the phantom, plenty for display and picking.
-    let step = super::view3d::display_surface_step();
-    let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step, ..Default::default() });
+    // Sampled every 3 mm (6 mm on software rasterisers: every second / fourth voxel of the
+    // phantom's 1.5 mm): 68k (17k) triangles instead of 272k on the phantom, plenty for display
+    // and picking. In millimetres, so that a 3 mm CT is not sampled every 12 mm.
+    let spacing_mm = 1.5 * super::view3d::display_surface_step() as f64;
+    let voxel_mm = (0..3).map(|c| seg.volume.world_from_voxel.fixed_view::<3, 1>(0, c).norm()).fold(f64::INFINITY, f64::min);
+    let step = (spacing_mm / voxel_mm.max(1e-3)).round().clamp(1.0, 8.0) as usize;
+    // Blurred over about half the sampling step before it is sampled: a smooth surface, whose
+    // normals follow the field rather than the voxel faces.
+    let settings = SurfaceSettings { step, sigma_voxels: (0.5 * step as f64).max(1.0), ..Default::default() };
+    let surface = extract_surface(&seg.organ_mask(), &settings);
     if surface.triangles.is_empty() {
         return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
     }
@@ -290,7 +341,7 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
         .into_iter()
         .map(|(label, name, color, mesh)| StructureMesh { label, name, color, mesh: Arc::new(mesh) })
         .collect();
-    Ok(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source })
+    Ok(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source, ct: None, opened: Default::default() })
 }
 
 /// Open a patient folder made by `umesh prepare`: its segmentation and figures.
@@ -300,7 +351,13 @@ pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Canc
         let figures = umesh_net::patient::read_figures(&dir).map_err(|e| e.to_string())?;
         let seg = figures.patient.segmentation(&dir).map_err(|e| e.to_string())?;
         progress.report(1, 2, "organ surface");
-        let organ = organ_data(seg, format!("patient {}", dir.display()))?;
+        let mut organ = organ_data(seg, format!("patient {}", dir.display()))?;
+        organ.opened = super::session::OrganSource::Patient { dir: std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone()) };
+        // The scan, when the folder holds one (`umesh prepare --ct`).
+        let ct = umesh_net::patient::ct_path(&dir);
+        if ct.is_file() {
+            organ.ct = Some(Arc::new(super::ct::read_ct(&ct, organ.surface.bounds())?));
+        }
         Ok(JobOutput::Patient(organ, Box::new(figures)))
     }
 }

@@ -4,6 +4,7 @@
 pub mod ar;
 pub mod camera;
 pub mod convert;
+pub mod ct;
 pub mod grid_preview;
 pub mod jobs;
 pub mod probes;
@@ -11,6 +12,7 @@ pub mod qa;
 pub mod qa_view;
 pub mod scene;
 pub mod screenshot;
+pub mod session;
 pub mod setup;
 pub mod state;
 pub mod ui;
@@ -30,10 +32,21 @@ pub struct CorePlugins;
 
 impl Plugin for CorePlugins {
     fn build(&self, app: &mut App) {
-        app.add_plugins((jobs::JobsPlugin, probes::ProbesPlugin, workflow::WorkflowPlugin, qa::QaPlugin, ar::ArPlugin, setup::SetupPlugin))
-            .init_resource::<state::OpenPatient>()
-            .init_resource::<state::ActiveModel>()
-            .init_resource::<state::Mode>();
+        app.add_plugins((
+            jobs::JobsPlugin,
+            probes::ProbesPlugin,
+            workflow::WorkflowPlugin,
+            qa::QaPlugin,
+            ar::ArPlugin,
+            setup::SetupPlugin,
+            session::SessionPlugin,
+        ))
+        // The session's state: held here so that headless tests can save and reopen one.
+        .init_resource::<ct::CtView>()
+        .init_resource::<camera::OrbitCamera>()
+        .init_resource::<state::OpenPatient>()
+        .init_resource::<state::ActiveModel>()
+        .init_resource::<state::Mode>();
     }
 }
 
@@ -46,6 +59,7 @@ impl Plugin for ViewPlugins {
             .add_plugins((
                 CorePlugins,
                 scene::ScenePlugin,
+                ct::CtPlugin,
                 camera::OrbitCameraPlugin,
                 grid_preview::GridPreviewPlugin,
                 probes::ProbeInputPlugin,
@@ -107,17 +121,36 @@ fn spawn_window_cameras(world: &mut World) {
     spawn_cameras(world, None);
 }
 
-/// What the window opens on: a patient folder (`umesh gui PATIENT/`) or the bundled phantom.
+/// What the window opens on: a patient folder (`umesh gui PATIENT/`), a segmentation with
+/// its scan (`umesh gui --ct CT SEG`) or the bundled phantom.
 #[derive(Resource, Clone, Default)]
-pub struct StartWith(pub Option<std::path::PathBuf>);
+pub enum StartWith {
+    #[default]
+    Phantom,
+    Patient(std::path::PathBuf),
+    Open(state::OpenRequest),
+    /// A session file: opened when it exists, else the phantom with this file to save to.
+    Session(std::path::PathBuf),
+}
 
-fn load_at_start(mut jobs: ResMut<jobs::Jobs>, start: Res<StartWith>) {
-    match &start.0 {
-        Some(dir) => {
+fn load_at_start(mut jobs: ResMut<jobs::Jobs>, start: Res<StartWith>, mut file: ResMut<session::SessionFile>) {
+    match &*start {
+        StartWith::Session(path) => {
+            file.0 = Some(path.clone());
+            if path.exists() {
+                jobs.spawn("open session", session::open_job(path.clone()));
+            } else {
+                jobs.spawn("load phantom", jobs::load_job(state::OpenRequest::default()));
+            }
+        }
+        StartWith::Patient(dir) => {
             jobs.spawn("open patient", jobs::open_patient_job(dir.clone()));
         }
-        None => {
-            jobs.spawn("load phantom", jobs::load_job(state::OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+        StartWith::Open(req) => {
+            jobs.spawn("load", jobs::load_job(req.clone()));
+        }
+        StartWith::Phantom => {
+            jobs.spawn("load phantom", jobs::load_job(state::OpenRequest::default()));
         }
     }
 }
@@ -165,7 +198,7 @@ fn request_redraws(
 }
 
 /// Open the app window on a patient folder, or on the bundled phantom.
-pub fn run_gui(patient: Option<std::path::PathBuf>) -> AppExit {
+pub fn run_gui(start: StartWith) -> AppExit {
     App::new()
         .add_plugins(
             DefaultPlugins
@@ -177,9 +210,9 @@ pub fn run_gui(patient: Option<std::path::PathBuf>) -> AppExit {
         )
         .add_plugins(ViewPlugins)
         .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
-        .insert_resource(StartWith(patient))
+        .insert_resource(start)
         .add_systems(Startup, (spawn_window_cameras, load_at_start))
-        .add_systems(Update, (auto_grid, request_redraws))
+        .add_systems(Update, (auto_grid.after(session::apply_pending), request_redraws))
         // Update on input, on a wake-up (AR frames) and on state changes; otherwise 10 times a
         // second for progress bars. A software-rendered frame costs a core: drawing only when
         // something changed leaves the CPU to solves, training and registration.

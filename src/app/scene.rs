@@ -11,12 +11,13 @@ pub struct OrganMesh;
 #[derive(Component)]
 pub struct StructureMesh;
 
-#[derive(Resource, Default)]
+#[derive(Resource, Default, PartialEq)]
 struct Shown {
     organ: u64,
     sim: u64,
     deformed: bool,
     setup: u64,
+    ghost: bool,
 }
 
 fn setup(mut commands: Commands) {
@@ -43,10 +44,12 @@ fn sync(
     let deformed = sim.show_deformed && sim.result.is_some();
     // The seen-surface tint follows the camera preview (shown on the rest shape only).
     let setup_key = if deformed { 0 } else { setup.generation * 2 + setup.show as u64 };
-    if shown.organ == organ.generation && shown.sim == sim.generation && shown.deformed == deformed && shown.setup == setup_key {
+    let ghost = deformed && sim.show_ghost;
+    let now = Shown { organ: organ.generation, sim: sim.generation, deformed, setup: setup_key, ghost };
+    if *shown == now {
         return;
     }
-    *shown = Shown { organ: organ.generation, sim: sim.generation, deformed, setup: setup_key };
+    *shown = now;
     for e in &old {
         commands.entity(e).despawn();
     }
@@ -83,6 +86,18 @@ fn sync(
         }
     };
     commands.spawn((Mesh3d(meshes.add(mesh_from_trimesh(surface, colors))), MeshMaterial3d(materials.add(organ_mat)), OrganMesh));
+    if ghost {
+        // The rest shape, faint and unlit: where the organ was, without hiding where it is.
+        let mat = StandardMaterial {
+            base_color: Color::srgba(0.85, 0.85, 0.9, 0.12),
+            alpha_mode: AlphaMode::Blend,
+            unlit: true,
+            double_sided: true,
+            cull_mode: None,
+            ..default()
+        };
+        commands.spawn((Mesh3d(meshes.add(mesh_from_trimesh(&data.surface, None))), MeshMaterial3d(materials.add(mat)), OrganMesh));
+    }
     for (i, s) in data.structures.iter().enumerate() {
         let m = def.and_then(|d| d.structures.get(i)).map(|m| m.as_ref()).unwrap_or(s.mesh.as_ref());
         commands.spawn((

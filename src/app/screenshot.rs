@@ -21,6 +21,20 @@ use std::sync::{Arc, Mutex};
 use umesh_core::{Cancel, Progress};
 
 pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "camera", "jobs", "qa", "ar"];
+/// Scenes on the real data beside the checkout (`../shared/data`, or `UMESH_SHARED_DATA`):
+/// rendered when it exists.
+pub const DATA_SCENES: &[&str] = &["ct"];
+
+/// The real-data folder the data scenes read.
+pub fn shared_data() -> std::path::PathBuf {
+    std::env::var_os("UMESH_SHARED_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
+}
+
+fn known(scene: &str) -> bool {
+    SCENES.contains(&scene) || DATA_SCENES.contains(&scene)
+}
 
 /// A folder for data a scene generates (a small dataset, a short recording), kept between
 /// runs: the generation is deterministic and is skipped when the folder is complete.
@@ -62,7 +76,15 @@ fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> Result<std::p
 
 /// Compute the state a scene shows (synchronously: a screenshot waits for nothing).
 pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
-    let JobOutput::Loaded(organ) = run(jobs::load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }))? else {
+    let req = if scene == "ct" {
+        // TotalSegmentator's CT and its segmentation: liver 5, vena cava 63, portal vein 64.
+        let d = shared_data().join("totalsegmentator");
+        let d = std::fs::canonicalize(&d).unwrap_or(d);
+        OpenRequest { path: Some(d.join("example_seg.nii.gz")), ct: Some(d.join("example_ct_sm.nii.gz")), ..Default::default() }
+    } else {
+        OpenRequest::default()
+    };
+    let JobOutput::Loaded(organ) = run(jobs::load_job(req))? else {
         return Err("unexpected job output".into());
     };
     world.resource_mut::<Organ>().set(organ.clone());
@@ -101,8 +123,18 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             cam.yaw = (-v.x).atan2(-v.z) + 0.35;
             cam.distance = (eye - cam.focus).length() * 1.1;
         }
-        "probes" => {
-            let probes = anterior_probes(&organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
+        "probes" | "ct" => {
+            let mut probes = anterior_probes(&organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
+            if scene == "ct" {
+                // The real liver is softer under these forces: a deformation of the dataset's
+                // scale (about 10 mm), and a view from the front, above and right, where the
+                // three slices show.
+                probes.iter_mut().for_each(|p| p.force_n *= 0.3);
+                let mut cam = world.resource_mut::<OrbitCamera>();
+                cam.yaw = 0.75;
+                cam.pitch = -0.6;
+                cam.distance *= 0.85;
+            }
             let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
             let fixed = FixedChoice::default();
             let JobOutput::Simulated(d) = run(jobs::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
@@ -188,7 +220,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             }
             ar.session = Some(s);
         }
-        other => return Err(format!("unknown scene {other:?}; scenes: {}", SCENES.join(", "))),
+        other => return Err(format!("unknown scene {other:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", "))),
     }
     Ok(())
 }
@@ -198,8 +230,8 @@ struct Captured(Arc<Mutex<Option<Result<(), String>>>>);
 
 /// Render `scene` at `width` x `height` into a PNG at `out`.
 pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_frames: u32) -> Result<(), String> {
-    if !SCENES.contains(&scene) {
-        return Err(format!("unknown scene {scene:?}; scenes: {}", SCENES.join(", ")));
+    if !known(scene) {
+        return Err(format!("unknown scene {scene:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", ")));
     }
     if !(16..=8192).contains(&width) || !(16..=8192).contains(&height) {
         return Err(format!("size {width}x{height} must lie within 16..8192"));

@@ -17,6 +17,10 @@ pub struct OrganData {
     pub structures: Vec<StructureMesh>,
     /// Where it came from (file name or "bundled phantom").
     pub source: String,
+    /// The scan under the segmentation, when one was opened with it.
+    pub ct: Option<Arc<super::ct::CtImage>>,
+    /// How to open it again (sessions).
+    pub opened: super::session::OrganSource,
 }
 
 #[derive(Clone)]
@@ -93,7 +97,8 @@ impl Probes {
 }
 
 /// Which nodes the simulation and the dataset hold fixed.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", content = "with", rename_all = "kebab-case")]
 pub enum FixedChoice {
     /// The CLI's default: near the vena cava / hepatic veins when the segmentation names them,
     /// else the posterior fifth (`umesh_core::loads::default_fixed`).
@@ -158,6 +163,8 @@ pub struct Simulation {
     pub fixed: FixedChoice,
     pub result: Option<Deformation>,
     pub show_deformed: bool,
+    /// The rest shape as a faint ghost behind the deformed organ.
+    pub show_ghost: bool,
     pub generation: u64,
     /// FE check of a rehearsal prediction: (mean, max) difference at the surface (mm).
     pub check: Option<(f64, f64)>,
@@ -208,11 +215,13 @@ impl UiMessages {
 }
 
 /// What to open: a NIfTI with its labels, or a closed mesh.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Default)]
 pub struct OpenRequest {
     pub path: Option<PathBuf>,
     pub organ_labels: Vec<i64>,
     pub structure_labels: Vec<i64>,
+    /// The scan the segmentation was made from, shown as slices under the model.
+    pub ct: Option<PathBuf>,
 }
 
 /// A file picked in File > Open, waiting for the user's choice of labels.
@@ -247,6 +256,7 @@ impl PendingOpen {
             path: Some(self.path.clone()),
             organ_labels: self.labels.iter().filter(|l| l.3 == 1).map(|l| l.0).collect(),
             structure_labels: self.labels.iter().filter(|l| l.3 == 2).map(|l| l.0).collect(),
+            ct: None,
         }
     }
 }

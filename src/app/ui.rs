@@ -17,6 +17,16 @@ pub struct UiState {
     pub frame_ms: f32,
     file_dialog: Option<Task<Option<std::path::PathBuf>>>,
     folder_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    ct_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    session_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    save_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    export_dialog: Option<Task<Option<std::path::PathBuf>>>,
+}
+
+fn save_dialog(name: &'static str, ext: &'static str) -> Task<Option<std::path::PathBuf>> {
+    IoTaskPool::get().spawn(async move {
+        rfd::AsyncFileDialog::new().add_filter(ext, &[ext]).set_file_name(name).save_file().await.map(|f| f.path().to_path_buf())
+    })
 }
 
 #[derive(bevy::ecs::system::SystemParam)]
@@ -32,6 +42,7 @@ pub struct AppState<'w> {
     rehearsal: ResMut<'w, Rehearsal>,
     setup: ResMut<'w, super::setup::ObservationSetup>,
     orbit: Res<'w, super::camera::OrbitCamera>,
+    ct: ResMut<'w, super::ct::CtView>,
 }
 
 /// The state of the jobs, QA and AR views.
@@ -45,9 +56,13 @@ pub struct Views<'w> {
     active: ResMut<'w, ActiveModel>,
     patient: ResMut<'w, OpenPatient>,
     proxy: Option<Res<'w, bevy::winit::EventLoopProxyWrapper>>,
+    recent: ResMut<'w, super::session::Recent>,
+    session_file: Res<'w, super::session::SessionFile>,
+    save: ResMut<'w, super::session::SaveRequest>,
+    export: ResMut<'w, super::session::PendingExport>,
 }
 
-fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d, mode: &mut Mode) {
+fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d, views: &mut Views, mode: &mut Mode) {
     egui::MenuBar::new().ui(ui, |ui| {
         ui.menu_button("File", |ui| {
             if ui.button("Open segmentation or mesh...").clicked() {
@@ -64,13 +79,72 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
                     IoTaskPool::get().spawn(async { rfd::AsyncFileDialog::new().pick_folder().await.map(|f| f.path().to_path_buf()) }),
                 );
             }
-            if ui.button("Bundled phantom").clicked() {
-                st.jobs.spawn("load phantom", load_job(OpenRequest { path: None, organ_labels: vec![], structure_labels: vec![] }));
+            let has_organ = st.organ.data.is_some();
+            if ui
+                .add_enabled(has_organ, egui::Button::new("Open CT image..."))
+                .on_hover_text("the scan of the loaded segmentation: slices under the model")
+                .on_disabled_hover_text("open a segmentation first")
+                .clicked()
+            {
+                uis.ct_dialog = Some(IoTaskPool::get().spawn(async {
+                    rfd::AsyncFileDialog::new().add_filter("NIfTI", &["nii", "gz", "hdr"]).pick_file().await.map(|f| f.path().to_path_buf())
+                }));
             }
+            if ui.button("Bundled phantom").clicked() {
+                st.jobs.spawn("load phantom", load_job(OpenRequest::default()));
+            }
+            ui.separator();
+            if ui.button("Open session...").clicked() {
+                uis.session_dialog = Some(IoTaskPool::get().spawn(async {
+                    rfd::AsyncFileDialog::new().add_filter("umesh session", &["json"]).pick_file().await.map(|f| f.path().to_path_buf())
+                }));
+            }
+            let current = views.session_file.0.clone();
+            let label = match &current {
+                Some(p) => format!("Save session (Ctrl+S): {}", p.file_name().map(|n| n.to_string_lossy()).unwrap_or_default()),
+                None => "Save session (Ctrl+S)...".into(),
+            };
+            if ui.add_enabled(has_organ, egui::Button::new(label)).clicked() {
+                match current {
+                    Some(p) => views.save.0 = Some(p),
+                    None => uis.save_dialog = Some(save_dialog("session.json", "json")),
+                }
+            }
+            if ui.add_enabled(has_organ, egui::Button::new("Save session as...")).clicked() {
+                uis.save_dialog = Some(save_dialog("session.json", "json"));
+            }
+            if ui.button("Export view as PNG...").clicked() {
+                uis.export_dialog = Some(save_dialog("view.png", "png"));
+            }
+            ui.separator();
+            ui.menu_button("Recent", |ui| {
+                if views.recent.list.is_empty() {
+                    ui.weak("nothing yet");
+                }
+                let mut open = None;
+                for (p, kind) in &views.recent.list {
+                    let what = match kind {
+                        super::session::RecentKind::Session => "session",
+                        super::session::RecentKind::Patient => "patient",
+                        super::session::RecentKind::Segmentation => "segmentation",
+                    };
+                    if ui.button(format!("{} ({what})", p.display())).clicked() {
+                        open = Some((p.clone(), *kind));
+                    }
+                }
+                if let Some((p, kind)) = open {
+                    open_recent(st, p, kind);
+                }
+            });
         });
         ui.menu_button("View", |ui| {
             ui.checkbox(&mut st.grid.show, "Grid (G)");
-            ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)");
+            if ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)").changed() {
+                st.sim.generation += 1;
+            }
+            if ui.checkbox(&mut st.sim.show_ghost, "Rest shape ghost").on_hover_text("behind the deformed organ").changed() {
+                st.sim.generation += 1;
+            }
             ui.separator();
             let mut q = view.quality.clone();
             ui.add(egui::Slider::new(&mut q.render_scale, 0.25..=1.0).text("3-D resolution"));
@@ -108,6 +182,9 @@ fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
         }
     }
     ui.separator();
+    ui.heading("Scan");
+    super::ct::ct_ui(ui, &mut st.ct, &st.organ);
+    ui.separator();
     ui.heading("Grid");
     let mut h = st.grid.settings.cell_size_mm as f32;
     let r = ui.add(egui::Slider::new(&mut h, 3.0..=15.0).text("cell size (mm)"));
@@ -129,10 +206,9 @@ fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     super::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
     ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
     let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
-    if ui.add_enabled(can, egui::Button::new("Simulate (SVK)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
-        && let (Some(d), Some(g)) = (&st.organ.data, &st.grid.grid)
+    if ui.add_enabled(can, egui::Button::new("Simulate (SVK) (S)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
     {
-        st.jobs.spawn("simulate", simulate_job(d.clone(), g.clone(), st.sim.fixed.clone(), st.probes.list.clone()));
+        start_simulation(st);
     }
     ui.separator();
     ui.heading("Rehearsal");
@@ -156,6 +232,47 @@ fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     if let Some((mean, max)) = st.sim.check {
         ui.label(format!("U-Net vs SVK: {mean:.2} mm mean, {max:.2} mm max"));
     }
+}
+
+/// The colour map's scale in the 3-D view's lower right corner: 0 to `max_mm`.
+fn scale_bar(painter: &egui::Painter, rect: egui::Rect, max_mm: f64, what: &str) {
+    let (w, h) = (14.0, (rect.height() * 0.3).clamp(60.0, 180.0));
+    let x0 = rect.right() - 70.0;
+    let y1 = rect.bottom() - 30.0;
+    let bar = egui::Rect::from_min_max(egui::pos2(x0, y1 - h), egui::pos2(x0 + w, y1));
+    let steps = 32;
+    for i in 0..steps {
+        let t = (i as f32 + 0.5) / steps as f32;
+        let c = super::convert::colormap_srgb(t);
+        let y = bar.bottom() - bar.height() * i as f32 / steps as f32;
+        let r = egui::Rect::from_min_max(egui::pos2(bar.left(), y - bar.height() / steps as f32), egui::pos2(bar.right(), y));
+        painter.rect_filled(r, 0.0, egui::Color32::from_rgb((c[0] * 255.0) as u8, (c[1] * 255.0) as u8, (c[2] * 255.0) as u8));
+    }
+    painter.rect_stroke(bar, 0.0, egui::Stroke::new(1.0, egui::Color32::GRAY), egui::StrokeKind::Outside);
+    let font = egui::FontId::proportional(12.0);
+    let text = egui::Color32::from_gray(230);
+    painter.text(egui::pos2(bar.right() + 4.0, bar.top()), egui::Align2::LEFT_CENTER, format!("{max_mm:.1} mm"), font.clone(), text);
+    painter.text(egui::pos2(bar.right() + 4.0, bar.bottom()), egui::Align2::LEFT_CENTER, "0", font.clone(), text);
+    painter.text(egui::pos2(bar.right() + 8.0, bar.top() - 14.0), egui::Align2::RIGHT_BOTTOM, what, font, text);
+}
+
+/// The SVK solve of the probes' forces, when a grid and a probe exist and none runs.
+fn start_simulation(st: &mut AppState) {
+    if st.probes.list.is_empty() || st.jobs.is_running("simulate") {
+        return;
+    }
+    if let (Some(d), Some(g)) = (&st.organ.data, &st.grid.grid) {
+        st.jobs.spawn("simulate", simulate_job(d.clone(), g.clone(), st.sim.fixed.clone(), st.probes.list.clone()));
+    }
+}
+
+fn open_recent(st: &mut AppState, p: std::path::PathBuf, kind: super::session::RecentKind) {
+    use super::session::RecentKind;
+    match kind {
+        RecentKind::Session => st.jobs.spawn("open session", super::session::open_job(p)),
+        RecentKind::Patient => st.jobs.spawn("open patient", super::jobs::open_patient_job(p)),
+        RecentKind::Segmentation => st.jobs.spawn("inspect", inspect_job(p)),
+    };
 }
 
 fn right_panel(ui: &mut egui::Ui, st: &mut AppState) {
@@ -298,6 +415,7 @@ pub fn ui_system(
     {
         uis.file_dialog = None;
         if let Some(path) = picked {
+            views.recent.push(&path, super::session::RecentKind::Segmentation);
             st.jobs.spawn("inspect", inspect_job(path));
         }
     }
@@ -306,14 +424,57 @@ pub fn ui_system(
     {
         uis.folder_dialog = None;
         if let Some(dir) = picked {
+            views.recent.push(&dir, super::session::RecentKind::Patient);
             st.jobs.spawn("open patient", super::jobs::open_patient_job(dir));
         }
+    }
+    if let Some(task) = &mut uis.ct_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.ct_dialog = None;
+        if let Some(path) = picked {
+            let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
+            st.jobs.spawn("scan", super::ct::load_ct_job(path, bounds));
+        }
+    }
+    if let Some(task) = &mut uis.session_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.session_dialog = None;
+        if let Some(path) = picked {
+            st.jobs.spawn("open session", super::session::open_job(path));
+        }
+    }
+    if let Some(task) = &mut uis.save_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.save_dialog = None;
+        views.save.0 = picked;
+    }
+    if let Some(task) = &mut uis.export_dialog
+        && let Some(picked) = check_ready(task)
+    {
+        uis.export_dialog = None;
+        views.export.0 = picked;
     }
     let ctx = contexts.ctx_mut()?.clone();
     let mode = *views.mode;
     if !ctx.egui_wants_keyboard_input() {
         if keys.just_pressed(KeyCode::F1) {
             uis.show_help = !uis.show_help;
+        }
+        // Held, or pressed and released within this frame (a fast chord, a slow frame).
+        let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
+        let ctrl = keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys);
+        if ctrl && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
+            match views.session_file.0.clone() {
+                Some(p) => views.save.0 = Some(p),
+                None if uis.save_dialog.is_none() => uis.save_dialog = Some(save_dialog("session.json", "json")),
+                None => {}
+            }
+        }
+        if mode == Mode::Model && !ctrl && keys.just_pressed(KeyCode::KeyS) {
+            start_simulation(&mut st);
         }
         if mode == Mode::Model {
             if keys.just_pressed(KeyCode::KeyG) {
@@ -350,7 +511,7 @@ pub fn ui_system(
         egui::UiBuilder::new().layer_id(egui::LayerId::background()).max_rect(ctx.viewport_rect()),
     );
     let mut new_mode = mode;
-    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut new_mode));
+    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut views, &mut new_mode));
     egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
     let waker = views.proxy.as_ref().map(|p| {
         let p = (**p).clone();
@@ -392,7 +553,15 @@ pub fn ui_system(
                 egui::ScrollArea::vertical().show(ui, |ui| super::ui_qa::left_panel(ui, qa, &st.organ, active, &mut st.messages));
             });
             egui::Panel::right("qa_right").default_size(280.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| super::ui_qa::right_panel(ui, qa));
+                egui::ScrollArea::vertical().show(ui, |ui| {
+                    super::ui_qa::right_panel(ui, qa);
+                    if st.organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
+                        ui.separator();
+                        ui.heading("Scan");
+                        ui.weak("yellow: the organ at rest; cyan: the sample's FE deformation");
+                        super::ct::ct_ui(ui, &mut st.ct, &st.organ);
+                    }
+                });
             });
         }
         Mode::Ar => {
@@ -432,6 +601,16 @@ pub fn ui_system(
             let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
             root.painter().image(tex, rect, uv, egui::Color32::WHITE);
         }
+        let scale = match mode {
+            Mode::Model => {
+                st.sim.result.as_ref().filter(|_| st.sim.show_deformed).map(|d| (d.max_mm, format!("{} displacement", d.source)))
+            }
+            Mode::Qa => views.qa.sample.as_ref().map(|s| (s.max_mm as f64, "FE displacement; prediction: error".to_string())),
+            _ => None,
+        };
+        if let Some((max_mm, what)) = scale {
+            scale_bar(root.painter(), rect, max_mm, &what);
+        }
     }
     open_window(&ctx, &mut st);
     if uis.show_help {
@@ -446,6 +625,8 @@ pub fn ui_system(
                     ("F", "frame the organ"),
                     ("G", "show or hide the grid"),
                     ("D", "show the rest or deformed organ"),
+                    ("S", "simulate the probes' forces (SVK)"),
+                    ("Ctrl+S", "save the session (organ, probes, fixed region, camera, model, slices)"),
                     ("Delete", "delete the selected probe"),
                     ("F1", "this window"),
                 ] {

@@ -1,13 +1,21 @@
 //! `umesh gui`: the desktop app (also what `umesh` with no command opens when a display
 //! exists).
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 
 #[derive(clap::Args, Debug, Default)]
 pub struct Args {
     /// A patient folder made by `umesh prepare`: opens its organ, model, camera and fixed
     /// region, with its figures in the Jobs view.
     pub patient: Option<std::path::PathBuf>,
+    /// A scan and its segmentation: `--ct CT.nii.gz SEG.nii.gz` opens the segmentation's organ
+    /// (the label named liver) with the scan's slices under it.
+    #[arg(long, num_args = 2, value_names = ["CT", "SEG"], conflicts_with = "patient")]
+    pub ct: Option<Vec<std::path::PathBuf>>,
+    /// A session file: opened when it exists (its organ, scan, probes, fixed region, camera,
+    /// model, slices), else created by the first Ctrl+S; Ctrl+S saves to it.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["patient", "ct"])]
+    pub session: Option<std::path::PathBuf>,
 }
 
 pub fn has_display() -> bool {
@@ -19,10 +27,36 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(dir) = &a.patient {
         umesh_net::patient::Patient::read(dir)?;
     }
+    let open = match a.ct.as_deref() {
+        Some([ct, seg]) => {
+            // Both read now: a wrong file is one clear error, not a message in a window.
+            let input = crate::cli::input::InputArgs {
+                seg: Some(seg.clone()),
+                mesh_scale_mm: 1.0,
+                mesh_voxel_mm: 1.0,
+                max_voxels: umesh_core::nifti_io::DEFAULT_MAX_VOXELS,
+                ..Default::default()
+            };
+            let s = input.load()?;
+            umesh_core::slices::read_scan(ct, s.organ_mask().world_bounds()).context("--ct")?;
+            Some(crate::app::state::OpenRequest { path: Some(seg.clone()), ct: Some(ct.clone()), ..Default::default() })
+        }
+        _ => None,
+    };
+    if let Some(s) = &a.session
+        && s.exists()
+    {
+        crate::app::session::Session::read(s).map_err(anyhow::Error::msg).context("--session")?;
+    }
     if !has_display() {
         bail!("no display (DISPLAY / WAYLAND_DISPLAY unset): the app needs one; `umesh screenshot` renders headless");
     }
-    match crate::app::run_gui(a.patient) {
+    let start = match (open, a.session) {
+        (Some(req), _) => crate::app::StartWith::Open(req),
+        (None, Some(s)) => crate::app::StartWith::Session(s),
+        (None, None) => a.patient.map(crate::app::StartWith::Patient).unwrap_or_default(),
+    };
+    match crate::app::run_gui(start) {
         bevy::app::AppExit::Success => Ok(()),
         bevy::app::AppExit::Error(code) => bail!("the app exited with code {code}"),
     }

@@ -37,6 +37,10 @@ pub struct Args {
     /// Frames of the synthetic registration-check recording.
     #[arg(long, default_value_t = 20)]
     pub check_frames: usize,
+    /// The scan the segmentation was made from (NIfTI): checked first, copied into the
+    /// folder as `ct.nii.gz` when the job ends, shown under the model by the app.
+    #[arg(long, value_name = "FILE")]
+    pub ct: Option<PathBuf>,
     /// The patient folder (created; an interrupted job run again continues there).
     #[arg(long)]
     pub out: PathBuf,
@@ -46,6 +50,9 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let seg = a.input.load()?;
+    if let Some(ct) = &a.ct {
+        umesh_core::slices::read_scan(ct, seg.organ_mask().world_bounds()).context("--ct")?;
+    }
     let (dataset, fixed) = a.config.config(&seg, a.grid.settings(), a.samples, a.seed, a.shard_size)?;
     let mut settings = PrepareSettings::paper(dataset, fixed.description.clone());
     settings.train.epochs = a.epochs;
@@ -69,6 +76,11 @@ pub fn run(a: Args) -> Result<()> {
     let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, &progress, &super::cancel());
     pb.finish_and_clear();
     let r = r.with_context(|| format!("preparing the patient {}", a.out.display()))?;
+    if let Some(ct) = &a.ct {
+        let dst = umesh_net::patient::ct_path(&a.out);
+        let bytes = std::fs::read(ct).with_context(|| format!("--ct {}", ct.display()))?;
+        umesh_core::write_atomic(&dst, &bytes).with_context(|| format!("{}", dst.display()))?;
+    }
     if a.json {
         super::print_json(&serde_json::json!({
             "out": r.out, "seconds": r.seconds,

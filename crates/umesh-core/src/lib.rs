@@ -19,6 +19,7 @@ pub mod register;
 pub mod rgbd;
 pub mod segmentation;
 pub mod simulate;
+pub mod slices;
 pub mod surface;
 pub mod visible;
 pub mod volume;

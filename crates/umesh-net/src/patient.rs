@@ -150,6 +150,12 @@ pub fn model_dir(patient: &Path) -> PathBuf {
     patient.join("model")
 }
 
+/// The scan the segmentation was made from, when `umesh prepare --ct` was given one (the app
+/// shows it under the model).
+pub fn ct_path(patient: &Path) -> PathBuf {
+    patient.join("ct.nii.gz")
+}
+
 /// What a finished (or resumed) job reports.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct PrepareReport {

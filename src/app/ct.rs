@@ -4,27 +4,16 @@
 //! outline drawn on it (core's `slices`).
 
 use super::convert::{bevy_dir_from_world, bevy_from_world};
-use super::state::{Mode, Organ, Simulation};
+use super::state::{CtImage, Mode, Organ, Simulation};
 use bevy::asset::RenderAssetUsages;
 use bevy::mesh::{Indices, PrimitiveTopology};
 use bevy::prelude::*;
 use bevy::render::render_resource::{Extent3d, TextureDimension, TextureFormat};
 use bevy_egui::egui;
 use nalgebra::Vector3;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use umesh_core::slices::{self, SliceAxis, Window};
-use umesh_core::volume::Volume;
-
-/// A scan, with its world bounds (voxel centres, mm).
-pub struct CtImage {
-    pub volume: Volume,
-    pub source: PathBuf,
-    pub lo_mm: Vector3<f64>,
-    pub hi_mm: Vector3<f64>,
-    /// Values in Hounsfield units (air near -1000): the CT presets apply; else the image's range.
-    pub hounsfield: bool,
-}
 
 /// The rest outline (organ at rest) and the deformed one, on the slices.
 const REST_RGB: [u8; 3] = [255, 205, 40];
@@ -275,16 +264,5 @@ pub struct CtPlugin;
 impl Plugin for CtPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<CtView>().add_systems(PostUpdate, sync);
-    }
-}
-
-/// A scan read in the background and attached to the loaded organ.
-pub fn load_ct_job(
-    path: PathBuf,
-    organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>,
-) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> Result<super::jobs::JobOutput, String> + Send + 'static {
-    move |progress, _| {
-        progress.report(0, 1, "reading the scan");
-        Ok(super::jobs::JobOutput::Ct(Arc::new(read_ct(&path, organ_bounds)?)))
     }
 }

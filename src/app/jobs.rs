@@ -35,7 +35,7 @@ pub enum JobOutput {
     /// and its file.
     Session(Box<JobOutput>, Box<super::session::Session>, std::path::PathBuf),
     /// A scan to show under the loaded organ.
-    Ct(Arc<super::ct::CtImage>),
+    Ct(Arc<CtImage>),
     /// A patient folder: its organ and what it holds.
     Patient(OrganData, Box<umesh_net::patient::PatientFigures>),
 }
@@ -308,7 +308,7 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
         let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
         let mut data = organ_data(seg, source)?;
         if let Some(p) = &req.path {
-            data.opened = super::session::OrganSource::File {
+            data.opened = OrganSource::File {
                 path: std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()),
                 organ_labels: req.organ_labels.clone(),
                 structure_labels: req.structure_labels.clone(),
@@ -352,7 +352,7 @@ pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Canc
         let seg = figures.patient.segmentation(&dir).map_err(|e| e.to_string())?;
         progress.report(1, 2, "organ surface");
         let mut organ = organ_data(seg, format!("patient {}", dir.display()))?;
-        organ.opened = super::session::OrganSource::Patient { dir: std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone()) };
+        organ.opened = OrganSource::Patient { dir: std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone()) };
         // The scan, when the folder holds one (`umesh prepare --ct`).
         let ct = umesh_net::patient::ct_path(&dir);
         if ct.is_file() {
@@ -473,5 +473,16 @@ impl Plugin for JobsPlugin {
             .init_resource::<UiMessages>()
             .init_resource::<PendingOpenRes>()
             .add_systems(Update, poll_jobs);
+    }
+}
+
+/// A scan read in the background and attached to the loaded organ.
+pub fn load_ct_job(
+    path: std::path::PathBuf,
+    organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>,
+) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, _| {
+        progress.report(0, 1, "reading the scan");
+        Ok(JobOutput::Ct(Arc::new(super::ct::read_ct(&path, organ_bounds)?)))
     }
 }

@@ -16,22 +16,6 @@ use umesh_core::{Cancel, Progress};
 pub const FORMAT: &str = "umesh-session";
 pub const FORMAT_VERSION: u32 = 1;
 
-/// Where the organ came from, enough to open it again.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
-#[serde(tag = "kind", rename_all = "kebab-case")]
-pub enum OrganSource {
-    #[default]
-    Phantom,
-    File {
-        path: PathBuf,
-        organ_labels: Vec<i64>,
-        structure_labels: Vec<i64>,
-    },
-    Patient {
-        dir: PathBuf,
-    },
-}
-
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SavedProbe {
     pub point_mm: [f64; 3],

@@ -18,9 +18,35 @@ pub struct OrganData {
     /// Where it came from (file name or "bundled phantom").
     pub source: String,
     /// The scan under the segmentation, when one was opened with it.
-    pub ct: Option<Arc<super::ct::CtImage>>,
+    pub ct: Option<Arc<CtImage>>,
     /// How to open it again (sessions).
-    pub opened: super::session::OrganSource,
+    pub opened: OrganSource,
+}
+
+/// A scan, with its world bounds (voxel centres, mm).
+pub struct CtImage {
+    pub volume: umesh_core::volume::Volume,
+    pub source: PathBuf,
+    pub lo_mm: Vector3<f64>,
+    pub hi_mm: Vector3<f64>,
+    /// Values in Hounsfield units (air near -1000): the CT presets apply; else the image's range.
+    pub hounsfield: bool,
+}
+
+/// Where the organ came from, enough to open it again.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum OrganSource {
+    #[default]
+    Phantom,
+    File {
+        path: PathBuf,
+        organ_labels: Vec<i64>,
+        structure_labels: Vec<i64>,
+    },
+    Patient {
+        dir: PathBuf,
+    },
 }
 
 #[derive(Clone)]

@@ -434,7 +434,7 @@ pub fn ui_system(
         uis.ct_dialog = None;
         if let Some(path) = picked {
             let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
-            st.jobs.spawn("scan", super::ct::load_ct_job(path, bounds));
+            st.jobs.spawn("scan", super::jobs::load_ct_job(path, bounds));
         }
     }
     if let Some(task) = &mut uis.session_dialog

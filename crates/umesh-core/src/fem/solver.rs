@@ -381,6 +381,27 @@ impl<'g> FeSolver<'g> {
         self.asm.nnz()
     }
 
+    /// The tangent stiffness (N/mm) of the free dofs at the node displacements `u_mm`, with the
+    /// solver's material and stabilisation: the matrix a Newton step factorises, as CSC with both
+    /// triangles stored, (n, col_ptr, row_idx, values). Free dofs are numbered node-major over
+    /// the unconstrained nodes.
+    pub fn tangent_csc(&mut self, u_mm: &[Vector3<f64>]) -> (usize, Vec<usize>, Vec<usize>, Vec<f64>) {
+        self.asm.assemble(ElementModel::Hyperelastic(self.material.material()), u_mm, true);
+        let m = self.asm.matrix();
+        (m.nrows(), m.symbolic().col_ptr().to_vec(), m.symbolic().row_idx().to_vec(), m.val().to_vec())
+    }
+
+    /// Time (ms) one numeric Cholesky factorisation of the tangent at `u_mm`, on the symbolic
+    /// factorisation the solver keeps (computed first if needed, not timed): the floor of a
+    /// Newton step.
+    pub fn time_factorization(&mut self, u_mm: &[Vector3<f64>]) -> Result<f64, FemError> {
+        self.asm.assemble(ElementModel::Hyperelastic(self.material.material()), u_mm, true);
+        self.fact.factorize(&self.asm, false)?;
+        let t = Instant::now();
+        self.fact.factorize(&self.asm, false)?;
+        Ok(ms(t))
+    }
+
     /// Solve the static problem for `bc`, whose constrained nodes must be those given to `new`.
     pub fn solve(
         &mut self,

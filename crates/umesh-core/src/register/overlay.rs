@@ -36,6 +36,13 @@ fn scan(
     let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
     let proj: Vec<Option<(f64, f64, f64)>> = cam.iter().map(|p| k.project(p)).collect();
     for t in &mesh.triangles {
+        // Closed surfaces are oriented outward: a triangle facing away from the camera is behind
+        // a front-facing one of the same surface on every pixel it covers (for the depth test
+        // and the silhouette alike), so it is skipped: about half the work.
+        let (p0, p1, p2) = (cam[t[0] as usize], cam[t[1] as usize], cam[t[2] as usize]);
+        if (p1 - p0).cross(&(p2 - p0)).dot(&p0) > 0.0 {
+            continue;
+        }
         let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else { continue };
         let area = (b.0 - a.0) * (c.1 - a.1) - (c.0 - a.0) * (b.1 - a.1);
         if area.abs() < 1e-12 {

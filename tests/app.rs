@@ -4,8 +4,9 @@ use bevy::prelude::*;
 use nalgebra::Vector3;
 use std::time::{Duration, Instant};
 use umesh::app::CorePlugins;
-use umesh::app::jobs::{JobOutput, Jobs, grid_job, load_job, simulate_job};
-use umesh::app::probes::ProbeRay;
+use umesh::app::model::compute::{grid_job, load_job, simulate_job};
+use umesh::app::model::probes::ProbeRay;
+use umesh::app::shell::tasks::{JobOutput, Jobs};
 use umesh::app::state::*;
 
 fn umesh_app() -> App {
@@ -130,7 +131,7 @@ fn the_real_totalsegmentator_case_opens_with_liver_and_two_vessels() {
         return;
     }
     // File > Open first lists the labels with their names, guessing the roles.
-    let inspect = umesh::app::jobs::inspect_job(path.clone());
+    let inspect = umesh::app::model::compute::inspect_job(path.clone());
     let Ok(JobOutput::Inspected(_, labels)) = inspect(&Default::default(), &Default::default()) else { panic!("inspect failed") };
     let pending = PendingOpen::new(path.clone(), labels);
     let liver = pending.labels.iter().find(|l| l.0 == 5).unwrap();
@@ -154,7 +155,7 @@ fn tmp_dir(name: &str) -> std::path::PathBuf {
 
 /// Update until the queue holds no queued or running job.
 fn finish_work(app: &mut App, limit: Duration) {
-    use umesh::app::workflow::WorkQueue;
+    use umesh::app::jobs::queue::WorkQueue;
     let t = Instant::now();
     loop {
         app.update();
@@ -168,13 +169,13 @@ fn finish_work(app: &mut App, limit: Duration) {
 
 #[test]
 fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
-    use umesh::app::workflow::{WorkKind, WorkQueue};
+    use umesh::app::jobs::queue::{WorkKind, WorkQueue};
     let organ = phantom();
     let mut q = WorkQueue::default();
     let dir = tmp_dir("queue");
     let kind = || WorkKind::Dataset {
         seg: organ.seg.clone(),
-        config: Box::new(umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg).unwrap()),
+        config: Box::new(umesh::app::jobs::panel::DatasetForm::default().config(&organ.seg).unwrap()),
     };
     q.submit(kind(), dir.clone()).unwrap();
     // The same folder spelled differently.
@@ -190,9 +191,9 @@ fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
 
 #[test]
 fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
+    use umesh::app::jobs::panel::{DatasetForm, TrainForm};
+    use umesh::app::jobs::queue::{WorkKind, WorkQueue, WorkStatus};
     use umesh::app::qa::Qa;
-    use umesh::app::ui_jobs::{DatasetForm, TrainForm};
-    use umesh::app::workflow::{WorkKind, WorkQueue, WorkStatus};
     let mut app = app();
     let organ = phantom();
     app.world_mut().resource_mut::<Organ>().set(organ.clone());
@@ -267,14 +268,14 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let item = q.items.last().unwrap();
     assert!(matches!(item.status, WorkStatus::Done(_)), "{:?}", item.status);
     assert_eq!(item.metrics.lock().unwrap().len(), 2, "the dashboard saw both epochs");
-    let metrics = umesh::app::workflow::read_metrics(&model_dir).unwrap();
+    let metrics = umesh::app::jobs::queue::read_metrics(&model_dir).unwrap();
     assert_eq!(metrics.len(), 2);
     let info = umesh_net::ModelInfo::read(&model_dir).unwrap();
     let used: Vec<usize> = info.train_indices.iter().chain(&info.val_indices).copied().collect();
     assert!(!used.contains(&flagged_index), "training skipped the flagged sample");
     assert_eq!(used.len(), m.accepted().count() - 1);
     // The checkpoint loads as a model for the same organ, and for the dataset's QA.
-    umesh::app::probes::RehearsalModel::load_checkpoint(&model_dir, "last.safetensors", &organ).unwrap();
+    umesh::app::model::probes::RehearsalModel::load_checkpoint(&model_dir, "last.safetensors", &organ).unwrap();
     let am = ActiveModel { dir: model_dir.clone(), checkpoint: "model.safetensors".into() };
     let (ds, m, p) = umesh::app::qa::open_dataset(&data_dir, &organ.seg, Some(&am)).unwrap();
     let tre = umesh::app::qa::evaluate_dataset(&ds, &m, &std::sync::Mutex::new(p.unwrap())).unwrap();
@@ -290,7 +291,7 @@ fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
     // sphere segmentation.
     let organ = phantom();
     let data_dir = tmp_dir("qa-other");
-    let form = umesh::app::ui_jobs::DatasetForm { samples: 1, shard_size: 1, cell_size_mm: 12.0, ..Default::default() };
+    let form = umesh::app::jobs::panel::DatasetForm { samples: 1, shard_size: 1, cell_size_mm: 12.0, ..Default::default() };
     umesh_core::dataset::run_generate(
         &organ.seg,
         &data_dir,
@@ -368,8 +369,9 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
     let organ = phantom();
     let rec = tmp_dir("ar-rec");
     let out = tmp_dir("ar-out");
-    let job = umesh::app::jobs::synth_job(organ.clone(), ActiveModel::default().dir, rec.clone(), 3);
-    assert!(matches!(job(&Default::default(), &Default::default()), Ok(JobOutput::Synthesized(..))));
+    let job = umesh::app::model::compute::synth_job(organ.clone(), ActiveModel::default().dir, rec.clone(), 3);
+    assert!(job(&Default::default(), &Default::default()).is_ok(), "the synthetic recording is written");
+    assert!(rec.join("trajectory.log").is_file());
     let s = ArSession::start(ArSource::Recording(rec.clone()), organ.seg.clone(), ActiveModel::default(), None);
     s.send(ArCommand::Record(Some(out.clone())));
     s.send(ArCommand::Seek(2));
@@ -400,7 +402,7 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
 
 /// Update until the camera preview is computed (or refused).
 fn wait_for_preview(app: &mut App, limit: Duration) {
-    use umesh::app::setup::ObservationSetup;
+    use umesh::app::model::setup::ObservationSetup;
     let t = Instant::now();
     let start = app.world().resource::<ObservationSetup>().generation;
     loop {
@@ -415,7 +417,7 @@ fn wait_for_preview(app: &mut App, limit: Duration) {
 
 #[test]
 fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_refused() {
-    use umesh::app::setup::{CameraChoice, ObservationSetup};
+    use umesh::app::model::setup::{CameraChoice, ObservationSetup};
     let mut app = app();
     let organ = phantom();
     app.world_mut().resource_mut::<Organ>().set(organ.clone());
@@ -430,7 +432,7 @@ fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_
         (p.fixed_nodes_mm.len(), p.visible_nodes, p.visible_fraction, p.fixed_description.clone())
     };
     // The dataset form's configuration through the same core check: the same nodes.
-    let cfg = umesh::app::ui_jobs::DatasetForm::default().config(&organ.seg).unwrap();
+    let cfg = umesh::app::jobs::panel::DatasetForm::default().config(&organ.seg).unwrap();
     let core = umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &cfg.visibility, &cfg.fixed).unwrap();
     assert_eq!(fixed_n, core.fixed.iter().filter(|f| **f).count());
     assert_eq!(visible_n, core.visible_nodes.len());
@@ -454,9 +456,9 @@ fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_
 
 #[test]
 fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region() {
-    use umesh::app::setup::{CameraChoice, ObservationSetup};
-    use umesh::app::ui_jobs::{DatasetForm, PatientForm};
-    use umesh::app::workflow::{WorkKind, WorkQueue, WorkStatus};
+    use umesh::app::jobs::panel::{DatasetForm, PatientForm};
+    use umesh::app::jobs::queue::{WorkKind, WorkQueue, WorkStatus};
+    use umesh::app::model::setup::{CameraChoice, ObservationSetup};
     let mut app = app();
     let organ = phantom();
     app.world_mut().resource_mut::<Organ>().set(organ.clone());
@@ -482,7 +484,7 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     }
     assert!(!dir.join("umesh-job.json").exists(), "the patient folder holds only the patient's files");
     // Open it as File > Open patient does: organ, model, camera and fixed region follow.
-    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::jobs::open_patient_job(dir.clone()));
+    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::model::compute::open_patient_job(dir.clone()));
     finish_jobs(&mut app, Duration::from_secs(120));
     let active = app.world().resource::<ActiveModel>().dir.clone();
     assert_eq!(active, dir.join("model"));
@@ -500,7 +502,7 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     assert!(fig.eval.is_some() && fig.check.is_some() && fig.has_model && !fig.metrics.is_empty());
     assert!(app.world().resource::<Organ>().data.as_ref().is_some_and(|d| d.source.contains("patient")));
     // A folder that is no patient: one message naming the file, nothing replaced.
-    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::jobs::open_patient_job(dir.join("model")));
+    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::model::compute::open_patient_job(dir.join("model")));
     let err = wait_for_error(&mut app, Duration::from_secs(30));
     assert!(err.contains("patient.json"), "{err}");
     assert_eq!(app.world().resource::<ActiveModel>().dir, dir.join("model"));
@@ -509,14 +511,14 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
 /// A headless app writing its recent-files list into a temporary folder, not the user's.
 fn app_with_config(name: &str) -> App {
     let mut app = app();
-    app.insert_resource(umesh::app::session::Recent::at(tmp_dir(&format!("config-{name}")).join("recent.json")));
+    app.insert_resource(umesh::app::model::session::Recent::at(tmp_dir(&format!("config-{name}")).join("recent.json")));
     app
 }
 
 #[test]
 fn a_saved_session_reopens_with_the_same_organ_probes_fixed_region_and_camera() {
-    use umesh::app::camera::OrbitCamera;
-    use umesh::app::session::{SaveRequest, Session, open_job};
+    use umesh::app::model::session::{SaveRequest, Session, open_job};
+    use umesh::app::shell::camera::OrbitCamera;
     let mut app = app_with_config("session");
     app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(OpenRequest::default()));
     finish_jobs(&mut app, Duration::from_secs(60));
@@ -563,13 +565,13 @@ fn a_saved_session_reopens_with_the_same_organ_probes_fixed_region_and_camera() 
     assert_eq!(w.resource::<GridState>().settings.cell_size_mm, 9.0);
     let cam = w.resource::<OrbitCamera>();
     assert_eq!((cam.yaw, cam.pitch, cam.distance), (0.7, -0.2, 4.5));
-    let recent = w.resource::<umesh::app::session::Recent>();
+    let recent = w.resource::<umesh::app::model::session::Recent>();
     assert!(recent.list.iter().any(|(p, _)| p.ends_with("rehearsal.json")), "{:?}", recent.list);
 }
 
 #[test]
 fn a_damaged_session_file_is_one_error_naming_it_and_changes_nothing() {
-    use umesh::app::session::open_job;
+    use umesh::app::model::session::open_job;
     let dir = tmp_dir("bad-session");
     std::fs::create_dir_all(&dir).unwrap();
     let cases = [
@@ -803,7 +805,7 @@ fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens
     let at = app.wait_for("max displacement", at, Duration::from_secs(180));
     save_keys(&app);
     app.wait_for("session saved", at, Duration::from_secs(30));
-    let first = umesh::app::session::Session::read(&session).expect("the saved session reads back");
+    let first = umesh::app::model::session::Session::read(&session).expect("the saved session reads back");
     assert_eq!(first.probes.len(), 1, "one probe placed by the click");
     let f = first.probes[0].force_n;
     assert!(f.iter().map(|v| v * v).sum::<f64>().sqrt() > 1e-3, "the drag pulled the probe: {f:?}");
@@ -816,7 +818,7 @@ fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens
     app.run(&["windowfocus", "--sync", &app.window.clone()]);
     save_keys(&app);
     app.wait_for("session saved", at, Duration::from_secs(30));
-    let second = umesh::app::session::Session::read(&session).expect("saved again");
+    let second = umesh::app::model::session::Session::read(&session).expect("saved again");
     assert_eq!(second.probes, first.probes, "the reopened session holds the same probes");
     assert_eq!(second.camera, first.camera, "and the same camera");
 }

@@ -1,26 +1,14 @@
-//! The desktop app (Bevy + egui): one plugin per feature, egui panels apart from the state
-//! they show, heavy work in background tasks. Also renders named scenes headless to PNG.
+//! The desktop app (Bevy + egui): one folder per view (`model/`, `jobs/`, `qa/`, `ar/`), each
+//! with its state, systems and panel; the shell (`shell/`: menus, 3-D view, camera, core <->
+//! Bevy conversions, background tasks, headless screenshots) apart; the state the views share in
+//! `state.rs`. Heavy work runs in background tasks.
 
 pub mod ar;
-pub mod camera;
-pub mod convert;
-pub mod ct;
-pub mod grid_preview;
 pub mod jobs;
-pub mod probes;
+pub mod model;
 pub mod qa;
-pub mod qa_view;
-pub mod scene;
-pub mod screenshot;
-pub mod session;
-pub mod setup;
+pub mod shell;
 pub mod state;
-pub mod ui;
-pub mod ui_ar;
-pub mod ui_jobs;
-pub mod ui_qa;
-pub mod view3d;
-pub mod workflow;
 
 use bevy::prelude::*;
 use bevy::render::error_handler::{RenderError, RenderErrorHandler, RenderErrorPolicy};
@@ -33,17 +21,17 @@ pub struct CorePlugins;
 impl Plugin for CorePlugins {
     fn build(&self, app: &mut App) {
         app.add_plugins((
-            jobs::JobsPlugin,
-            probes::ProbesPlugin,
-            workflow::WorkflowPlugin,
+            shell::tasks::JobsPlugin,
+            model::probes::ProbesPlugin,
+            jobs::queue::WorkflowPlugin,
             qa::QaPlugin,
             ar::ArPlugin,
-            setup::SetupPlugin,
-            session::SessionPlugin,
+            model::setup::SetupPlugin,
+            model::session::SessionPlugin,
         ))
         // The session's state: held here so that headless tests can save and reopen one.
-        .init_resource::<ct::CtView>()
-        .init_resource::<camera::OrbitCamera>()
+        .init_resource::<model::ct::CtView>()
+        .init_resource::<shell::camera::OrbitCamera>()
         .init_resource::<state::OpenPatient>()
         .init_resource::<state::ActiveModel>()
         .init_resource::<state::Mode>();
@@ -58,18 +46,18 @@ impl Plugin for ViewPlugins {
         app.add_plugins(EguiPlugin::default())
             .add_plugins((
                 CorePlugins,
-                scene::ScenePlugin,
-                ct::CtPlugin,
-                camera::OrbitCameraPlugin,
-                grid_preview::GridPreviewPlugin,
-                probes::ProbeInputPlugin,
-                view3d::View3dPlugin,
-                qa_view::QaViewPlugin,
-                setup::SetupViewPlugin,
+                model::scene::ScenePlugin,
+                model::ct::CtPlugin,
+                shell::camera::OrbitCameraPlugin,
+                model::grid_preview::GridPreviewPlugin,
+                model::probes::ProbeInputPlugin,
+                shell::view3d::View3dPlugin,
+                qa::scene::QaViewPlugin,
+                model::setup::SetupViewPlugin,
             ))
-            .init_resource::<ui::UiState>()
-            .init_resource::<ui_jobs::JobsUi>()
-            .add_systems(EguiPrimaryContextPass, ui::ui_system)
+            .init_resource::<shell::ui::UiState>()
+            .init_resource::<jobs::panel::JobsUi>()
+            .add_systems(EguiPrimaryContextPass, shell::ui::ui_system)
             .insert_resource(ClearColor(Color::srgb(0.11, 0.12, 0.14)))
             .insert_resource(RenderErrorHandler(render_error_policy));
     }
@@ -103,14 +91,14 @@ fn render_error_policy(error: &RenderError, main_world: &mut World, _render: &mu
     RenderErrorPolicy::StopRendering
 }
 
-/// The 3-D camera, rendering into the [`view3d::View3d`] image, and the camera egui renders
+/// The 3-D camera, rendering into the [`shell::view3d::View3d`] image, and the camera egui renders
 /// with into `target` (the window when None); the UI shows the 3-D image between its panels.
 pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarget>) {
     use bevy::camera::{RenderTarget, visibility::RenderLayers};
-    let t = world.get_resource::<camera::OrbitCamera>().cloned().unwrap_or_default().transform();
-    let image = world.resource::<view3d::View3d>().image.clone();
+    let t = world.get_resource::<shell::camera::OrbitCamera>().cloned().unwrap_or_default().transform();
+    let image = world.resource::<shell::view3d::View3d>().image.clone();
     // No MSAA: with software rendering (llvmpipe) it costs more than the whole scene.
-    world.spawn((Camera3d::default(), t, camera::MainCamera, Msaa::Off, RenderTarget::Image(image.into())));
+    world.spawn((Camera3d::default(), t, shell::camera::MainCamera, Msaa::Off, RenderTarget::Image(image.into())));
     let mut ui = world.spawn((bevy_egui::PrimaryEguiContext, Camera2d, RenderLayers::none(), Msaa::Off, Camera { order: 1, ..default() }));
     if let Some(tg) = target {
         ui.insert(tg);
@@ -133,37 +121,37 @@ pub enum StartWith {
     Session(std::path::PathBuf),
 }
 
-fn load_at_start(mut jobs: ResMut<jobs::Jobs>, start: Res<StartWith>, mut file: ResMut<session::SessionFile>) {
+fn load_at_start(mut jobs: ResMut<shell::tasks::Jobs>, start: Res<StartWith>, mut file: ResMut<model::session::SessionFile>) {
     match &*start {
         StartWith::Session(path) => {
             file.0 = Some(path.clone());
             if path.exists() {
-                jobs.spawn("open session", session::open_job(path.clone()));
+                jobs.spawn("open session", model::session::open_job(path.clone()));
             } else {
-                jobs.spawn("load phantom", jobs::load_job(state::OpenRequest::default()));
+                jobs.spawn("load phantom", model::compute::load_job(state::OpenRequest::default()));
             }
         }
         StartWith::Patient(dir) => {
-            jobs.spawn("open patient", jobs::open_patient_job(dir.clone()));
+            jobs.spawn("open patient", model::compute::open_patient_job(dir.clone()));
         }
         StartWith::Open(req) => {
-            jobs.spawn("load", jobs::load_job(req.clone()));
+            jobs.spawn("load", model::compute::load_job(req.clone()));
         }
         StartWith::Phantom => {
-            jobs.spawn("load phantom", jobs::load_job(state::OpenRequest::default()));
+            jobs.spawn("load phantom", model::compute::load_job(state::OpenRequest::default()));
         }
     }
 }
 
 /// Build a grid once an organ is loaded and none exists.
-fn auto_grid(organ: Res<state::Organ>, grid: Res<state::GridState>, mut jobs: ResMut<jobs::Jobs>, mut done: Local<u64>) {
+fn auto_grid(organ: Res<state::Organ>, grid: Res<state::GridState>, mut jobs: ResMut<shell::tasks::Jobs>, mut done: Local<u64>) {
     if let Some(d) = &organ.data
         && grid.grid.is_none()
         && *done != organ.generation
         && !jobs.is_running("grid")
     {
         *done = organ.generation;
-        jobs.spawn("grid", jobs::grid_job(d.seg.clone(), grid.settings.clone()));
+        jobs.spawn("grid", model::compute::grid_job(d.seg.clone(), grid.settings.clone()));
     }
 }
 
@@ -176,8 +164,8 @@ fn request_redraws(
     probes: Res<state::Probes>,
     qa: Res<qa::Qa>,
     ar: Res<ar::Ar>,
-    jobs: Res<jobs::Jobs>,
-    setup: Res<setup::ObservationSetup>,
+    jobs: Res<shell::tasks::Jobs>,
+    setup: Res<model::setup::ObservationSetup>,
     mut last: Local<[u64; 8]>,
     mut redraw: MessageWriter<bevy::window::RequestRedraw>,
 ) {
@@ -212,7 +200,7 @@ pub fn run_gui(start: StartWith) -> AppExit {
         .insert_resource(bevy_egui::EguiGlobalSettings { auto_create_primary_context: false, ..default() })
         .insert_resource(start)
         .add_systems(Startup, (spawn_window_cameras, load_at_start))
-        .add_systems(Update, (auto_grid.after(session::apply_pending), request_redraws))
+        .add_systems(Update, (auto_grid.after(model::session::apply_pending), request_redraws))
         // Update on input, on a wake-up (AR frames) and on state changes; otherwise 10 times a
         // second for progress bars. A software-rendered frame costs a core: drawing only when
         // something changed leaves the CPU to solves, training and registration.

@@ -331,7 +331,7 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
 /// The app's frame time (offscreen, 1280x800, egui panels) while an SVK solve runs in the
 /// background, while a training job runs, and the AR view's playback rate.
 fn bench_ui() -> Result<serde_json::Value> {
-    use crate::app::screenshot::{ar_playback, frame_times_during_solve, frame_times_during_training};
+    use crate::app::shell::screenshot::{ar_playback, frame_times_during_solve, frame_times_during_training};
     use crate::app::state::Mode;
     let stats = |mut t: Vec<f64>| -> serde_json::Value {
         t.sort_by(f64::total_cmp);

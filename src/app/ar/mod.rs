@@ -2,7 +2,9 @@
 //! stream), the network and the registrar, and sends overlay frames back; the UI sends it
 //! play / pause / step / seek / ICP / pose commands. The UI thread never waits for it.
 
-use super::state::ActiveModel;
+pub mod panel;
+
+use crate::app::state::ActiveModel;
 use bevy::prelude::*;
 use nalgebra::{Matrix4, Rotation3, Vector3};
 use std::path::PathBuf;
@@ -387,7 +389,7 @@ impl Ar {
     }
 }
 
-fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<super::state::UiMessages>) {
+fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<crate::app::state::UiMessages>) {
     let Some(s) = &ar.session else { return };
     let events: Vec<ArEvent> = s.rx.lock().map(|r| r.try_iter().collect()).unwrap_or_default();
     for e in events {

@@ -2,8 +2,8 @@
 //! the CLI's output files. One job runs at a time (the solver and the trainer each use every
 //! core they get); the others wait in the queue. Two jobs may not write the same folder.
 
-use super::jobs::{JobProgress, lower_thread_priority};
-use super::state::UiMessages;
+use crate::app::shell::tasks::{JobProgress, lower_thread_priority};
+use crate::app::state::UiMessages;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use std::path::{Path, PathBuf};

@@ -3,10 +3,11 @@
 //! `WGPU_BACKEND=gl`, EGL surfaceless on Mesa's llvmpipe. Deterministic: fixed camera, fixed
 //! state computed before rendering, warm-up frames before the capture.
 
-use super::camera::OrbitCamera;
-use super::jobs::{self, JobOutput};
-use super::probes::{ProbeRay, ProbeSettings, Rehearsal, RehearsalModel, probe_from_ray};
-use super::state::*;
+use crate::app::model::compute;
+use crate::app::model::probes::{ProbeRay, ProbeSettings, Rehearsal, RehearsalModel, probe_from_ray};
+use crate::app::shell::camera::OrbitCamera;
+use crate::app::shell::tasks::{self, JobOutput};
+use crate::app::state::*;
 use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
 use bevy::prelude::*;
@@ -84,7 +85,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     } else {
         OpenRequest::default()
     };
-    let JobOutput::Loaded(organ) = run(jobs::load_job(req))? else {
+    let JobOutput::Loaded(organ) = run(compute::load_job(req))? else {
         return Err("unexpected job output".into());
     };
     world.resource_mut::<Organ>().set(organ.clone());
@@ -93,7 +94,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     world.insert_resource(cam);
     let show_grid = scene == "grid";
     if scene != "phantom" {
-        let JobOutput::Grid(g, vox) = run(jobs::grid_job(organ.seg.clone(), Default::default()))? else { return Err("grid".into()) };
+        let JobOutput::Grid(g, vox) = run(compute::grid_job(organ.seg.clone(), Default::default()))? else { return Err("grid".into()) };
         let mut gs = world.resource_mut::<GridState>();
         gs.stats = Some(g.stats());
         gs.grid = Some(g.clone());
@@ -104,19 +105,23 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     world.resource_mut::<GridState>().show = show_grid;
     // The camera preview is computed in the background in the app; only its own scene shows it
     // (computed here, so that the image does not depend on timing).
-    world.resource_mut::<super::setup::ObservationSetup>().show = scene == "camera";
+    world.resource_mut::<crate::app::model::setup::ObservationSetup>().show = scene == "camera";
     match scene {
         "phantom" | "grid" => {}
         "camera" => {
-            world.resource_scope(|world, mut setup: Mut<super::setup::ObservationSetup>| {
-                setup.camera = super::setup::CameraChoice::Named("anterior-inferior".into());
+            world.resource_scope(|world, mut setup: Mut<crate::app::model::setup::ObservationSetup>| {
+                setup.camera = crate::app::model::setup::CameraChoice::Named("anterior-inferior".into());
                 setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
             })?;
             // From behind the laparoscope and a little aside: the frustum opens toward the
             // organ, whose seen part faces the viewer.
-            let eye =
-                world.resource::<super::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).ok_or("no preview")?;
-            let eye = super::convert::bevy_from_world(&Vector3::from(eye));
+            let eye = world
+                .resource::<crate::app::model::setup::ObservationSetup>()
+                .preview
+                .as_ref()
+                .map(|p| p.camera.position_mm)
+                .ok_or("no preview")?;
+            let eye = crate::app::shell::convert::bevy_from_world(&Vector3::from(eye));
             let mut cam = world.resource_mut::<OrbitCamera>();
             let v = (eye - cam.focus).normalize();
             cam.pitch = v.y.asin() + 0.15;
@@ -137,7 +142,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             }
             let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
             let fixed = FixedChoice::default();
-            let JobOutput::Simulated(d) = run(jobs::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
+            let JobOutput::Simulated(d) = run(compute::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
                 return Err("simulate".into());
             };
             let mut pr = world.resource_mut::<Probes>();
@@ -167,21 +172,21 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         "jobs" => {
             // The dashboard on the bundled model's training metrics.
             world.insert_resource(Mode::Jobs);
-            let mut j = world.resource_mut::<super::ui_jobs::JobsUi>();
+            let mut j = world.resource_mut::<crate::app::jobs::panel::JobsUi>();
             let dir = crate::cli::input::bundled_model();
             j.folder_text = short_path(&dir);
-            j.dash = Some(super::ui_jobs::DashSource::Folder(dir));
+            j.dash = Some(crate::app::jobs::panel::DashSource::Folder(dir));
         }
         "qa" => {
             // Four samples made with the bundled model's configuration, the model beside them.
             let model = ActiveModel::default();
             let dir = small_dataset(&organ, "qa-dataset", 4)?;
-            let (ds, m, p) = super::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
+            let (ds, m, p) = crate::app::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
             let p = p.map(|p| Arc::new(Mutex::new(p)));
             let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
-            let sample = super::qa::load_sample(&ds, &m, first, p.as_deref())?;
+            let sample = crate::app::qa::load_sample(&ds, &m, first, p.as_deref())?;
             world.insert_resource(Mode::Qa);
-            let mut qa = world.resource_mut::<super::qa::Qa>();
+            let mut qa = world.resource_mut::<crate::app::qa::Qa>();
             qa.path_text = dir.display().to_string();
             qa.dataset = Some(Arc::new(ds));
             qa.manifest = Some(m);
@@ -203,20 +208,18 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             let model = ActiveModel::default();
             let dir = scene_cache("ar-recording");
             if !dir.join("trajectory.log").is_file() {
-                let JobOutput::Synthesized(..) = run(jobs::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))? else {
-                    return Err("synthetic recording".into());
-                };
+                run(compute::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
             }
             world.insert_resource(Mode::Ar);
-            let mut ar = world.resource_mut::<super::ar::Ar>();
+            let mut ar = world.resource_mut::<crate::app::ar::Ar>();
             ar.source_text = dir.display().to_string();
             ar.show_points = true;
-            let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
-            s.send(super::ar::ArCommand::ShowPoints(true));
+            let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
+            s.send(crate::app::ar::ArCommand::ShowPoints(true));
             // Through the frames in order: the rigid alignment is made on the undeformed first
             // frame, as when a recording plays (aligning on a deformed frame absorbs the motion).
             for f in 0..=3 {
-                s.send(super::ar::ArCommand::Seek(f));
+                s.send(crate::app::ar::ArCommand::Seek(f));
             }
             ar.session = Some(s);
         }
@@ -242,11 +245,11 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     }
     // The AR view waits for its worker's first overlay (a minute at most).
     let t0 = std::time::Instant::now();
-    while scene == "ar" && app.world().resource::<super::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
+    while scene == "ar" && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
         if t0.elapsed().as_secs() > 60 {
             return Err("the AR view showed no frame within 60 s".into());
         }
-        if app.world().resource::<super::ar::Ar>().session.is_none() {
+        if app.world().resource::<crate::app::ar::Ar>().session.is_none() {
             let last = app.world().resource::<UiMessages>().last().map(|m| m.1.clone()).unwrap_or_default();
             return Err(format!("the AR session stopped: {last}"));
         }
@@ -287,22 +290,22 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
     app.add_plugins(
         DefaultPlugins
             .set(WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..default() })
-            .set(super::render_plugin(true))
+            .set(crate::app::render_plugin(true))
             // wgpu's GL backend logs a harmless texture-view heuristic every frame.
             .set(bevy::log::LogPlugin { filter: "wgpu=error,wgpu_hal=off,naga=warn".into(), ..default() })
             .disable::<WinitPlugin>(),
     )
-    .add_plugins(super::ViewPlugins)
+    .add_plugins(crate::app::ViewPlugins)
     .insert_resource(EguiGlobalSettings { auto_create_primary_context: false, ..default() });
     app.finish();
     app.cleanup();
     // The adapter decides the quality and the organ's display surface: before the scene loads.
-    app.world_mut().run_system_cached(super::view3d::detect_adapter).map_err(|e| e.to_string())?;
+    app.world_mut().run_system_cached(crate::app::shell::view3d::detect_adapter).map_err(|e| e.to_string())?;
     prepare_scene(app.world_mut(), scene)?;
     let mut target = Image::new_target_texture(width, height, TextureFormat::Rgba8UnormSrgb, None);
     target.asset_usage = RenderAssetUsages::RENDER_WORLD;
     let handle = app.world_mut().resource_mut::<Assets<Image>>().add(target);
-    super::spawn_cameras(app.world_mut(), Some(RenderTarget::Image(handle.clone().into())));
+    crate::app::spawn_cameras(app.world_mut(), Some(RenderTarget::Image(handle.clone().into())));
     Ok((app, handle))
 }
 
@@ -324,9 +327,9 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
     let grid = app.world().resource::<GridState>().grid.clone().ok_or("no grid")?;
     let probes = app.world().resource::<Probes>().list.clone();
     let t0 = std::time::Instant::now();
-    app.world_mut().resource_mut::<jobs::Jobs>().spawn("simulate", jobs::simulate_job(organ, grid, FixedChoice::default(), probes));
+    app.world_mut().resource_mut::<tasks::Jobs>().spawn("simulate", compute::simulate_job(organ, grid, FixedChoice::default(), probes));
     let mut times = Vec::new();
-    while !app.world().resource::<jobs::Jobs>().running.is_empty() {
+    while !app.world().resource::<tasks::Jobs>().running.is_empty() {
         let t = std::time::Instant::now();
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -349,18 +352,18 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
     let settings = umesh_net::training::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
     let id = app
         .world_mut()
-        .resource_mut::<super::workflow::WorkQueue>()
-        .submit(super::workflow::WorkKind::Train { dataset: data, settings, resume: false }, model)?;
+        .resource_mut::<crate::app::jobs::queue::WorkQueue>()
+        .submit(crate::app::jobs::queue::WorkKind::Train { dataset: data, settings, resume: false }, model)?;
     {
-        let mut j = app.world_mut().resource_mut::<super::ui_jobs::JobsUi>();
-        j.dash = Some(super::ui_jobs::DashSource::Job(id));
+        let mut j = app.world_mut().resource_mut::<crate::app::jobs::panel::JobsUi>();
+        j.dash = Some(crate::app::jobs::panel::DashSource::Job(id));
     }
     for _ in 0..5 {
         app.update();
     }
     let t0 = std::time::Instant::now();
     let mut times = Vec::new();
-    while app.world().resource::<super::workflow::WorkQueue>().items.iter().any(|i| i.status.is_active()) {
+    while app.world().resource::<crate::app::jobs::queue::WorkQueue>().items.iter().any(|i| i.status.is_active()) {
         let t = std::time::Instant::now();
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -368,8 +371,8 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
             return Err("the training did not finish within 15 minutes".into());
         }
     }
-    if let Some(super::workflow::WorkStatus::Failed(e)) =
-        app.world().resource::<super::workflow::WorkQueue>().items.last().map(|i| i.status.clone())
+    if let Some(crate::app::jobs::queue::WorkStatus::Failed(e)) =
+        app.world().resource::<crate::app::jobs::queue::WorkQueue>().items.last().map(|i| i.status.clone())
     {
         return Err(format!("training failed: {e}"));
     }
@@ -384,23 +387,23 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
     let model = ActiveModel::default();
     let dir = scene_cache("bench-recording");
     if !dir.join("trajectory.log").is_file() {
-        run(jobs::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
+        run(compute::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }
     app.world_mut().insert_resource(Mode::Ar);
-    let s = super::ar::ArSession::start(super::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
-    app.world_mut().resource_mut::<super::ar::Ar>().session = Some(s);
+    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
+    app.world_mut().resource_mut::<crate::app::ar::Ar>().session = Some(s);
     // The first frame (with ICP) before playing.
     let t0 = std::time::Instant::now();
-    while app.world().resource::<super::ar::Ar>().last.is_none() {
+    while app.world().resource::<crate::app::ar::Ar>().last.is_none() {
         app.update();
-        if t0.elapsed().as_secs() > 120 || app.world().resource::<super::ar::Ar>().session.is_none() {
+        if t0.elapsed().as_secs() > 120 || app.world().resource::<crate::app::ar::Ar>().session.is_none() {
             return Err("the AR view showed no frame".into());
         }
     }
-    let fps = app.world().resource::<super::ar::Ar>().fps;
-    let frames = app.world().resource::<super::ar::Ar>().frames.unwrap_or(0);
-    if let Some(s) = &app.world().resource::<super::ar::Ar>().session {
-        s.send(super::ar::ArCommand::Play(true));
+    let fps = app.world().resource::<crate::app::ar::Ar>().fps;
+    let frames = app.world().resource::<crate::app::ar::Ar>().frames.unwrap_or(0);
+    if let Some(s) = &app.world().resource::<crate::app::ar::Ar>().session {
+        s.send(crate::app::ar::ArCommand::Play(true));
     }
     let (mut times, mut shown) = (Vec::new(), std::collections::BTreeSet::new());
     let start = std::time::Instant::now();
@@ -409,12 +412,12 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
         let t = std::time::Instant::now();
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
-        if let Some(f) = &app.world().resource::<super::ar::Ar>().last
+        if let Some(f) = &app.world().resource::<crate::app::ar::Ar>().last
             && shown.insert(f.index)
         {
             last_new = std::time::Instant::now();
         }
-        let ar = app.world().resource::<super::ar::Ar>();
+        let ar = app.world().resource::<crate::app::ar::Ar>();
         if shown.contains(&(frames.saturating_sub(1))) || !ar.playing && start.elapsed().as_secs() > 1 || start.elapsed().as_secs() > 120 {
             break;
         }

@@ -3,10 +3,10 @@
 //! slices, as one small JSON file written atomically and reopened; the File menu's recent files;
 //! the current view exported as a PNG.
 
-use super::camera::OrbitCamera;
-use super::ct::CtView;
-use super::jobs::{JobOutput, Jobs};
-use super::state::*;
+use crate::app::model::ct::CtView;
+use crate::app::shell::camera::OrbitCamera;
+use crate::app::shell::tasks::{JobOutput, Jobs};
+use crate::app::state::*;
 use bevy::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -125,7 +125,7 @@ pub struct SessionState<'w> {
     pub sim: ResMut<'w, Simulation>,
     pub camera: ResMut<'w, OrbitCamera>,
     pub active: ResMut<'w, ActiveModel>,
-    pub rehearsal: ResMut<'w, super::probes::Rehearsal>,
+    pub rehearsal: ResMut<'w, crate::app::model::probes::Rehearsal>,
     pub ct: ResMut<'w, CtView>,
     pub jobs: ResMut<'w, Jobs>,
     pub messages: ResMut<'w, UiMessages>,
@@ -177,16 +177,24 @@ pub fn open_job(path: PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobO
     move |progress, cancel| {
         let s = Session::read(&path)?;
         let inner = match &s.organ {
-            OrganSource::Phantom => super::jobs::load_job(OpenRequest { ct: s.ct.clone(), ..Default::default() })(progress, cancel)?,
-            OrganSource::File { path: p, organ_labels, structure_labels } => super::jobs::load_job(OpenRequest {
+            OrganSource::Phantom => {
+                crate::app::model::compute::load_job(OpenRequest { ct: s.ct.clone(), ..Default::default() })(progress, cancel)?
+            }
+            OrganSource::File { path: p, organ_labels, structure_labels } => crate::app::model::compute::load_job(OpenRequest {
                 path: Some(p.clone()),
                 organ_labels: organ_labels.clone(),
                 structure_labels: structure_labels.clone(),
                 ct: s.ct.clone(),
             })(progress, cancel)?,
-            OrganSource::Patient { dir } => super::jobs::open_patient_job(dir.clone())(progress, cancel)?,
+            OrganSource::Patient { dir } => crate::app::model::compute::open_patient_job(dir.clone())(progress, cancel)?,
         };
-        Ok(JobOutput::Session(Box::new(inner), Box::new(s), path))
+        Ok(JobOutput::Apply(Box::new(move |world| {
+            let msg = crate::app::shell::tasks::apply(world, inner)?;
+            // Applied after the organ (`apply_pending`, this frame): the probes, camera and
+            // slices belong to it.
+            world.resource_mut::<PendingSession>().0 = Some((s, path));
+            Ok(msg.unwrap_or_default())
+        })))
     }
 }
 
@@ -213,11 +221,7 @@ pub fn apply_pending(mut pending: ResMut<PendingSession>, mut st: SessionState) 
     if let (Some((dir, file)), Some(d)) = (&s.model, &st.organ.data) {
         *st.active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
         if s.rehearsal {
-            let (dir, file, d) = (dir.clone(), file.clone(), d.clone());
-            st.jobs.spawn("load model", move |_, _| {
-                let m = super::probes::RehearsalModel::load_checkpoint(&dir, &file, &d)?;
-                Ok(JobOutput::Model(std::sync::Arc::new(std::sync::Mutex::new(m))))
-            });
+            st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir.clone(), file.clone(), d.clone()));
         }
     }
     st.messages.info(format!("session {} opened ({} probes)", path.display(), s.probes.len()));
@@ -320,6 +324,9 @@ impl Plugin for SessionPlugin {
             .init_resource::<PendingExport>()
             .init_resource::<SaveRequest>()
             .insert_resource(Recent::load())
-            .add_systems(Update, (apply_pending.after(super::jobs::poll_jobs), save_requested.after(apply_pending), export_view));
+            .add_systems(
+                Update,
+                (apply_pending.after(crate::app::shell::tasks::poll_jobs), save_requested.after(apply_pending), export_view),
+            );
     }
 }

@@ -1,10 +1,10 @@
 //! Panels of the jobs view: the dataset and training forms (the CLI's settings), the queue
 //! with progress, rate, ETA, log and cancel, and the training dashboard.
 
-use super::setup::ObservationSetup;
-use super::state::{ActiveModel, Organ, UiMessages};
-use super::state::{FixedChoice, OpenPatient};
-use super::workflow::{WorkKind, WorkQueue, WorkStatus, read_metrics};
+use crate::app::jobs::queue::{WorkKind, WorkQueue, WorkStatus, read_metrics};
+use crate::app::model::setup::ObservationSetup;
+use crate::app::state::{ActiveModel, Organ, UiMessages};
+use crate::app::state::{FixedChoice, OpenPatient};
 use crate::cli::dataset::ConfigArgs;
 use bevy::prelude::*;
 use bevy_egui::egui;
@@ -524,7 +524,7 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
             {
                 load = Some((dir.clone(), file.to_string()));
             }
-            ui.weak(format!("active: {} ({})", super::state::short_path(&active.dir), active.checkpoint));
+            ui.weak(format!("active: {} ({})", crate::app::state::short_path(&active.dir), active.checkpoint));
         });
     }
     load

@@ -1,8 +1,8 @@
 //! Panels of the dataset QA browser: open, sort, filter, step, flag (left); the sample's
 //! numbers and the dataset's histograms (right).
 
-use super::qa::{Qa, QaFilter, QaSort};
-use super::state::{ActiveModel, Organ, UiMessages};
+use crate::app::qa::{Qa, QaFilter, QaSort};
+use crate::app::state::{ActiveModel, Organ, UiMessages};
 use bevy_egui::egui;
 use egui_plot::{Bar, BarChart, Plot};
 use std::path::PathBuf;
@@ -27,7 +27,7 @@ pub fn left_panel(ui: &mut egui::Ui, qa: &mut Qa, organ: &Organ, model: &ActiveM
             ui.weak(b);
         }
     });
-    ui.weak(format!("model: {} ({})", super::state::short_path(&model.dir), model.checkpoint));
+    ui.weak(format!("model: {} ({})", crate::app::state::short_path(&model.dir), model.checkpoint));
     let Some(m) = &qa.manifest else {
         ui.label("Open a dataset written by `umesh dataset generate` or the Jobs view, for the organ loaded now.");
         return;

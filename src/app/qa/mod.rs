@@ -3,7 +3,10 @@
 //! active model's prediction (per-sample TRE), and flag samples: the flags are written back
 //! into the manifest, and training skips flagged samples.
 
-use super::state::{ActiveModel, Organ, UiMessages};
+pub mod panel;
+pub mod scene;
+
+use crate::app::state::{ActiveModel, Organ, UiMessages};
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use nalgebra::Vector3;

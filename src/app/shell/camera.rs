@@ -1,8 +1,8 @@
 //! Orbit camera: right-drag rotates, middle-drag (or shift + right-drag) pans, the wheel
 //! zooms, F frames the organ. Input that egui takes is ignored.
 
-use super::convert::bevy_from_world;
-use super::state::Organ;
+use crate::app::shell::convert::bevy_from_world;
+use crate::app::state::Organ;
 use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll, MouseScrollUnit};
 use bevy::prelude::*;
 use bevy_egui::input::{egui_wants_any_keyboard_input, egui_wants_any_pointer_input};

@@ -1,8 +1,8 @@
 //! The 3-D scene: the organ (semi-transparent, or coloured by displacement once deformed)
 //! and its internal structures in distinct colours; rebuilt when the state changes.
 
-use super::convert::{color_u8, displacement_colors, mesh_from_trimesh};
-use super::state::{Organ, Simulation};
+use crate::app::shell::convert::{color_u8, displacement_colors, mesh_from_trimesh};
+use crate::app::state::{Organ, Simulation};
 use bevy::prelude::*;
 
 #[derive(Component)]
@@ -35,7 +35,7 @@ fn sync(
     mut commands: Commands,
     organ: Res<Organ>,
     sim: Res<Simulation>,
-    setup: Res<super::setup::ObservationSetup>,
+    setup: Res<crate::app::model::setup::ObservationSetup>,
     mut shown: ResMut<Shown>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -58,7 +58,7 @@ fn sync(
     let (surface, colors, seen) = match def {
         Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32)), false),
         None => {
-            let seen = super::setup::seen_colors(&setup, data, organ.generation);
+            let seen = crate::app::model::setup::seen_colors(&setup, data, organ.generation);
             let tinted = seen.is_some();
             (data.surface.as_ref(), seen, tinted)
         }
@@ -109,8 +109,8 @@ fn sync(
 }
 
 /// The organ and its structures show in the model view only (the QA view has its own).
-fn visibility(mode: Res<super::state::Mode>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
-    let want = if *mode == super::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
+fn visibility(mode: Res<crate::app::state::Mode>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
+    let want = if *mode == crate::app::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
     for mut v in &mut q {
         if *v != want {
             *v = want;

@@ -2,11 +2,12 @@
 //! direction and magnitude (arrow gizmo); probes are edited in the inspector. Rehearsal
 //! mode: the dragged probes deform the organ live through the network.
 
-use super::camera::MainCamera;
-use super::convert::{bevy_dir_from_world, bevy_from_world, world_dir_from_bevy, world_from_bevy};
-use super::jobs::{JobOutput, Jobs, deformation};
-use super::state::*;
-use super::view3d::View3d;
+use crate::app::model::compute::deformation;
+use crate::app::shell::camera::MainCamera;
+use crate::app::shell::convert::{bevy_dir_from_world, bevy_from_world, world_dir_from_bevy, world_from_bevy};
+use crate::app::shell::tasks::{JobOutput, Jobs};
+use crate::app::shell::view3d::View3d;
+use crate::app::state::*;
 use bevy::prelude::*;
 use bevy::window::PrimaryWindow;
 use bevy_egui::input::egui_wants_any_pointer_input;
@@ -115,7 +116,7 @@ fn draw_probes(probes: Res<Probes>, mut gizmos: Gizmos, settings: Res<ProbeSetti
         let a = bevy_from_world(&p.point_mm);
         let len_mm = (p.force_n.norm() / settings.newtons_per_mm).max(5.0);
         let dir = bevy_dir_from_world(&p.force_n.normalize());
-        let b = a + dir * (len_mm as f32) * super::convert::UNITS_PER_MM;
+        let b = a + dir * (len_mm as f32) * crate::app::shell::convert::UNITS_PER_MM;
         let color = if probes.selected == Some(i) { Color::srgb(1.0, 0.9, 0.1) } else { Color::srgb(0.1, 0.9, 1.0) };
         // The arrow ends on the surface: the force pushes along it.
         gizmos.arrow(b, a, color);
@@ -310,5 +311,23 @@ impl Plugin for ProbeInputPlugin {
             Update,
             (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes).run_if(resource_equals(Mode::Model)),
         );
+    }
+}
+
+/// Load a model's checkpoint for rehearsal in the background; once loaded, rehearsal is on.
+pub fn load_model_job(
+    dir: std::path::PathBuf,
+    file: String,
+    organ: OrganData,
+) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |_, _| {
+        let m = RehearsalModel::load_checkpoint(&dir, &file, &organ)?;
+        Ok(JobOutput::Apply(Box::new(move |world| {
+            let mut r = world.resource_mut::<Rehearsal>();
+            r.model = Some(std::sync::Arc::new(std::sync::Mutex::new(m)));
+            r.enabled = true;
+            r.shown_generation = u64::MAX;
+            Ok("model loaded: rehearsal on (drag the probes)".to_string())
+        })))
     }
 }

@@ -1,15 +1,12 @@
-//! egui panels: left (data and settings), right (inspector), bottom (status and jobs), a
-//! menu bar, the help window and the error window. Panels only read and edit the state
-//! resources; the work itself is started through `Jobs`.
+//! The window's layout: the menu bar, the bottom bar (status and jobs), the help and error
+//! windows, and the active view's panels (each view's own `panel` module) around the 3-D view.
 
-use super::jobs::{Jobs, grid_job, inspect_job, load_job, simulate_job};
-use super::probes::{ProbeSettings, Rehearsal, RehearsalModel, start_fe_check};
-use super::state::*;
+use crate::app::model::compute::{inspect_job, load_job};
+use crate::app::model::panel::{AppState, left_panel, right_panel, start_simulation};
+use crate::app::state::*;
 use bevy::prelude::*;
 use bevy::tasks::{IoTaskPool, Task, futures::check_ready};
 use bevy_egui::{EguiContexts, egui};
-use egui_plot::{Line, Plot, PlotPoints};
-use std::sync::{Arc, Mutex};
 
 #[derive(Resource, Default)]
 pub struct UiState {
@@ -29,40 +26,31 @@ fn save_dialog(name: &'static str, ext: &'static str) -> Task<Option<std::path::
     })
 }
 
-#[derive(bevy::ecs::system::SystemParam)]
-pub struct AppState<'w> {
-    organ: ResMut<'w, Organ>,
-    grid: ResMut<'w, GridState>,
-    probes: ResMut<'w, Probes>,
-    sim: ResMut<'w, Simulation>,
-    jobs: ResMut<'w, Jobs>,
-    messages: ResMut<'w, UiMessages>,
-    pending: ResMut<'w, PendingOpenRes>,
-    probe_settings: ResMut<'w, ProbeSettings>,
-    rehearsal: ResMut<'w, Rehearsal>,
-    setup: ResMut<'w, super::setup::ObservationSetup>,
-    orbit: Res<'w, super::camera::OrbitCamera>,
-    ct: ResMut<'w, super::ct::CtView>,
-}
-
 /// The state of the jobs, QA and AR views.
 #[derive(bevy::ecs::system::SystemParam)]
 pub struct Views<'w> {
     mode: ResMut<'w, Mode>,
-    jobs_ui: ResMut<'w, super::ui_jobs::JobsUi>,
-    queue: ResMut<'w, super::workflow::WorkQueue>,
-    qa: ResMut<'w, super::qa::Qa>,
-    ar: ResMut<'w, super::ar::Ar>,
+    jobs_ui: ResMut<'w, crate::app::jobs::panel::JobsUi>,
+    queue: ResMut<'w, crate::app::jobs::queue::WorkQueue>,
+    qa: ResMut<'w, crate::app::qa::Qa>,
+    ar: ResMut<'w, crate::app::ar::Ar>,
     active: ResMut<'w, ActiveModel>,
     patient: ResMut<'w, OpenPatient>,
     proxy: Option<Res<'w, bevy::winit::EventLoopProxyWrapper>>,
-    recent: ResMut<'w, super::session::Recent>,
-    session_file: Res<'w, super::session::SessionFile>,
-    save: ResMut<'w, super::session::SaveRequest>,
-    export: ResMut<'w, super::session::PendingExport>,
+    recent: ResMut<'w, crate::app::model::session::Recent>,
+    session_file: Res<'w, crate::app::model::session::SessionFile>,
+    save: ResMut<'w, crate::app::model::session::SaveRequest>,
+    export: ResMut<'w, crate::app::model::session::PendingExport>,
 }
 
-fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut super::view3d::View3d, views: &mut Views, mode: &mut Mode) {
+fn menu_bar(
+    ui: &mut egui::Ui,
+    st: &mut AppState,
+    uis: &mut UiState,
+    view: &mut crate::app::shell::view3d::View3d,
+    views: &mut Views,
+    mode: &mut Mode,
+) {
     egui::MenuBar::new().ui(ui, |ui| {
         ui.menu_button("File", |ui| {
             if ui.button("Open segmentation or mesh...").clicked() {
@@ -124,9 +112,9 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
                 let mut open = None;
                 for (p, kind) in &views.recent.list {
                     let what = match kind {
-                        super::session::RecentKind::Session => "session",
-                        super::session::RecentKind::Patient => "patient",
-                        super::session::RecentKind::Segmentation => "segmentation",
+                        crate::app::model::session::RecentKind::Session => "session",
+                        crate::app::model::session::RecentKind::Patient => "patient",
+                        crate::app::model::session::RecentKind::Segmentation => "segmentation",
                     };
                     if ui.button(format!("{} ({what})", p.display())).clicked() {
                         open = Some((p.clone(), *kind));
@@ -167,73 +155,6 @@ fn menu_bar(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, view: &mut 
     });
 }
 
-fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
-    ui.heading("Data");
-    match &st.organ.data {
-        Some(d) => {
-            ui.label(format!("Organ: {}", d.source));
-            for s in &d.structures {
-                let c = egui::Color32::from_rgb(s.color[0], s.color[1], s.color[2]);
-                ui.colored_label(c, format!("■ {} (label {})", s.name, s.label));
-            }
-        }
-        None => {
-            ui.label("No organ loaded (File > Open).");
-        }
-    }
-    ui.separator();
-    ui.heading("Scan");
-    super::ct::ct_ui(ui, &mut st.ct, &st.organ);
-    ui.separator();
-    ui.heading("Grid");
-    let mut h = st.grid.settings.cell_size_mm as f32;
-    let r = ui.add(egui::Slider::new(&mut h, 3.0..=15.0).text("cell size (mm)"));
-    st.grid.settings.cell_size_mm = h as f64;
-    let mut sub = st.grid.settings.subdivisions;
-    let r2 = ui.add(egui::Slider::new(&mut sub, 0..=3).text("boundary subdivisions"));
-    st.grid.settings.subdivisions = sub;
-    let rebuild = r.drag_stopped() || r2.drag_stopped() || (r.changed() && !r.dragged()) || (r2.changed() && !r2.dragged());
-    if (ui.button("Build grid").clicked() || rebuild)
-        && let Some(d) = &st.organ.data
-    {
-        st.jobs.spawn("grid", grid_job(d.seg.clone(), st.grid.settings.clone()));
-    }
-    ui.separator();
-    ui.heading("Laparoscope (dataset camera)");
-    super::setup::camera_ui(ui, &mut st.setup, &st.orbit);
-    ui.separator();
-    ui.heading("Simulation");
-    super::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
-    ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
-    let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
-    if ui.add_enabled(can, egui::Button::new("Simulate (SVK) (S)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
-    {
-        start_simulation(st);
-    }
-    ui.separator();
-    ui.heading("Rehearsal");
-    if ui.button("Load the bundled model").clicked()
-        && let Some(d) = &st.organ.data
-    {
-        let d = d.clone();
-        st.jobs.spawn("load model", move |_, _| {
-            let m = RehearsalModel::load(&crate::cli::input::bundled_model(), &d)?;
-            Ok(super::jobs::JobOutput::Model(Arc::new(Mutex::new(m))))
-        });
-    }
-    let has_model = st.rehearsal.model.is_some();
-    ui.add_enabled(has_model, egui::Checkbox::new(&mut st.rehearsal.enabled, "live U-Net deformation"));
-    ui.add(egui::Slider::new(&mut st.rehearsal.radius_mm, 5.0..=60.0).text("probe radius (mm)"));
-    if ui.add_enabled(has_model && !st.probes.list.is_empty(), egui::Button::new("FE check")).clicked()
-        && let Err(e) = start_fe_check(&mut st.jobs, &st.rehearsal, &st.probes, &st.organ, &st.probe_settings)
-    {
-        st.messages.error(e);
-    }
-    if let Some((mean, max)) = st.sim.check {
-        ui.label(format!("U-Net vs SVK: {mean:.2} mm mean, {max:.2} mm max"));
-    }
-}
-
 /// The colour map's scale in the 3-D view's lower right corner: 0 to `max_mm`.
 fn scale_bar(painter: &egui::Painter, rect: egui::Rect, max_mm: f64, what: &str) {
     let (w, h) = (14.0, (rect.height() * 0.3).clamp(60.0, 180.0));
@@ -243,7 +164,7 @@ fn scale_bar(painter: &egui::Painter, rect: egui::Rect, max_mm: f64, what: &str)
     let steps = 32;
     for i in 0..steps {
         let t = (i as f32 + 0.5) / steps as f32;
-        let c = super::convert::colormap_srgb(t);
+        let c = crate::app::shell::convert::colormap_srgb(t);
         let y = bar.bottom() - bar.height() * i as f32 / steps as f32;
         let r = egui::Rect::from_min_max(egui::pos2(bar.left(), y - bar.height() / steps as f32), egui::pos2(bar.right(), y));
         painter.rect_filled(r, 0.0, egui::Color32::from_rgb((c[0] * 255.0) as u8, (c[1] * 255.0) as u8, (c[2] * 255.0) as u8));
@@ -256,82 +177,13 @@ fn scale_bar(painter: &egui::Painter, rect: egui::Rect, max_mm: f64, what: &str)
     painter.text(egui::pos2(bar.right() + 8.0, bar.top() - 14.0), egui::Align2::RIGHT_BOTTOM, what, font, text);
 }
 
-/// The SVK solve of the probes' forces, when a grid and a probe exist and none runs.
-fn start_simulation(st: &mut AppState) {
-    if st.probes.list.is_empty() || st.jobs.is_running("simulate") {
-        return;
-    }
-    if let (Some(d), Some(g)) = (&st.organ.data, &st.grid.grid) {
-        st.jobs.spawn("simulate", simulate_job(d.clone(), g.clone(), st.sim.fixed.clone(), st.probes.list.clone()));
-    }
-}
-
-fn open_recent(st: &mut AppState, p: std::path::PathBuf, kind: super::session::RecentKind) {
-    use super::session::RecentKind;
+fn open_recent(st: &mut AppState, p: std::path::PathBuf, kind: crate::app::model::session::RecentKind) {
+    use crate::app::model::session::RecentKind;
     match kind {
-        RecentKind::Session => st.jobs.spawn("open session", super::session::open_job(p)),
-        RecentKind::Patient => st.jobs.spawn("open patient", super::jobs::open_patient_job(p)),
+        RecentKind::Session => st.jobs.spawn("open session", crate::app::model::session::open_job(p)),
+        RecentKind::Patient => st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(p)),
         RecentKind::Segmentation => st.jobs.spawn("inspect", inspect_job(p)),
     };
-}
-
-fn right_panel(ui: &mut egui::Ui, st: &mut AppState) {
-    ui.heading("Inspector");
-    if let Some(s) = &st.grid.stats {
-        egui::Grid::new("grid_stats").striped(true).show(ui, |ui| {
-            ui.label("cells");
-            ui.label(format!("{} ({} inside, {} boundary)", s.cells, s.inside_cells, s.boundary_cells));
-            ui.end_row();
-            ui.label("nodes");
-            ui.label(s.nodes.to_string());
-            ui.end_row();
-            ui.label("volume error");
-            let err = 100.0 * (s.grid_volume_mm3 - st.grid.voxel_volume_mm3) / st.grid.voxel_volume_mm3.max(1e-9);
-            ui.label(format!("{err:+.2} %"));
-            ui.end_row();
-            ui.label("padded shape");
-            ui.label(format!("{:?}", s.padded_shape));
-            ui.end_row();
-        });
-    } else {
-        ui.label("No grid yet.");
-    }
-    ui.separator();
-    ui.label(format!("Probes ({}): click the organ to add, drag to pull", st.probes.list.len()));
-    let mut remove = None;
-    let mut changed = false;
-    let mut selected = st.probes.selected;
-    for (i, p) in st.probes.list.iter_mut().enumerate() {
-        ui.horizontal(|ui| {
-            if ui.selectable_label(selected == Some(i), format!("#{}", i + 1)).clicked() {
-                selected = Some(i);
-            }
-            for c in 0..3 {
-                changed |= ui.add(egui::DragValue::new(&mut p.force_n[c]).speed(0.01).max_decimals(3)).changed();
-            }
-            ui.label("N");
-            if ui.small_button("delete").clicked() {
-                remove = Some(i);
-            }
-        });
-    }
-    st.probes.selected = selected;
-    if changed {
-        st.probes.generation += 1;
-    }
-    if let Some(i) = remove {
-        st.probes.remove(i);
-    }
-    if let Some(d) = &st.sim.result {
-        ui.separator();
-        ui.label(format!("{}: max {:.2} mm, mean {:.2} mm ({:.0} ms)", d.source, d.max_mm, d.mean_mm, d.solve_ms));
-        if !d.history.is_empty() {
-            let pts: PlotPoints = d.history.iter().map(|&(i, r)| [i as f64, r.max(1e-16).log10()]).collect();
-            Plot::new("newton").height(120.0).x_axis_label("iteration").y_axis_label("log10 residual").show(ui, |p| {
-                p.line(Line::new("residual", pts));
-            });
-        }
-    }
 }
 
 fn bottom_panel(ui: &mut egui::Ui, st: &mut AppState, uis: &UiState) {
@@ -405,7 +257,7 @@ pub fn ui_system(
     mut uis: ResMut<UiState>,
     keys: Res<ButtonInput<KeyCode>>,
     time: Res<Time>,
-    mut view: ResMut<super::view3d::View3d>,
+    mut view: ResMut<crate::app::shell::view3d::View3d>,
     mut views: Views,
     mut ar_texture: Local<Option<egui::TextureHandle>>,
 ) -> Result {
@@ -415,7 +267,7 @@ pub fn ui_system(
     {
         uis.file_dialog = None;
         if let Some(path) = picked {
-            views.recent.push(&path, super::session::RecentKind::Segmentation);
+            views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
             st.jobs.spawn("inspect", inspect_job(path));
         }
     }
@@ -424,8 +276,8 @@ pub fn ui_system(
     {
         uis.folder_dialog = None;
         if let Some(dir) = picked {
-            views.recent.push(&dir, super::session::RecentKind::Patient);
-            st.jobs.spawn("open patient", super::jobs::open_patient_job(dir));
+            views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
+            st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
         }
     }
     if let Some(task) = &mut uis.ct_dialog
@@ -434,7 +286,7 @@ pub fn ui_system(
         uis.ct_dialog = None;
         if let Some(path) = picked {
             let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
-            st.jobs.spawn("scan", super::jobs::load_ct_job(path, bounds));
+            st.jobs.spawn("scan", crate::app::model::compute::load_ct_job(path, bounds));
         }
     }
     if let Some(task) = &mut uis.session_dialog
@@ -442,7 +294,7 @@ pub fn ui_system(
     {
         uis.session_dialog = None;
         if let Some(path) = picked {
-            st.jobs.spawn("open session", super::session::open_job(path));
+            st.jobs.spawn("open session", crate::app::model::session::open_job(path));
         }
     }
     if let Some(task) = &mut uis.save_dialog
@@ -517,7 +369,7 @@ pub fn ui_system(
         let p = (**p).clone();
         Box::new(move || {
             let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
-        }) as super::ar::Waker
+        }) as crate::app::ar::Waker
     });
     let Views { jobs_ui, queue, qa, ar, active, patient, .. } = &mut views;
     match mode {
@@ -531,35 +383,32 @@ pub fn ui_system(
         }
         Mode::Jobs => {
             egui::Panel::left("jobs_left").default_size(300.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical()
-                    .show(ui, |ui| super::ui_jobs::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages));
+                egui::ScrollArea::vertical().show(ui, |ui| {
+                    crate::app::jobs::panel::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages)
+                });
             });
             let load = egui::CentralPanel::default()
-                .show(&mut root, |ui| super::ui_jobs::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
+                .show(&mut root, |ui| crate::app::jobs::panel::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
                 .inner;
             if let Some((dir, file)) = load {
                 **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
                 if let Some(d) = &st.organ.data {
-                    let d = d.clone();
-                    st.jobs.spawn("load model", move |_, _| {
-                        let m = RehearsalModel::load_checkpoint(&dir, &file, &d)?;
-                        Ok(super::jobs::JobOutput::Model(Arc::new(Mutex::new(m))))
-                    });
+                    st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir, file, d.clone()));
                 }
             }
         }
         Mode::Qa => {
             egui::Panel::left("qa_left").default_size(280.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| super::ui_qa::left_panel(ui, qa, &st.organ, active, &mut st.messages));
+                egui::ScrollArea::vertical().show(ui, |ui| crate::app::qa::panel::left_panel(ui, qa, &st.organ, active, &mut st.messages));
             });
             egui::Panel::right("qa_right").default_size(280.0).show(&mut root, |ui| {
                 egui::ScrollArea::vertical().show(ui, |ui| {
-                    super::ui_qa::right_panel(ui, qa);
+                    crate::app::qa::panel::right_panel(ui, qa);
                     if st.organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
                         ui.separator();
                         ui.heading("Scan");
                         ui.weak("yellow: the organ at rest; cyan: the sample's FE deformation");
-                        super::ct::ct_ui(ui, &mut st.ct, &st.organ);
+                        crate::app::model::ct::ct_ui(ui, &mut st.ct, &st.organ);
                     }
                 });
             });
@@ -568,18 +417,23 @@ pub fn ui_system(
             let mut synth = false;
             egui::Panel::left("ar_left").default_size(290.0).show(&mut root, |ui| {
                 egui::ScrollArea::vertical()
-                    .show(ui, |ui| synth = super::ui_ar::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
+                    .show(ui, |ui| synth = crate::app::ar::panel::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
             });
             egui::Panel::right("ar_right").default_size(250.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| super::ui_ar::right_panel(ui, ar));
+                egui::ScrollArea::vertical().show(ui, |ui| crate::app::ar::panel::right_panel(ui, ar));
             });
-            egui::CentralPanel::default().show(&mut root, |ui| super::ui_ar::central(ui, ar, &mut ar_texture));
+            egui::CentralPanel::default().show(&mut root, |ui| crate::app::ar::panel::central(ui, ar, &mut ar_texture));
             if synth {
                 match &st.organ.data {
                     Some(d) if !st.jobs.is_running("synthetic") => {
                         st.jobs.spawn(
                             "synthetic recording",
-                            super::jobs::synth_job(d.clone(), active.dir.clone(), super::ui_ar::synthetic_recording_dir(), 20),
+                            crate::app::model::compute::synth_job(
+                                d.clone(),
+                                active.dir.clone(),
+                                crate::app::ar::panel::synthetic_recording_dir(),
+                                20,
+                            ),
                         );
                     }
                     Some(_) => {}

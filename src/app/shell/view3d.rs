@@ -129,7 +129,7 @@ fn resize_image(mut view: ResMut<View3d>, mut images: ResMut<Assets<Image>>, mut
 fn apply_shadows(
     view: Res<View3d>,
     mut lights: Query<&mut DirectionalLight>,
-    mut cams: Query<&mut Camera, With<super::camera::MainCamera>>,
+    mut cams: Query<&mut Camera, With<crate::app::shell::camera::MainCamera>>,
 ) {
     if view.is_changed() {
         for mut c in &mut cams {

@@ -4,8 +4,8 @@
 //! what is shown (and any refusal: camera inside the organ, too little seen, an empty fixed
 //! region) is what `umesh dataset generate` and `umesh prepare` will use.
 
-use super::convert::{UNITS_PER_MM, bevy_from_world, world_from_bevy};
-use super::state::{FixedChoice, GridState, Organ, OrganData, Simulation};
+use crate::app::shell::convert::{UNITS_PER_MM, bevy_from_world, world_from_bevy};
+use crate::app::state::{FixedChoice, GridState, Organ, OrganData, Simulation};
 use crate::cli::dataset::ConfigArgs;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
@@ -279,7 +279,7 @@ pub fn seen_colors(setup: &ObservationSetup, organ: &OrganData, organ_generation
 }
 
 /// The camera section of the model view's left panel.
-pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &super::camera::OrbitCamera) {
+pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &crate::app::shell::camera::OrbitCamera) {
     ui.checkbox(&mut setup.show, "show the camera, seen surface, fixed nodes");
     let current = match &setup.camera {
         CameraChoice::Named(v) => v.clone(),
@@ -373,6 +373,6 @@ pub struct SetupViewPlugin;
 
 impl Plugin for SetupViewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, draw_preview.run_if(resource_equals(super::state::Mode::Model)));
+        app.add_systems(Update, draw_preview.run_if(resource_equals(crate::app::state::Mode::Model)));
     }
 }

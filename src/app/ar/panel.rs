@@ -1,8 +1,8 @@
 //! Panels of the AR view: the source and playback controls, the alignment controls and
 //! recording (left); latency, TRE and log (right); the overlay image (centre).
 
-use super::ar::{Ar, ArCommand, ArSession, ArSource};
-use super::state::{ActiveModel, Organ, UiMessages};
+use crate::app::ar::{Ar, ArCommand, ArSession, ArSource};
+use crate::app::state::{ActiveModel, Organ, UiMessages};
 use bevy_egui::egui;
 use std::path::PathBuf;
 
@@ -17,7 +17,7 @@ pub fn left_panel(
     organ: &Organ,
     model: &ActiveModel,
     messages: &mut UiMessages,
-    waker: Option<super::ar::Waker>,
+    waker: Option<crate::app::ar::Waker>,
 ) -> bool {
     let mut want_synth = false;
     ui.heading("AR view");
@@ -69,7 +69,7 @@ pub fn left_panel(
             None => messages.error("load the organ (segmentation) the recording shows first"),
         }
     }
-    ui.weak(format!("model: {} ({})", super::state::short_path(&model.dir), model.checkpoint));
+    ui.weak(format!("model: {} ({})", crate::app::state::short_path(&model.dir), model.checkpoint));
     let Some(s) = &ar.session else {
         ui.label("Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.");
         return want_synth;

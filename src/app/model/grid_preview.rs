@@ -1,8 +1,8 @@
 //! Grid preview: the sparse hexahedral grid drawn over the organ, inside cells faint green,
 //! boundary cells orange with an opacity that follows their inside volume fraction.
 
-use super::convert::{UNITS_PER_MM, bevy_from_world};
-use super::state::GridState;
+use crate::app::shell::convert::{UNITS_PER_MM, bevy_from_world};
+use crate::app::state::GridState;
 use bevy::prelude::*;
 use nalgebra::Vector3;
 
@@ -24,6 +24,6 @@ pub struct GridPreviewPlugin;
 
 impl Plugin for GridPreviewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, draw_grid.run_if(resource_equals(super::state::Mode::Model)));
+        app.add_systems(Update, draw_grid.run_if(resource_equals(crate::app::state::Mode::Model)));
     }
 }

@@ -2,9 +2,9 @@
 //! the structures following, the probes and forces and the input u_s as arrows; with a
 //! model, the prediction beside it, coloured by its error.
 
-use super::convert::{UNITS_PER_MM, bevy_dir_from_world, bevy_from_world, color_u8, displacement_colors, mesh_from_trimesh};
-use super::qa::Qa;
-use super::state::Mode;
+use crate::app::qa::Qa;
+use crate::app::shell::convert::{UNITS_PER_MM, bevy_dir_from_world, bevy_from_world, color_u8, displacement_colors, mesh_from_trimesh};
+use crate::app::state::Mode;
 use bevy::prelude::*;
 use nalgebra::Vector3;
 

@@ -364,16 +364,28 @@ impl<'c> Registrar<'c> {
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
         let organ = self.ctx.deformed_surface(&self.field);
-        let confidence = frame_confidence(&world, &organ, &self.ctx.surface, &self.rings, coverage, model.confidence_reference().as_ref());
-        let confidence_ms = ms(t);
-        let t = Instant::now();
-        let overlay = self.settings.overlay.then(|| {
-            let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
-            let structures: Vec<_> = self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
-            draw_overlay(&mut img, &organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
-            img
-        });
-        let overlay_ms = ms(t);
+        let surface_ms_deform = ms(t);
+        let reference = model.confidence_reference();
+        // The confidence figures and the overlay both read the prediction only: side by side on
+        // the two cores (the network, which used both, is done).
+        let ((confidence, confidence_ms), (overlay, overlay_ms)) = rayon::join(
+            || {
+                let t = Instant::now();
+                let c = frame_confidence(&world, &organ, &self.ctx.surface, &self.rings, coverage, reference.as_ref());
+                (c, ms(t) + surface_ms_deform)
+            },
+            || {
+                let t = Instant::now();
+                let overlay = self.settings.overlay.then(|| {
+                    let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
+                    let structures: Vec<_> =
+                        self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
+                    draw_overlay(&mut img, &organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
+                    img
+                });
+                (overlay, ms(t))
+            },
+        );
         let (mut tre_mean, mut tre_max, mut tre_rigid, mut disp) = (None, None, None, None);
         if let (Some(truth), Some(rest), Some(tp)) = (truth, rest, true_pose) {
             let true_cam = rigid_inverse(tp);

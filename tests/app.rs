@@ -753,7 +753,9 @@ fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens
         .unwrap();
     let display = format!(":{n}");
     let mut xvfb = std::process::Command::new("Xvfb")
-        .args([display.as_str(), "-screen", "0", "1400x900x24", "-nolisten", "tcp"])
+        // -noreset: by default the server regenerates when its last client leaves (the readiness
+        // probe below, the first app), and a client connecting meanwhile fails to open the display.
+        .args([display.as_str(), "-screen", "0", "1400x900x24", "-nolisten", "tcp", "-noreset"])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()

@@ -134,6 +134,7 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
     solver.solve(&bc0, SolveMethod::Linear, &Progress::none(), &Cancel::new())?;
     let organ = extract_surface(&sc.seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
     let (mut svk, mut lin, mut cor) = (Vec::new(), Vec::new(), Vec::new());
+    let mut bc1 = None;
     for seed in 1..=repeat as u64 {
         let forces = loads::visible_random_forces(
             &organ,
@@ -149,6 +150,7 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
         svk.push(solver.solve(&bc, SolveMethod::Newton, &Progress::none(), &Cancel::new())?);
         lin.push(solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new())?);
         cor.push(solver.solve(&bc, SolveMethod::Corotational, &Progress::none(), &Cancel::new())?);
+        bc1.get_or_insert(bc);
     }
     // The matrix of a Newton step near the solution: the tangent at load case 1's SVK solution.
     let u1 = &svk[0].displacement_mm;
@@ -158,18 +160,7 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
         let (n, indptr, indices, data) = solver.tangent_csc(u1);
         let as_i64 = |v: Vec<usize>| v.into_iter().map(|x| x as i64).collect::<Vec<_>>();
         // The right-hand side: load case 1's external forces on the free dofs, same numbering.
-        let bc1 = {
-            let forces = loads::visible_random_forces(
-                &organ,
-                &sc.grid,
-                &sc.settings.material,
-                &ForceSettings::energy_scale(100, 3.0),
-                &Default::default(),
-                1,
-            )
-            .map_err(anyhow::Error::msg)?;
-            boundary_conditions(&sc.grid, Some(&sc.seg.volume), &SimulationSettings { forces, ..sc.settings.clone() })?
-        };
+        let bc1 = bc1.as_ref().ok_or_else(|| anyhow::anyhow!("no load case"))?;
         let rhs: Vec<f64> = bc1.forces_n.iter().zip(&bc1.fixed).filter(|(_, f)| !**f).flat_map(|(v, _)| [v.x, v.y, v.z]).collect();
         anyhow::ensure!(rhs.len() == n, "{} free force components for {n} free dofs", rhs.len());
         let nnz = data.len();

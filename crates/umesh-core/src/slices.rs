@@ -202,11 +202,6 @@ pub fn world_bounds(vol: &Volume) -> (Vector3<f64>, Vector3<f64>) {
     (lo, hi)
 }
 
-/// The smallest voxel spacing (mm) of the volume's axes.
-fn min_spacing_mm(vol: &Volume) -> f64 {
-    (0..3).map(|c| vol.world_from_voxel.fixed_view::<3, 1>(0, c).norm()).fold(f64::INFINITY, f64::min)
-}
-
 /// The slice of `vol` at `position_mm` along the axis normal to `axis` (clamped into the volume),
 /// windowed by `window`, at half the finest voxel spacing and at most `max_side_px` pixels on its
 /// longer side.
@@ -224,7 +219,7 @@ pub fn slice(vol: &Volume, axis: SliceAxis, position_mm: f64, window: Window, ma
     let n = axis.normal_axis();
     let (ua, va) = axis.in_plane_axes();
     let position_mm = position_mm.clamp(lo[n], hi[n]);
-    let spacing = min_spacing_mm(vol);
+    let spacing = vol.min_spacing_mm();
     // Half a voxel beyond the outer centres: the image covers the voxels, not their centres.
     let (u0, u1) = (lo[ua] - 0.5 * spacing, hi[ua] + 0.5 * spacing);
     let (v0, v1) = (lo[va] - 0.5 * spacing, hi[va] + 0.5 * spacing);

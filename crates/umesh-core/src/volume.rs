@@ -33,6 +33,11 @@ impl Volume {
         self.world_from_voxel.fixed_view::<3, 3>(0, 0).determinant().abs()
     }
 
+    /// The smallest voxel edge (mm) of the three axes.
+    pub fn min_spacing_mm(&self) -> f64 {
+        (0..3).map(|c| self.world_from_voxel.fixed_view::<3, 1>(0, c).norm()).fold(f64::INFINITY, f64::min)
+    }
+
     pub fn voxel_from_world(&self) -> Matrix4<f64> {
         self.world_from_voxel.try_inverse().unwrap_or_else(Matrix4::identity)
     }

@@ -78,7 +78,7 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
     // phantom's 1.5 mm): 68k (17k) triangles instead of 272k on the phantom, plenty for display
     // and picking. In millimetres, so that a 3 mm CT is not sampled every 12 mm.
     let spacing_mm = 1.5 * crate::app::shell::view3d::display_surface_step() as f64;
-    let voxel_mm = (0..3).map(|c| seg.volume.world_from_voxel.fixed_view::<3, 1>(0, c).norm()).fold(f64::INFINITY, f64::min);
+    let voxel_mm = seg.volume.min_spacing_mm();
     let step = (spacing_mm / voxel_mm.max(1e-3)).round().clamp(1.0, 8.0) as usize;
     // Blurred over about half the sampling step before it is sampled: a smooth surface, whose
     // normals follow the field rather than the voxel faces.

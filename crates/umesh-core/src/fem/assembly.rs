@@ -73,6 +73,8 @@ pub struct Assembler<'g> {
     linear_material: Material,
     ke: Vec<Ke>,
     fe: Vec<SMatrix<f64, 24, 1>>,
+    /// Each cell's rotation at the last co-rotational assembly.
+    rot: Vec<Matrix3<f64>>,
 }
 
 impl std::fmt::Debug for Assembler<'_> {
@@ -158,6 +160,7 @@ impl<'g> Assembler<'g> {
             linear_material,
             ke: vec![Ke::zeros(); m],
             fe: vec![SMatrix::zeros(); m],
+            rot: vec![Matrix3::identity(); m],
         }
     }
 
@@ -232,6 +235,7 @@ impl<'g> Assembler<'g> {
                 let ue_flat = SMatrix::<f64, 24, 1>::from_fn(|r, _| ue[r / 3][r % 3]);
                 let mut min_det = f64::INFINITY;
                 let mut energy = 0.0;
+                let mut rot = Matrix3::identity();
                 match model {
                     ElementModel::Hyperelastic(mat) => {
                         *fe = k_stab * ue_flat * stab[c];
@@ -259,6 +263,7 @@ impl<'g> Assembler<'g> {
                         let f = deformation_gradient(&ue, &g0);
                         min_det = f.determinant();
                         let r = rotation_of(&f);
+                        rot = r;
                         let h = grid.cell_size_mm;
                         let x0: [Vector3<f64>; 8] =
                             crate::grid::HEX_CORNERS.map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64) * h);
@@ -287,9 +292,12 @@ impl<'g> Assembler<'g> {
                         }
                     }
                 }
-                (min_det, energy)
+                (min_det, energy, rot)
             })
-            .collect::<Vec<(f64, f64)>>();
+            .collect::<Vec<(f64, f64, Matrix3<f64>)>>();
+        if matches!(model, ElementModel::Corotational) {
+            self.rot = per_cell.iter().map(|x| x.2).collect();
+        }
         // Summed in cell order, so the energy does not depend on thread scheduling.
         let min_det = per_cell.iter().map(|x| x.0).fold(f64::INFINITY, f64::min);
         let energy: f64 = per_cell.iter().map(|x| x.1).sum();
@@ -347,6 +355,60 @@ fn add_tangent(ke: &mut Ke, a: &super::material::Tangent, g: &super::element::Gr
                 }
             }
         }
+    }
+}
+
+impl Assembler<'_> {
+    /// y = K x on the free dofs for the co-rotational stiffness at the last co-rotational
+    /// assembly (each cell's rest stiffness turned by its rotation, R K R^T), without forming
+    /// the matrix: the operator of a registration update, a few milliseconds per product.
+    pub fn corotational_matvec(&mut self, x: &[f64], y: &mut [f64]) {
+        self.ensure_linear_stiffness();
+        let free = &self.dofs.free_of;
+        let (grid, k_lin, k_stab, stab, rot) = (self.grid, &self.k_lin, &self.k_stab, &self.stab_scale, &self.rot);
+        self.fe.par_iter_mut().enumerate().for_each(|(c, fe)| {
+            let cell = &grid.cells[c];
+            let r = rot[c];
+            let mut xl = SMatrix::<f64, 24, 1>::zeros();
+            for a in 0..8 {
+                let mut v = Vector3::zeros();
+                for i in 0..3 {
+                    let f = free[3 * cell.nodes[a] as usize + i];
+                    if f != NONE {
+                        v[i] = x[f as usize];
+                    }
+                }
+                xl.fixed_rows_mut::<3>(3 * a).copy_from(&(r.transpose() * v));
+            }
+            let yl = (k_lin[c] + k_stab * stab[c]) * xl;
+            for a in 0..8 {
+                let v = r * yl.fixed_rows::<3>(3 * a);
+                fe.fixed_rows_mut::<3>(3 * a).copy_from(&v);
+            }
+        });
+        y.iter_mut().for_each(|v| *v = 0.0);
+        for (c, cell) in grid.cells.iter().enumerate() {
+            for a in 0..8 {
+                for i in 0..3 {
+                    let f = free[3 * cell.nodes[a] as usize + i];
+                    if f != NONE {
+                        y[f as usize] += self.fe[c][3 * a + i];
+                    }
+                }
+            }
+        }
+    }
+
+    /// Each node's rotation: the rotation of the mean of its cells' rotations at the last
+    /// co-rotational assembly (stiffness warping turns the rest factor's solves with these).
+    pub fn nodal_rotations(&self) -> Vec<Matrix3<f64>> {
+        let mut sum = vec![Matrix3::zeros(); self.grid.node_count()];
+        for (c, cell) in self.grid.cells.iter().enumerate() {
+            for &n in &cell.nodes {
+                sum[n as usize] += self.rot[c];
+            }
+        }
+        sum.par_iter().map(|m| if *m == Matrix3::zeros() { Matrix3::identity() } else { rotation_of(m) }).collect()
     }
 }
 

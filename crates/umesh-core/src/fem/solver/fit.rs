@@ -1,10 +1,14 @@
 //! Co-rotational FE registration to an observed point cloud, the FE baseline of the
 //! registration: each observed point pulls its nearest deformed surface sample by a soft
 //! spring, and the correspondences are found again a fixed number of times per frame.
-//! Every update is a quasi-Newton step on the co-rotational energy plus the springs, solved
-//! by conjugate gradients preconditioned by one matrix, the rest stiffness plus a spring on
-//! every eligible sample, factorised once when the fit is built: a frame costs a bounded
-//! number of triangular solves and assemblies, never a factorisation.
+//! Every update is a Newton-like step on the co-rotational energy plus the springs: the
+//! cells' rest stiffness turned by their current rotations (applied matrix-free), solved by
+//! conjugate gradients preconditioned by one matrix factorised once when the fit is built
+//! (the rest stiffness plus a spring on every eligible sample, in single precision) and
+//! turned by the nodal rotations (stiffness warping). A frame costs a bounded number of
+//! triangular solves and assemblies, never a factorisation. Without the rotations, a step
+//! from the rest stiffness overshot so far under large deformation (15 mm mean on the
+//! phantom) that the line search rejected every update and the frame did nothing.
 
 use super::{FeSolver, FemError, SolverSettings, norm};
 use crate::fem::MaterialParams;
@@ -13,6 +17,8 @@ use crate::grid::{Embedding, ImmersedGrid};
 use crate::observation::Buckets;
 use faer::Mat;
 use nalgebra::Vector3;
+use rayon::prelude::*;
+use std::time::Instant;
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PointFitSettings {
@@ -42,8 +48,16 @@ pub struct PointFitReport {
     /// Surface samples pulled by at least one point, in the last update.
     pub samples_matched: usize,
     pub cg_iterations: usize,
+    /// Updates that moved the nodes (an update whose step the line search cut below a tenth
+    /// changes nothing).
+    pub updates: usize,
     /// RMS distance of the matched points to their samples after the last update (mm).
     pub rms_mm: f64,
+    /// Where the frame went (ms): closest-point search, co-rotational assemblies (forces and
+    /// the line search's energies), conjugate gradients (triangular solves and products).
+    pub search_ms: f64,
+    pub assembly_ms: f64,
+    pub solve_ms: f64,
 }
 
 pub struct PointFit<'g> {
@@ -100,6 +114,8 @@ impl<'g> PointFit<'g> {
             }
         }
         solver.fact.factorize(&solver.asm, false)?;
+        // Only ever a preconditioner: single precision halves every triangular solve.
+        solver.fact.factorize32(&solver.asm);
         Ok(Self { solver, samples, rest_mm, k_n_per_mm, settings, buckets: Buckets::default() })
     }
 
@@ -121,8 +137,44 @@ impl<'g> PointFit<'g> {
         self.samples.iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate(e, u)).collect()
     }
 
-    /// Move `u` (the previous frame's displacement in, this frame's out) toward `points_mm`.
+    /// Move `u` (the previous frame's displacement in, this frame's out) toward `points_mm`:
+    /// the settings' fixed number of updates, the registration's per-frame work.
     pub fn fit(&mut self, points_mm: &[Vector3<f64>], u: &mut [Vector3<f64>]) -> Result<PointFitReport, FemError> {
+        let (iterations, cg) = (self.settings.iterations, self.settings.cg_iterations);
+        self.fit_updates(points_mm, u, iterations, cg, 1e-3, None, false)
+    }
+
+    /// The solve a frame's fixed work approximates: the correspondences of `u`'s surface to
+    /// `points_mm` found once and held, and the co-rotational energy plus those springs
+    /// minimised with tight inner solves until an update moves the nodes by at most `tol_mm`
+    /// RMS (at most `max_updates`). `fixed_work`: the settings' updates and CG iterations
+    /// instead, on the same held correspondences.
+    pub fn fit_held(
+        &mut self,
+        points_mm: &[Vector3<f64>],
+        u: &mut [Vector3<f64>],
+        tol_mm: f64,
+        max_updates: usize,
+        fixed_work: bool,
+    ) -> Result<PointFitReport, FemError> {
+        if fixed_work {
+            let (iterations, cg) = (self.settings.iterations, self.settings.cg_iterations);
+            self.fit_updates(points_mm, u, iterations, cg, 1e-3, None, true)
+        } else {
+            self.fit_updates(points_mm, u, max_updates, 300, 1e-6, Some(tol_mm), true)
+        }
+    }
+
+    fn fit_updates(
+        &mut self,
+        points_mm: &[Vector3<f64>],
+        u: &mut [Vector3<f64>],
+        iterations: usize,
+        cg_iterations: usize,
+        cg_tol: f64,
+        stop_mm: Option<f64>,
+        freeze: bool,
+    ) -> Result<PointFitReport, FemError> {
         let grid = self.solver.grid;
         if u.len() != grid.node_count() {
             return Err(FemError::InvalidInput(format!("point fit: {} displacements for {} nodes", u.len(), grid.node_count())));
@@ -132,27 +184,38 @@ impl<'g> PointFit<'g> {
         let free = self.solver.asm.dofs.free_of.clone();
         let nf = self.solver.asm.dofs.n_free;
         let mut report = PointFitReport::default();
-        for _ in 0..self.settings.iterations {
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        // The sample each observed point pulls in the last update (u32::MAX: none).
+        let mut nearest: Vec<u32> = Vec::new();
+        for it in 0..iterations {
+            let t = Instant::now();
             let pos = self.deformed(u);
-            self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
+            if it == 0 || !freeze {
+                self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
+                let buckets = &self.buckets;
+                nearest = points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect();
+            }
             let mut acc = vec![Vector3::zeros(); ns];
             let mut count = vec![0u32; ns];
             let mut matched_points = 0;
-            for p in points_mm {
-                if let Some((s, _)) = self.buckets.nearest(p, band) {
-                    acc[s] += p;
-                    count[s] += 1;
+            for (p, &s) in points_mm.iter().zip(&nearest) {
+                if s != u32::MAX {
+                    acc[s as usize] += p;
+                    count[s as usize] += 1;
                     matched_points += 1;
                 }
             }
             let matched: Vec<bool> = count.iter().map(|&c| c > 0).collect();
             report.points_matched = matched_points;
             report.samples_matched = matched.iter().filter(|&&m| m).count();
+            report.search_ms += ms(t);
             if matched_points == 0 {
                 return Ok(report);
             }
             // Gradient of the co-rotational energy plus the matched springs.
+            let t = Instant::now();
             let a = self.solver.asm.assemble(ElementModel::Corotational, u, false);
+            report.assembly_ms += ms(t);
             let mut g = a.f_int;
             for s in 0..ns {
                 if matched[s] {
@@ -172,7 +235,9 @@ impl<'g> PointFit<'g> {
                     }
                 }
             }
-            let (du, iters) = self.pcg(&b, &matched, &free);
+            let t = Instant::now();
+            let (du, iters) = self.pcg(&b, &matched, &free, cg_iterations, cg_tol);
+            report.solve_ms += ms(t);
             report.cg_iterations += iters;
             // The step comes from the rest stiffness: under large rotations it can overshoot,
             // so it is halved until the energy (elastic plus the matched springs) decreases.
@@ -180,6 +245,7 @@ impl<'g> PointFit<'g> {
             let e0 = a.energy + self.spring_energy(u, &targets);
             let mut step = 1.0;
             let mut trial = u.to_vec();
+            let t = Instant::now();
             for _ in 0..4 {
                 for (n, (tn, un)) in trial.iter_mut().zip(u.iter()).enumerate() {
                     for c in 0..3 {
@@ -193,51 +259,87 @@ impl<'g> PointFit<'g> {
                 }
                 step *= 0.5;
             }
+            report.assembly_ms += ms(t);
             if step < 0.1 {
-                // No decrease even at a sixteenth of the step: this update changes nothing.
+                // No decrease even at a sixteenth of the step: this update changes nothing (and,
+                // converging, the next one would find the same correspondences).
+                if stop_mm.is_some() {
+                    break;
+                }
                 continue;
             }
+            let moved_mm = (trial.iter().zip(u.iter()).map(|(a, b)| (a - b).norm_squared()).sum::<f64>() / u.len().max(1) as f64).sqrt();
             u.copy_from_slice(&trial);
+            report.updates += 1;
+            if stop_mm.is_some_and(|tol| moved_mm <= tol) {
+                break;
+            }
         }
+        // The distance left between each matched point and its sample after the update (the
+        // last update's correspondences: a fresh search would cost another bucket fill).
+        let t = Instant::now();
         let pos = self.deformed(u);
         let (mut sq, mut n) = (0.0, 0usize);
-        self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
-        for p in points_mm {
-            if let Some((_, q)) = self.buckets.nearest(p, band) {
-                sq += (q - p).norm_squared();
+        for (p, &s) in points_mm.iter().zip(&nearest) {
+            if s != u32::MAX {
+                sq += (pos[s as usize] - p).norm_squared();
                 n += 1;
             }
         }
         report.rms_mm = if n > 0 { (sq / n as f64).sqrt() } else { 0.0 };
+        report.search_ms += ms(t);
         Ok(report)
     }
 
-    /// CG on A = K_rest + k sum over matched samples of W^T W, preconditioned by the factor
-    /// of M = K_rest + k sum over all samples (A = M minus the unmatched springs).
-    fn pcg(&mut self, b: &[f64], matched: &[bool], free: &[u32]) -> (Vec<f64>, usize) {
+    /// CG on A = K_corot + k sum over matched samples of W^T W, with K_corot the cells' rest
+    /// stiffness turned by their rotations at the last assembly (applied without forming it),
+    /// preconditioned by stiffness warping: M^-1 = R_N (K_rest + k sum over all samples of
+    /// W^T W)^-1 R_N^T, R_N the nodal rotations, the rest factor computed once.
+    fn pcg(&mut self, b: &[f64], matched: &[bool], free: &[u32], max_iter: usize, tol: f64) -> (Vec<f64>, usize) {
         let n = b.len();
         let bnorm = norm(b);
         let mut x = vec![0.0; n];
         if bnorm == 0.0 {
             return (x, 0);
         }
-        let mut r = b.to_vec();
-        let precondition = |fit: &mut Self, r: &[f64]| -> Vec<f64> {
-            let mut z = Mat::from_fn(n, 1, |i, _| r[i]);
-            fit.solver.fact.solve(&mut z);
-            (0..n).map(|i| z[(i, 0)]).collect()
+        let rot = self.solver.asm.nodal_rotations();
+        // v <- R_N^T v (transpose) or R_N v, node by node over the free components.
+        let turn = |v: &mut [f64], transpose: bool| {
+            for (nd, r) in rot.iter().enumerate() {
+                let idx: [u32; 3] = std::array::from_fn(|c| free[3 * nd + c]);
+                if idx.iter().all(|&f| f == NONE) {
+                    continue;
+                }
+                let w = Vector3::from_fn(|c, _| if idx[c] != NONE { v[idx[c] as usize] } else { 0.0 });
+                let w = if transpose { r.transpose() * w } else { r * w };
+                for c in 0..3 {
+                    if idx[c] != NONE {
+                        v[idx[c] as usize] = w[c];
+                    }
+                }
+            }
         };
+        let precondition = |fit: &mut Self, r: &[f64]| -> Vec<f64> {
+            let mut v = r.to_vec();
+            turn(&mut v, true);
+            let mut z = Mat::from_fn(n, 1, |i, _| v[i]);
+            fit.solver.fact.solve(&mut z);
+            let mut z: Vec<f64> = (0..n).map(|i| z[(i, 0)]).collect();
+            turn(&mut z, false);
+            z
+        };
+        let mut r = b.to_vec();
         let mut z = precondition(self, &r);
         let mut p = z.clone();
         let mut rz: f64 = r.iter().zip(&z).map(|(a, b)| a * b).sum();
         let mut ap = vec![0.0; n];
-        for k in 1..=self.settings.cg_iterations {
-            self.solver.matvec(&p, &mut ap);
+        for k in 1..=max_iter {
+            self.solver.asm.corotational_matvec(&p, &mut ap);
             for (s, e) in self.samples.iter().enumerate() {
-                if matched[s] {
+                if !matched[s] {
                     continue;
                 }
-                // Remove the unmatched spring: ap -= k W^T (W p).
+                // The matched spring: ap += k W^T (W p).
                 let mut wp = Vector3::<f64>::zeros();
                 for a in 0..8 {
                     for c in 0..3 {
@@ -251,7 +353,7 @@ impl<'g> PointFit<'g> {
                     for c in 0..3 {
                         let f = free[3 * e.nodes[a] as usize + c];
                         if f != NONE {
-                            ap[f as usize] -= self.k_n_per_mm * e.weights[a] * wp[c];
+                            ap[f as usize] += self.k_n_per_mm * e.weights[a] * wp[c];
                         }
                     }
                 }
@@ -265,7 +367,7 @@ impl<'g> PointFit<'g> {
                 x[i] += alpha * p[i];
                 r[i] -= alpha * ap[i];
             }
-            if norm(&r) <= 1e-3 * bnorm {
+            if norm(&r) <= tol * bnorm {
                 return (x, k);
             }
             z = precondition(self, &r);
@@ -276,8 +378,54 @@ impl<'g> PointFit<'g> {
                 p[i] = z[i] + beta * p[i];
             }
         }
-        (x, self.settings.cg_iterations)
+        (x, max_iter)
     }
+}
+
+/// One registration frame of the fit measured against the converged solve.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct FrameCheck {
+    /// The registration's frame (`PointFit::fit`, correspondences searched at every update),
+    /// warm-started from the previous frame's fit.
+    pub frame_ms: f64,
+    pub frame: PointFitReport,
+    /// Node displacement difference (mm) between the fixed work and the converged solve on
+    /// the same held correspondences: what stopping early costs.
+    pub error_rms_mm: f64,
+    pub error_max_mm: f64,
+    /// How far the converged solve moved the nodes from the previous frame's (mm, RMS): the
+    /// error a frame that did nothing would have.
+    pub motion_rms_mm: f64,
+    pub converged_updates: usize,
+}
+
+/// Fit `previous_mm` from rest (the previous frame, settled by 4 fixed-work frames), then
+/// from there: the registration frame on `points_mm`, timed; and the held-correspondence
+/// problem solved with the fixed work and to convergence.
+pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_mm: &[Vector3<f64>]) -> Result<FrameCheck, FemError> {
+    let n = fit.solver.grid.node_count();
+    let mut u_prev = vec![Vector3::zeros(); n];
+    for _ in 0..4 {
+        fit.fit(previous_mm, &mut u_prev)?;
+    }
+    let mut u_frame = u_prev.clone();
+    let t = Instant::now();
+    let frame = fit.fit(points_mm, &mut u_frame)?;
+    let frame_ms = t.elapsed().as_secs_f64() * 1e3;
+    let mut u_fast = u_prev.clone();
+    fit.fit_held(points_mm, &mut u_fast, 0.0, 0, true)?;
+    let mut u_conv = u_prev.clone();
+    let conv = fit.fit_held(points_mm, &mut u_conv, 1e-3, 50, false)?;
+    let rms =
+        |a: &[Vector3<f64>], b: &[Vector3<f64>]| (a.iter().zip(b).map(|(x, y)| (x - y).norm_squared()).sum::<f64>() / n as f64).sqrt();
+    Ok(FrameCheck {
+        frame_ms,
+        frame,
+        error_rms_mm: rms(&u_fast, &u_conv),
+        error_max_mm: u_fast.iter().zip(&u_conv).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max),
+        motion_rms_mm: rms(&u_prev, &u_conv),
+        converged_updates: conv.updates,
+    })
 }
 
 fn interpolate(e: &Embedding, u: &[Vector3<f64>]) -> Vector3<f64> {

@@ -60,6 +60,31 @@ pub struct PointFitReport {
     pub solve_ms: f64,
 }
 
+/// How much work a fit does.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FitWork {
+    pub updates: usize,
+    /// CG iterations per update at most, and the relative residual that ends them earlier.
+    pub cg_iterations: usize,
+    pub cg_tol: f64,
+    /// Stop once an update moves the nodes by at most this (mm, RMS); closest-point
+    /// correspondences keep switching by a sample, so a max-norm test would never settle.
+    pub stop_mm: Option<f64>,
+}
+
+impl FitWork {
+    /// The registration's per-frame work.
+    pub fn fixed(settings: &PointFitSettings) -> Self {
+        Self { updates: settings.iterations, cg_iterations: settings.cg_iterations, cg_tol: 1e-3, stop_mm: None }
+    }
+
+    /// Tight inner solves until an update moves the nodes by at most `tol_mm` RMS (at most
+    /// `max_updates`).
+    pub fn converged(tol_mm: f64, max_updates: usize) -> Self {
+        Self { updates: max_updates, cg_iterations: 300, cg_tol: 1e-6, stop_mm: Some(tol_mm) }
+    }
+}
+
 pub struct PointFit<'g> {
     solver: FeSolver<'g>,
     samples: Vec<Embedding>,
@@ -140,41 +165,23 @@ impl<'g> PointFit<'g> {
     /// Move `u` (the previous frame's displacement in, this frame's out) toward `points_mm`:
     /// the settings' fixed number of updates, the registration's per-frame work.
     pub fn fit(&mut self, points_mm: &[Vector3<f64>], u: &mut [Vector3<f64>]) -> Result<PointFitReport, FemError> {
-        let (iterations, cg) = (self.settings.iterations, self.settings.cg_iterations);
-        self.fit_updates(points_mm, u, iterations, cg, 1e-3, None, false)
+        self.fit_updates(points_mm, u, FitWork::fixed(&self.settings), false)
     }
 
-    /// The solve a frame's fixed work approximates: the correspondences of `u`'s surface to
-    /// `points_mm` found once and held, and the co-rotational energy plus those springs
-    /// minimised with tight inner solves until an update moves the nodes by at most `tol_mm`
-    /// RMS (at most `max_updates`). `fixed_work`: the settings' updates and CG iterations
-    /// instead, on the same held correspondences.
-    pub fn fit_held(
-        &mut self,
-        points_mm: &[Vector3<f64>],
-        u: &mut [Vector3<f64>],
-        tol_mm: f64,
-        max_updates: usize,
-        fixed_work: bool,
-    ) -> Result<PointFitReport, FemError> {
-        if fixed_work {
-            let (iterations, cg) = (self.settings.iterations, self.settings.cg_iterations);
-            self.fit_updates(points_mm, u, iterations, cg, 1e-3, None, true)
-        } else {
-            self.fit_updates(points_mm, u, max_updates, 300, 1e-6, Some(tol_mm), true)
-        }
+    /// As `fit`, but the correspondences of `u`'s surface to `points_mm` found once and held:
+    /// with `FitWork::converged`, the solve a frame's fixed work approximates.
+    pub fn fit_held(&mut self, points_mm: &[Vector3<f64>], u: &mut [Vector3<f64>], work: FitWork) -> Result<PointFitReport, FemError> {
+        self.fit_updates(points_mm, u, work, true)
     }
 
     fn fit_updates(
         &mut self,
         points_mm: &[Vector3<f64>],
         u: &mut [Vector3<f64>],
-        iterations: usize,
-        cg_iterations: usize,
-        cg_tol: f64,
-        stop_mm: Option<f64>,
+        work: FitWork,
         freeze: bool,
     ) -> Result<PointFitReport, FemError> {
+        let FitWork { updates: iterations, cg_iterations, cg_tol, stop_mm } = work;
         let grid = self.solver.grid;
         if u.len() != grid.node_count() {
             return Err(FemError::InvalidInput(format!("point fit: {} displacements for {} nodes", u.len(), grid.node_count())));
@@ -413,9 +420,9 @@ pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_
     let frame = fit.fit(points_mm, &mut u_frame)?;
     let frame_ms = t.elapsed().as_secs_f64() * 1e3;
     let mut u_fast = u_prev.clone();
-    fit.fit_held(points_mm, &mut u_fast, 0.0, 0, true)?;
+    fit.fit_held(points_mm, &mut u_fast, FitWork::fixed(&fit.settings))?;
     let mut u_conv = u_prev.clone();
-    let conv = fit.fit_held(points_mm, &mut u_conv, 1e-3, 50, false)?;
+    let conv = fit.fit_held(points_mm, &mut u_conv, FitWork::converged(1e-3, 50))?;
     let rms =
         |a: &[Vector3<f64>], b: &[Vector3<f64>]| (a.iter().zip(b).map(|(x, y)| (x - y).norm_squared()).sum::<f64>() / n as f64).sqrt();
     Ok(FrameCheck {

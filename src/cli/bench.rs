@@ -284,9 +284,18 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
     // The shipped input (the encoded camera view) for the cpu preset; the paper's 3 channels
     // for the paper preset (the shapes of the JAX comparison).
     let shipped = umesh_net::UNetConfig { in_channels: umesh_core::observation::CHANNELS, ..umesh_net::UNetConfig::cpu() };
-    for (name, cfg, reps) in [("cpu", shipped, repeat), ("paper", umesh_net::UNetConfig::paper(), 3)] {
+    // Widths between them (the shipped input, 16 and 32 first-layer channels): what a wider
+    // network would cost per frame.
+    let widths = [
+        ("cpu", shipped.clone(), repeat),
+        ("w16", umesh_net::UNetConfig { channels: 16, ..shipped.clone() }, repeat.min(10)),
+        ("w32", umesh_net::UNetConfig { channels: 32, ..shipped.clone() }, repeat.min(10)),
+        ("paper", umesh_net::UNetConfig::paper(), 3),
+    ];
+    for (name, cfg, reps) in widths {
         let model = cfg.init(&device);
-        // None for the paper preset: too wide for the direct convolutions, burn runs it.
+        // What registration runs per frame (direct kernels for the shipped widths, matrix
+        // products for the wide layers); burn's pass is timed beside it.
         let fast = umesh_net::fast::FastUNet::from_model(&model).ok();
         let c = cfg.in_channels;
         let (mut times, mut burn_times) = (Vec::new(), Vec::new());

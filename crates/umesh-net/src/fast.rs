@@ -1,8 +1,11 @@
 //! The trained U-Net's forward pass for inference, without burn: the same layers on
-//! channel-last f32 buffers, direct 3x3x3 convolutions vectorised over the output channels
-//! (AVX2 + FMA when the CPU has them), split over the first grid axis with rayon. Training
-//! stays on burn; this is what runs per frame at surgery (a batch of one, small channel counts,
-//! where a general convolution's im2col and layout changes cost more than the arithmetic).
+//! channel-last f32 buffers, split over the first grid axis with rayon. Narrow layers (the
+//! shipped network) are direct 3x3x3 convolutions vectorised over the output channels (AVX2 +
+//! FMA when the CPU has them): a batch of one with few channels, where a general convolution's
+//! im2col and layout changes cost more than the arithmetic. Wide layers (the paper's 128
+//! channels and up) are 27 shifted matrix products on a zero-padded copy of the input (faer's
+//! matmul, no im2col): the padded layout makes every tap's input window a contiguous block of
+//! columns. Training stays on burn.
 
 use crate::model::UNet;
 use burn::prelude::*;
@@ -100,11 +103,6 @@ impl FastUNet {
         if !ok {
             return Err("the network's layers are not the U-Net's 3x3x3 convolutions".into());
         }
-        // Beyond 64 channels a layer is a large matrix product, where burn's convolution is
-        // faster (the paper preset: 2421 ms here against burn's 1637 ms, `umesh bench net`).
-        if net.bottom.1.cout > 64 {
-            return Err(format!("{} channels at the bottom: burn runs this network faster", net.bottom.1.cout));
-        }
         Ok(Self { in_channels, out_channels, ..net })
     }
 
@@ -173,6 +171,9 @@ fn concat(a: &Map, b: &Map) -> Map {
 }
 
 fn transpose(x: &Map, u: &Up) -> Map {
+    if wide(u.cin, u.cout) {
+        return transpose_gemm(x, u);
+    }
     let [a, b, c] = x.dims;
     let d = [2 * a, 2 * b, 2 * c];
     let (cin, cout) = (u.cin, u.cout);
@@ -200,8 +201,19 @@ fn transpose(x: &Map, u: &Up) -> Map {
     Map { dims: d, c: cout, v }
 }
 
+/// Whether a layer runs as matrix products. The direct kernels are tuned for the shipped
+/// network's channel counts and win below 64 x 64 (measured with `umesh bench net` on 2 cores:
+/// the shipped network 7.6-7.8 ms with its 64 x 64 bottom layer as products, 7.6-9.4 ms with
+/// it direct, 8.0-10.1 ms with the 32 x 64 layers as products too).
+fn wide(cin: usize, cout: usize) -> bool {
+    !matches!(cout, 3 | 8 | 16 | 32 | 64) || cin * cout >= 64 * 64
+}
+
 /// A padded convolution (3x3x3, or 1x1x1 for the head), with ReLU when `relu`.
 fn conv(x: &Map, k: &Conv, relu: bool) -> Map {
+    if wide(k.cin, k.cout) {
+        return conv_gemm(x, k, relu);
+    }
     let [a, b, c] = x.dims;
     let cout = k.cout;
     let mut v = vec![0.0; a * b * c * cout];
@@ -347,4 +359,114 @@ fn slab_any<const FMA: bool>(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut 
             }
         }
     }
+}
+
+/// A padded convolution as one matrix product per tap. The input is copied into a zero-padded
+/// lattice (X+2, Y+2, Z+2) stored as a column-major [C_in x voxels] matrix with one spare
+/// column at each end; an output voxel at padded index p reads tap (dx, dy, dz) at
+/// p + (dx-1) sx + (dy-1) sy + (dz-1), so for a run of consecutive output columns every tap's
+/// input is a contiguous block, and out[:, run] += W_tap [C_out x C_in] * in[:, run + offset].
+/// Runs cover whole x-slabs (with the z halo, a few percent of wasted columns); a run's
+/// accumulator stays in cache over its 27 products.
+fn conv_gemm(x: &Map, k: &Conv, relu: bool) -> Map {
+    use faer::linalg::matmul::matmul;
+    use faer::{Accum, MatMut, MatRef, Par};
+    let [a, b, c] = x.dims;
+    let (cin, cout) = (k.cin, k.cout);
+    let (sy, sx) = (c + 2, (b + 2) * (c + 2));
+    // xp column q = 1 + padded index; x-slab pi of the padded lattice starts at column 1 + pi sx.
+    let mut xp = vec![0f32; ((a + 2) * sx + 2) * cin];
+    xp[cin..(1 + (a + 1) * sx) * cin].par_chunks_mut(sx * cin).enumerate().skip(1).for_each(|(pi, slab)| {
+        let i = pi - 1;
+        for j in 0..b {
+            let src = &x.v[((i * b + j) * c) * cin..][..c * cin];
+            slab[((j + 1) * sy + 1) * cin..][..c * cin].copy_from_slice(src);
+        }
+    });
+    let taps: Vec<(usize, isize)> = if k.taps == 1 {
+        vec![(0, 0)]
+    } else {
+        (0..27)
+            .map(|t| {
+                let (dx, dy, dz) = (t / 9, (t / 3) % 3, t % 3);
+                (t, (dx as isize - 1) * sx as isize + (dy as isize - 1) * sy as isize + dz as isize - 1)
+            })
+            .collect()
+    };
+    // Small weights: one run per x-slab (many runs to share out, each in cache). Large ones
+    // (the deep levels): one run per thread, so the weights are streamed once per thread.
+    let weight_bytes = k.w.len() * 4;
+    let groups = if weight_bytes <= 8 << 20 { a } else { a.min(rayon::current_num_threads().max(1)) };
+    let per = a.div_ceil(groups);
+    let mut v = vec![0.0; a * b * c * cout];
+    v.par_chunks_mut(per * b * c * cout).enumerate().for_each(|(g, out)| {
+        let (i0, i1) = (g * per, (g * per + per).min(a));
+        let p0 = (i0 + 1) * sx + sy;
+        let n = (i1 - i0 - 1) * sx + b * sy;
+        let mut acc = vec![0f32; cout * n];
+        for col in acc.chunks_exact_mut(cout) {
+            col.copy_from_slice(&k.b);
+        }
+        {
+            let mut dst = MatMut::from_column_major_slice_mut(&mut acc, cout, n);
+            for &(t, off) in &taps {
+                let w = MatRef::from_column_major_slice(&k.w[t * cin * cout..(t + 1) * cin * cout], cout, cin);
+                let q = (1 + p0 as isize + off) as usize;
+                let inp = MatRef::from_column_major_slice(&xp[q * cin..(q + n) * cin], cin, n);
+                matmul(dst.as_mut(), Accum::Add, w, inp, 1.0f32, Par::Seq);
+            }
+        }
+        for i in i0..i1 {
+            for j in 0..b {
+                for l in 0..c {
+                    let col = (i - i0) * sx + j * sy + l + 1;
+                    let src = &acc[col * cout..(col + 1) * cout];
+                    let dst = &mut out[(((i - i0) * b + j) * c + l) * cout..][..cout];
+                    if relu {
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            *d = s.max(0.0);
+                        }
+                    } else {
+                        dst.copy_from_slice(src);
+                    }
+                }
+            }
+        }
+    });
+    Map { dims: x.dims, c: cout, v }
+}
+
+/// The 2x2x2 stride-2 transposed convolution as eight matrix products, one per sub-voxel:
+/// y_s = W_s [C_out x C_in] * x [C_in x voxels], then each input voxel's eight columns are
+/// scattered to its 2^3 block.
+fn transpose_gemm(x: &Map, u: &Up) -> Map {
+    use faer::linalg::matmul::matmul;
+    use faer::{Accum, MatMut, MatRef, Par};
+    let [a, b, c] = x.dims;
+    let (cin, cout) = (u.cin, u.cout);
+    let n = a * b * c;
+    let mut ys = vec![0f32; 8 * cout * n];
+    let xin = MatRef::from_column_major_slice(&x.v, cin, n);
+    ys.par_chunks_mut(cout * n).enumerate().for_each(|(s, y)| {
+        let w = MatRef::from_column_major_slice(&u.w[s * cin * cout..(s + 1) * cin * cout], cout, cin);
+        matmul(MatMut::from_column_major_slice_mut(y, cout, n), Accum::Replace, w, xin, 1.0f32, Par::Seq);
+    });
+    let d = [2 * a, 2 * b, 2 * c];
+    let mut v = vec![0.0; d[0] * d[1] * d[2] * cout];
+    v.par_chunks_mut(d[1] * d[2] * cout).enumerate().for_each(|(xo, out)| {
+        let (i, si) = (xo / 2, xo % 2);
+        for yo in 0..d[1] {
+            let (j, sj) = (yo / 2, yo % 2);
+            for zo in 0..d[2] {
+                let (l, sl) = (zo / 2, zo % 2);
+                let s = (si * 2 + sj) * 2 + sl;
+                let src = &ys[(s * n + (i * b + j) * c + l) * cout..][..cout];
+                let dst = &mut out[(yo * d[2] + zo) * cout..][..cout];
+                for ((o, v), bias) in dst.iter_mut().zip(src).zip(&u.b) {
+                    *o = v + bias;
+                }
+            }
+        }
+    });
+    Map { dims: d, c: cout, v }
 }

@@ -66,9 +66,13 @@ fn info_for(config: UNetConfig, padded_shape: [usize; 3]) -> ModelInfo {
 #[test]
 fn the_fast_forward_pass_matches_burns_within_1e_4_of_the_largest_output() {
     let device = Device::flex();
-    for (cfg, shape, seed) in
-        [(UNetConfig { in_channels: 4, ..UNetConfig::cpu() }, [16, 8, 24], 3), (tiny(2, 3), [8, 16, 8], 5), (tiny(3, 6), [8, 8, 8], 9)]
-    {
+    for (cfg, shape, seed) in [
+        (UNetConfig { in_channels: 4, ..UNetConfig::cpu() }, [16, 8, 24], 3),
+        (tiny(2, 3), [8, 16, 8], 5),
+        (tiny(3, 6), [8, 8, 8], 9),
+        // Wide layers (40 to 160 channels): the matrix-product path of the paper preset.
+        (UNetConfig { steps: 2, channels: 40, in_channels: 3, out_channels: 3 }, [8, 12, 4], 13),
+    ] {
         device.seed(seed);
         let info = info_for(cfg.clone(), shape);
         let mut p = Predictor::from_model(info, cfg.init(&device), device.clone());

@@ -481,3 +481,66 @@ fn a_fixed_work_corotational_frame_stays_close_to_the_converged_fit() {
     assert!(c.converged_updates < 50, "the reference did not converge: {c:?}");
     assert!(c.error_rms_mm < 0.4 * c.motion_rms_mm, "{c:?}");
 }
+
+#[test]
+fn the_overlay_is_the_nearest_structure_blended_and_the_organ_outlined_pixel_for_pixel() {
+    use umesh_core::mesh::TriMesh;
+    use umesh_core::register::overlay::{draw_overlay, rasterize, rasterize_silhouette};
+    use umesh_core::rgbd::ColorImage;
+    use umesh_core::surface::{SurfaceSettings, extract_surface};
+    let seg = phantom();
+    let surf = SurfaceSettings { step: 2, ..Default::default() };
+    let organ = extract_surface(&seg.organ_mask(), &surf);
+    let structures: Vec<(TriMesh, [u8; 3])> = [2i64, 3, 4]
+        .iter()
+        .zip([[40, 90, 220], [200, 60, 60], [230, 200, 40]])
+        .map(|(&l, c)| (extract_surface(&seg.volume.mask(&[l]), &surf), c))
+        .collect();
+    // A camera 250 mm in front of the organ (anterior, +y), looking back at it.
+    let centre = organ.positions.iter().fold(Vector3::zeros(), |a, p| a + p) / organ.positions.len() as f64;
+    let eye = centre + Vector3::new(0.0, 250.0, 0.0);
+    let r = nalgebra::Matrix3::new(-1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, -1.0, 0.0);
+    let mut cam = Matrix4::identity();
+    cam.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+    cam.fixed_view_mut::<3, 1>(0, 3).copy_from(&(-(r * eye)));
+    let k = k640();
+    let (w, h, alpha) = (k.width, k.height, 0.6);
+    let mut base = ColorImage::new(w, h, [0, 0, 0]);
+    for (i, px) in base.rgb.chunks_exact_mut(3).enumerate() {
+        px.copy_from_slice(&[(i % w * 255 / w) as u8, (i / w * 255 / h) as u8, 90]);
+    }
+    // The reference composition from the public rasterisers: each pixel takes the nearest
+    // structure's shaded colour, blended once; the organ's silhouette edge goes on top.
+    let mut expect = base.clone();
+    let mut zbuf = vec![f32::INFINITY; w * h];
+    let mut color: Vec<Option<[u8; 3]>> = vec![None; w * h];
+    for (m, rgb) in &structures {
+        rasterize(m, &cam, &k, &mut zbuf, |i, _, nrm| {
+            let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
+            color[i] = Some(rgb.map(|c| (c as f32 * s).min(255.0) as u8));
+        });
+    }
+    for (i, c) in color.iter().enumerate() {
+        if let Some(c) = c {
+            expect.blend(i % w, i / w, *c, alpha);
+        }
+    }
+    let mut inside = vec![false; w * h];
+    rasterize_silhouette(&organ, &cam, &k, &mut inside);
+    let mut outline = 0;
+    for v in 1..h - 1 {
+        for u in 1..w - 1 {
+            let i = v * w + u;
+            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - w] || !inside[i + w]) {
+                expect.blend(u, v, [255, 255, 255], 0.9);
+                outline += 1;
+            }
+        }
+    }
+    let covered = color.iter().filter(|c| c.is_some()).count();
+    assert!(covered > 2000 && outline > 300, "the scene shows too little: {covered} structure pixels, {outline} outline pixels");
+    let mut got = base.clone();
+    draw_overlay(&mut got, &organ, &structures, &cam, &k, alpha);
+    let differ = got.rgb.iter().zip(&expect.rgb).filter(|(a, b)| a != b).count();
+    assert_eq!(differ, 0, "{differ} channel values differ from the reference composition");
+}

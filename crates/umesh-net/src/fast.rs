@@ -1,8 +1,9 @@
 //! The trained U-Net's forward pass for inference, without burn: the same layers on
 //! channel-last f32 buffers, split over the first grid axis with rayon. Narrow layers (the
-//! shipped network) are direct 3x3x3 convolutions vectorised over the output channels (compiled for
-//! AVX-512 and for AVX2 with FMA, chosen at run time by what the CPU has): a batch of one with few channels, where a general convolution's
-//! im2col and layout changes cost more than the arithmetic. Wide layers (the paper's 128
+//! shipped network) are direct 3x3x3 convolutions vectorised over the output channels
+//! (compiled for AVX-512 and for AVX2 with FMA, chosen at run time by what the CPU has): a
+//! batch of one with few channels, where a general convolution's im2col and layout changes
+//! cost more than the arithmetic. Wide layers (the paper's 128
 //! channels and up) are 27 shifted matrix products on a zero-padded copy of the input (faer's
 //! matmul, no im2col): the padded layout makes every tap's input window a contiguous block of
 //! columns. Training stays on burn.
@@ -218,30 +219,44 @@ fn conv(x: &Map, k: &Conv, relu: bool) -> Map {
     let cout = k.cout;
     let mut v = vec![0.0; a * b * c * cout];
     let slab = b * c * cout;
-    v.par_chunks_mut(slab).enumerate().for_each(|(i, out)| {
+    let isa = Isa::detect();
+    v.par_chunks_mut(slab).enumerate().for_each(|(i, out)| match isa {
+        // SAFETY (both): `Isa::detect` found the features these functions are compiled for;
+        // they are safe Rust otherwise.
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU has AVX-512F and FMA (checked above); the function is safe Rust
-            // compiled for those features.
-            #[allow(unsafe_code)]
-            unsafe {
-                slab_avx512(x, k, relu, i, out)
-            };
-            return;
-        }
+        #[allow(unsafe_code)]
+        Isa::Avx512 => unsafe { slab_avx512(x, k, relu, i, out) },
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU has AVX2 and FMA (checked above); the function is safe Rust
-            // compiled for those features.
-            #[allow(unsafe_code)]
-            unsafe {
-                slab_avx2(x, k, relu, i, out)
-            };
-            return;
-        }
-        slab_body::<false>(x, k, relu, i, out);
+        #[allow(unsafe_code)]
+        Isa::Avx2 => unsafe { slab_avx2(x, k, relu, i, out) },
+        Isa::Plain => slab_body::<false>(x, k, relu, i, out),
     });
     Map { dims: x.dims, c: cout, v }
+}
+
+/// The instruction set the direct kernels run with, the widest the CPU has.
+#[derive(Clone, Copy)]
+enum Isa {
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+    Plain,
+}
+
+impl Isa {
+    fn detect() -> Self {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("fma") {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                return Isa::Avx512;
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return Isa::Avx2;
+            }
+        }
+        Isa::Plain
+    }
 }
 
 #[cfg(target_arch = "x86_64")]

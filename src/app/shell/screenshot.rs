@@ -381,7 +381,10 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
 
 /// The AR view playing a synthetic recording (20 frames at 20 fps, 640x480): UI frame
 /// times (ms), the rate frames were shown at (per second) and the recording's rate.
-pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize), String> {
+/// `on_demand`: the UI updates as the desktop window does (when the worker wakes it with a
+/// frame, or after 100 ms); otherwise it renders continuously (the worst case: every UI frame
+/// competes with the registration for the cores).
+pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> Result<ArPlayback, String> {
     let (mut app, _) = headless_app("phantom", width, height)?;
     let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
     let model = ActiveModel::default();
@@ -390,7 +393,23 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
         run(compute::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }
     app.world_mut().insert_resource(Mode::Ar);
-    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
+    let woken = std::sync::Arc::new((std::sync::Mutex::new(false), std::sync::Condvar::new()));
+    let waker: Option<crate::app::ar::Waker> = on_demand.then(|| {
+        let w = woken.clone();
+        Box::new(move || {
+            *w.0.lock().unwrap_or_else(|e| e.into_inner()) = true;
+            w.1.notify_one();
+        }) as crate::app::ar::Waker
+    });
+    // The winit settings' reactive wait (src/app/mod.rs).
+    let wait_for_wake = || {
+        let mut flag = woken.0.lock().unwrap_or_else(|e| e.into_inner());
+        if !*flag {
+            flag = woken.1.wait_timeout(flag, std::time::Duration::from_millis(100)).unwrap_or_else(|e| e.into_inner()).0;
+        }
+        *flag = false;
+    };
+    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, waker);
     app.world_mut().resource_mut::<crate::app::ar::Ar>().session = Some(s);
     // The first frame (with ICP) before playing.
     let t0 = std::time::Instant::now();
@@ -405,10 +424,13 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
     if let Some(s) = &app.world().resource::<crate::app::ar::Ar>().session {
         s.send(crate::app::ar::ArCommand::Play(true));
     }
-    let (mut times, mut shown) = (Vec::new(), std::collections::BTreeSet::new());
+    let (mut times, mut shown, mut worker_ms) = (Vec::new(), std::collections::BTreeSet::new(), Vec::new());
     let start = std::time::Instant::now();
     let mut last_new = start;
     loop {
+        if on_demand {
+            wait_for_wake();
+        }
         let t = std::time::Instant::now();
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -416,6 +438,7 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
             && shown.insert(f.index)
         {
             last_new = std::time::Instant::now();
+            worker_ms.push(f.report.latency.total_ms);
         }
         let ar = app.world().resource::<crate::app::ar::Ar>();
         if shown.contains(&(frames.saturating_sub(1))) || !ar.playing && start.elapsed().as_secs() > 1 || start.elapsed().as_secs() > 120 {
@@ -424,7 +447,26 @@ pub fn ar_playback(width: u32, height: u32) -> Result<(Vec<f64>, f64, f64, usize
     }
     let secs = last_new.duration_since(start).as_secs_f64().max(1e-3);
     // Frames after the first shown, over the time they took: the display rate.
-    Ok((times, (shown.len().saturating_sub(1)) as f64 / secs, fps, shown.len()))
+    Ok(ArPlayback {
+        ui_ms: times,
+        shown_fps: (shown.len().saturating_sub(1)) as f64 / secs,
+        recording_fps: fps,
+        shown: shown.len(),
+        worker_ms,
+    })
+}
+
+/// What `ar_playback` measured.
+pub struct ArPlayback {
+    /// The UI's frame times (ms).
+    pub ui_ms: Vec<f64>,
+    /// Frames shown per second after the first.
+    pub shown_fps: f64,
+    pub recording_fps: f64,
+    pub shown: usize,
+    /// The registration's time (ms) for each frame shown, measured on the worker while the UI
+    /// renders beside it: what bounds the shown rate when it is above the frame interval.
+    pub worker_ms: Vec<f64>,
 }
 
 /// Compare two images: the fraction of pixels whose largest channel difference exceeds

@@ -14,28 +14,44 @@ pub fn rasterize(
     zbuf: &mut [f32],
     mut shade: impl FnMut(usize, f32, Vector3<f64>),
 ) {
-    scan(mesh, camera_from_world, k, Some(zbuf), &mut shade);
+    let (cam, proj) = to_camera(mesh, camera_from_world, k);
+    scan(&mesh.triangles, &cam, &proj, k, Some(zbuf), &mut shade);
 }
 
-/// Mark in `inside` every pixel that `mesh` covers (no depth test: a silhouette).
+/// Mark in `inside` every pixel that `mesh` covers (no depth test: a silhouette). A union,
+/// so the triangles are split over two tasks, each marking its own mask.
 pub fn rasterize_silhouette(mesh: &TriMesh, camera_from_world: &Matrix4<f64>, k: &Intrinsics, inside: &mut [bool]) {
-    scan(mesh, camera_from_world, k, None, &mut |i, _, _| inside[i] = true);
+    let (cam, proj) = to_camera(mesh, camera_from_world, k);
+    let (first, second) = mesh.triangles.split_at(mesh.triangles.len() / 2);
+    let mut other = vec![false; inside.len()];
+    rayon::join(
+        || scan(first, &cam, &proj, k, None, &mut |i, _, _| inside[i] = true),
+        || scan(second, &cam, &proj, k, None, &mut |i, _, _| other[i] = true),
+    );
+    inside.iter_mut().zip(&other).for_each(|(a, b)| *a |= *b);
+}
+
+/// Camera-space positions and their projections (None behind the camera).
+#[allow(clippy::type_complexity)]
+fn to_camera(mesh: &TriMesh, camera_from_world: &Matrix4<f64>, k: &Intrinsics) -> (Vec<Vector3<f64>>, Vec<Option<(f64, f64, f64)>>) {
+    let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
+    let proj = cam.iter().map(|p| k.project(p)).collect();
+    (cam, proj)
 }
 
 /// The scan conversion behind both: edge functions stepped along each row (one addition per
 /// pixel and edge) and 1/z interpolated linearly in the image (perspective-correct depth),
 /// evaluated only for covered pixels.
 fn scan(
-    mesh: &TriMesh,
-    camera_from_world: &Matrix4<f64>,
+    triangles: &[[u32; 3]],
+    cam: &[Vector3<f64>],
+    proj: &[Option<(f64, f64, f64)>],
     k: &Intrinsics,
     mut zbuf: Option<&mut [f32]>,
     shade: &mut dyn FnMut(usize, f32, Vector3<f64>),
 ) {
     let (w, h) = (k.width, k.height);
-    let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
-    let proj: Vec<Option<(f64, f64, f64)>> = cam.iter().map(|p| k.project(p)).collect();
-    for t in &mesh.triangles {
+    for t in triangles {
         // Closed surfaces are oriented outward: a triangle facing away from the camera is behind
         // a front-facing one of the same surface on every pixel it covers (for the depth test
         // and the silhouette alike), so it is skipped: about half the work.
@@ -55,7 +71,8 @@ fn scan(
         if x0 > x1 || y0 > y1 {
             continue;
         }
-        let n = (cam[t[1] as usize] - cam[t[0] as usize]).cross(&(cam[t[2] as usize] - cam[t[0] as usize])).normalize();
+        // The normal shades; a silhouette does not need it.
+        let n = if zbuf.is_some() { (p1 - p0).cross(&(p2 - p0)).normalize() } else { Vector3::z() };
         // Barycentric weights as linear functions of the pixel: w = A qx + B qy + C.
         let inv = 1.0 / area;
         let (a0, b0, c0) = ((b.1 - c.1) * inv, (c.0 - b.0) * inv, (b.0 * c.1 - c.0 * b.1) * inv);
@@ -118,21 +135,27 @@ pub fn draw_overlay(
     let mut zbuf = vec![f32::INFINITY; n];
     let mut color = vec![[0u8; 3]; n];
     let mut hit = vec![false; n];
-    for (mesh, rgb) in structures {
-        rasterize(mesh, camera_from_world, k, &mut zbuf, |i, _, nrm| {
-            let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
-            color[i] = rgb.map(|c| (c as f32 * s).min(255.0) as u8);
-            hit[i] = true;
-        });
-    }
+    // The organ's silhouette (the larger job: it covers most of the image) beside the
+    // structures; composed afterwards in the same order, so the image does not change.
+    let mut inside = vec![false; n];
+    rayon::join(
+        || {
+            for (mesh, rgb) in structures {
+                rasterize(mesh, camera_from_world, k, &mut zbuf, |i, _, nrm| {
+                    let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
+                    color[i] = rgb.map(|c| (c as f32 * s).min(255.0) as u8);
+                    hit[i] = true;
+                });
+            }
+        },
+        || rasterize_silhouette(organ, camera_from_world, k, &mut inside),
+    );
     for i in 0..n {
         if hit[i] {
             base.blend(i % k.width, i / k.width, color[i], alpha);
         }
     }
     // Organ silhouette -> its outline.
-    let mut inside = vec![false; n];
-    rasterize_silhouette(organ, camera_from_world, k, &mut inside);
     for v in 1..k.height.saturating_sub(1) {
         for u in 1..k.width.saturating_sub(1) {
             let i = v * k.width + u;

@@ -113,7 +113,7 @@ impl Drop for ArSession {
 }
 
 enum Src {
-    Recording(Recording, usize),
+    Recording(std::sync::Arc<Recording>, usize),
     Live(TcpSource),
 }
 
@@ -166,7 +166,7 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
             let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
             // The recording's rate from its timestamps (30 fps when they are missing).
             let fps = rec_fps(&rec).unwrap_or(30.0);
-            (Src::Recording(rec, 0), pose, truth, dir.display().to_string(), fps)
+            (Src::Recording(std::sync::Arc::new(rec), 0), pose, truth, dir.display().to_string(), fps)
         }
         ArSource::Tcp(addr) => {
             let s = TcpSource::connect(addr, Duration::from_secs(5)).map_err(|e| format!("{addr}: {e}"))?;
@@ -187,6 +187,9 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     let mut next_due = Instant::now();
     let mut want: Option<usize> = Some(0); // frame to (re)process now
     let mut last_index: Option<usize> = None;
+    // While a recording plays, the next frame's files are decoded on a helper thread during
+    // this frame's registration (a few ms of PNG decoding off the frame's path).
+    let mut prefetch: Option<(usize, std::thread::JoinHandle<Result<Frame, umesh_core::rgbd::RgbdError>>)> = None;
     loop {
         // Commands: block briefly when idle, so a paused session costs nothing.
         let cmd = if playing || want.is_some() {
@@ -260,7 +263,15 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 match idx {
                     Some(i) => {
                         *pos = i;
-                        match rec.read_frame(i) {
+                        let read = match prefetch.take() {
+                            Some((j, h)) if j == i => h.join().unwrap_or_else(|_| rec.read_frame(i)),
+                            _ => rec.read_frame(i),
+                        };
+                        if playing && i + 1 < rec.len() {
+                            let r = rec.clone();
+                            prefetch = Some((i + 1, std::thread::spawn(move || r.read_frame(i + 1))));
+                        }
+                        match read {
                             Ok(f) => Some(f),
                             Err(e) => {
                                 log(format!("frame {i} skipped: {e}"));

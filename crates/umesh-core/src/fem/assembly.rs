@@ -10,6 +10,8 @@ use nalgebra::{Matrix3, SMatrix, Vector3};
 use rayon::prelude::*;
 
 pub const NONE: u32 = u32::MAX;
+/// Cells whose 576 element-matrix entries each can be numbered in a u32 (the gather map).
+pub const MAX_CELLS: usize = (u32::MAX / 576) as usize;
 type Ke = SMatrix<f64, 24, 24>;
 
 /// Free-dof numbering: constrained components get `NONE`.
@@ -94,7 +96,9 @@ impl<'g> Assembler<'g> {
     /// `stabilization` is the relative stiffness of the fictitious (outside) part of boundary
     /// cells, as in the finite cell method; it removes spurious zero-energy modes of cells
     /// with few inside sub-cells.
+    /// Panics with more than `MAX_CELLS` cells (`FeSolver::new` refuses such grids first).
     pub fn new(grid: &'g ImmersedGrid, constrained_dofs: &[bool], linear_material: Material, stabilization: f64) -> Self {
+        assert!(grid.cells.len() <= MAX_CELLS, "{} cells: more than the assembler's {MAX_CELLS}", grid.cells.len());
         let quad = ElementQuadrature::new(grid);
         let dofs = DofMap::new(constrained_dofs);
         let n_nodes = grid.node_count();

@@ -366,6 +366,14 @@ impl<'g> FeSolver<'g> {
         if !constrained.iter().any(|&c| c) {
             return Err(FemError::InvalidInput("no node is fixed: the problem has rigid-body modes".into()));
         }
+        // The assembler numbers cell-matrix entries (576 per cell) in 32 bits.
+        if grid.cells.len() > super::assembly::MAX_CELLS {
+            return Err(FemError::InvalidInput(format!(
+                "the grid has {} cells, more than the {} the assembler handles; use larger cells (--cell-size-mm)",
+                grid.cells.len(),
+                super::assembly::MAX_CELLS
+            )));
+        }
         let dofs: Vec<bool> = constrained.iter().flat_map(|&c| [c; 3]).collect();
         let lin = MaterialParams { kind: MaterialKind::Linear, ..material }.material();
         let asm = Assembler::new(grid, &dofs, lin, settings.stabilization);

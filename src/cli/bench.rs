@@ -29,6 +29,13 @@ pub struct Args {
     /// solver on exactly this matrix.
     #[arg(long, value_name = "K.npz")]
     pub export_matrix: Option<std::path::PathBuf>,
+    /// `bench dataset`: the robustness sweep over organs, attachments and cameras instead
+    /// (`--samples` per configuration; real organs from ../shared/data when present).
+    #[arg(long)]
+    pub sweep: bool,
+    /// `--sweep`: only the configurations whose name contains this.
+    #[arg(long)]
+    pub only: Option<String>,
     #[arg(long)]
     pub json: bool,
 }
@@ -51,6 +58,7 @@ pub fn run(a: Args) -> Result<()> {
     let value = match a.what.as_str() {
         "grid" => bench_grid(repeat)?,
         "fe" => bench_fe(repeat, a.export_matrix.as_deref())?,
+        "dataset" if a.sweep => super::bench_sweep::run(a.samples, a.only.as_deref(), a.json)?,
         "dataset" => bench_dataset(a.samples)?,
         "net" => bench_net(repeat.max(20))?,
         "ui" => bench_ui()?,

@@ -5,7 +5,7 @@ use super::input::InputArgs;
 use anyhow::{Context, Result};
 use nalgebra::Vector3;
 use std::path::PathBuf;
-use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate, run_merge, run_stats};
+use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate_checked, run_merge, run_stats};
 use umesh_core::fem::{FixedRegion, MaterialParams};
 use umesh_core::grid::GridSettings;
 use umesh_core::loads::{FixedChoice, ForceSettings, LoadCalibration};
@@ -45,10 +45,40 @@ pub struct GenerateArgs {
     pub shard_size: usize,
     #[command(flatten)]
     pub config: ConfigArgs,
+    #[command(flatten)]
+    pub preflight: PreflightArgs,
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long)]
     pub json: bool,
+}
+
+/// The pre-flight check before a long dataset job (`dataset generate`, `prepare`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct PreflightArgs {
+    /// Samples of the job solved in parallel before it starts, to project its acceptance and
+    /// time; jobs with no more samples than this start without the check.
+    #[arg(long, default_value_t = umesh_core::dataset::PreflightSettings::default().samples)]
+    pub preflight_samples: usize,
+    /// Run the job even when the pre-flight check projects an acceptance below 90 %.
+    #[arg(long)]
+    pub force: bool,
+}
+
+impl PreflightArgs {
+    pub fn settings(&self) -> Result<umesh_core::dataset::PreflightSettings> {
+        let s = umesh_core::dataset::PreflightSettings { samples: self.preflight_samples, ..Default::default() };
+        s.validate().map_err(|e| anyhow::anyhow!("--preflight-samples: {e}"))?;
+        Ok(s)
+    }
+}
+
+/// Print the pre-flight figures (stderr, so `--json` output stays one document).
+pub fn print_preflight(p: &umesh_core::dataset::Preflight) {
+    eprintln!("{}", p.summary());
+    if p.acceptance < umesh_core::dataset::PreflightSettings::default().min_acceptance {
+        eprintln!("warning: likely cause: {}", p.cause.as_deref().unwrap_or("unknown"));
+    }
 }
 
 #[derive(clap::Args, Debug)]
@@ -83,6 +113,10 @@ pub struct ConfigArgs {
     pub target_displacement_mm: f64,
     #[arg(long, default_value_t = ForceSettings::default().target_spread)]
     pub target_spread: f64,
+    /// Contact radius of each probe (mm): its force is spread over the surface within it
+    /// (0: point loads, as datasets made before).
+    #[arg(long, default_value_t = ForceSettings::default().patch_radius_mm)]
+    pub probe_radius_mm: f64,
     /// How forces are scaled: mean-displacement (calibrated per sample, the default) or
     /// energy-scale (F = E L D / N, as datasets made before calibration).
     #[arg(long, default_value = "mean-displacement", value_parser = ["mean-displacement", "energy-scale"])]
@@ -151,6 +185,7 @@ impl ConfigArgs {
         opt("probes", self.probes != d.probes, self.probes.to_string());
         opt("target-displacement-mm", self.target_displacement_mm != d.target_displacement_mm, self.target_displacement_mm.to_string());
         opt("target-spread", self.target_spread != d.target_spread, self.target_spread.to_string());
+        opt("probe-radius-mm", self.probe_radius_mm != d.probe_radius_mm, self.probe_radius_mm.to_string());
         opt("calibration", self.calibration != d.calibration, self.calibration.clone());
         opt("visible-fraction", self.visible_fraction != d.visible_fraction, self.visible_fraction.to_string());
         opt("young-pa", self.young_pa != d.young_pa, self.young_pa.to_string());
@@ -246,10 +281,11 @@ impl ConfigArgs {
             probes: self.probes,
             target_displacement_mm: self.target_displacement_mm,
             target_spread: self.target_spread,
+            patch_radius_mm: self.probe_radius_mm,
             calibration: if self.calibration == "energy-scale" { LoadCalibration::EnergyScale } else { LoadCalibration::MeanDisplacement },
             ..Default::default()
         };
-        c.forces.validate().map_err(|e| anyhow::anyhow!("--probes/--target-displacement-mm/--target-spread: {e}"))?;
+        c.forces.validate().map_err(|e| anyhow::anyhow!("--probes/--target-displacement-mm/--target-spread/--probe-radius-mm: {e}"))?;
         anyhow::ensure!(
             self.visible_fraction > 0.0 && self.visible_fraction <= 1.0,
             "--visible-fraction {}: must lie in (0, 1]",
@@ -312,8 +348,16 @@ pub fn run(a: Args) -> Result<()> {
             for (why, n) in &st.rejected {
                 println!("  rejected ({why}): {n}");
             }
+            if st.below_target > 0 {
+                println!("  accepted below their target (the converged state nearest an unreachable target): {}", st.below_target);
+            }
             println!("  {:24} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}", "", "min", "p5", "median", "mean", "p95", "max");
-            println!("  target mean displacement {} mm ({:?})", st.target_displacement_mm, st.calibration);
+            println!(
+                "  target mean displacement {} mm ({:?}, over {} nodes)",
+                st.target_displacement_mm,
+                st.calibration,
+                if st.mean_over.is_all() { "all" } else { "the free" }
+            );
             for (name, d) in [
                 ("max displacement (mm)", &st.max_displacement_mm),
                 ("mean displacement (mm)", &st.mean_displacement_mm),
@@ -353,7 +397,14 @@ fn generate(a: GenerateArgs) -> Result<()> {
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
             .progress_chars("=> "),
     );
-    let report = run_generate(&seg, &a.out, &config, selection, &progress, &super::cancel());
+    let check = umesh_core::dataset::PreflightCheck {
+        settings: a.preflight.settings()?,
+        force: a.preflight.force,
+        report: &|p: &umesh_core::dataset::Preflight| {
+            pb.suspend(|| print_preflight(p));
+        },
+    };
+    let report = run_generate_checked(&seg, &a.out, &config, selection, Some(&check), &progress, &super::cancel());
     pb.finish_and_clear();
     let report = report.with_context(|| format!("generating the dataset in {}", a.out.display()))?;
     let stats = run_stats(&a.out).ok();
@@ -372,7 +423,7 @@ fn generate(a: GenerateArgs) -> Result<()> {
         );
         if let Some(m) = stats.as_ref().and_then(|s| s.mean_displacement_mm.clone()) {
             println!(
-                "mean nodal displacement {:.2} mm on average (p5 {:.2}, p95 {:.2}) for a target of {} mm",
+                "mean displacement of the free nodes {:.2} mm on average (p5 {:.2}, p95 {:.2}) for a target of {} mm",
                 m.mean, m.p5, m.p95, config.forces.target_displacement_mm
             );
         }

@@ -41,6 +41,8 @@ pub struct Args {
     /// folder as `ct.nii.gz` when the job ends, shown under the model by the app.
     #[arg(long, value_name = "FILE")]
     pub ct: Option<PathBuf>,
+    #[command(flatten)]
+    pub preflight: super::dataset::PreflightArgs,
     /// The patient folder (created; an interrupted job run again continues there).
     #[arg(long)]
     pub out: PathBuf,
@@ -73,7 +75,14 @@ pub fn run(a: Args) -> Result<()> {
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
             .progress_chars("=> "),
     );
-    let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, &progress, &super::cancel());
+    let check = umesh_core::dataset::PreflightCheck {
+        settings: a.preflight.settings()?,
+        force: a.preflight.force,
+        report: &|p: &umesh_core::dataset::Preflight| {
+            pb.suspend(|| super::dataset::print_preflight(p));
+        },
+    };
+    let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, Some(&check), &progress, &super::cancel());
     pb.finish_and_clear();
     let r = r.with_context(|| format!("preparing the patient {}", a.out.display()))?;
     if let Some(ct) = &a.ct {

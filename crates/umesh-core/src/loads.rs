@@ -1,5 +1,6 @@
 //! Random force probes on the visible surface and default fixed regions.
 
+use crate::fem::solver::MeanOver;
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::mesh::TriMesh;
@@ -29,6 +30,20 @@ pub struct ForceSettings {
     /// Relative half-width of the uniform spread of each sample's target (0.5: 0.5-1.5 x).
     #[serde(default)]
     pub target_spread: f64,
+    /// The nodes the calibrated mean displacement averages over: `free` (the default) or `all`
+    /// (datasets made before; not written then, so their configuration hash is unchanged).
+    #[serde(default = "MeanOver::legacy", skip_serializing_if = "MeanOver::is_all")]
+    pub mean_over: MeanOver,
+    /// Each probe presses a contact of this radius (mm): its force is spread over the surface
+    /// within it (`spread_forces`). 0: point loads, as datasets made before (not written then).
+    /// A point load of a stiffly held organ's calibrated size inverts the thin boundary cell it
+    /// lands on long before the organ reaches its target.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub patch_radius_mm: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -52,6 +67,8 @@ impl Default for ForceSettings {
             direction_spread: 0.8,
             calibration: LoadCalibration::MeanDisplacement,
             target_spread: 0.5,
+            mean_over: MeanOver::Free,
+            patch_radius_mm: DEFAULT_PATCH_RADIUS_MM,
         }
     }
 }
@@ -74,6 +91,9 @@ impl ForceSettings {
         }
         if !(0.0..1.0).contains(&self.target_spread) {
             return Err(format!("target spread {}: must lie in [0, 1)", self.target_spread));
+        }
+        if !(self.patch_radius_mm >= 0.0 && self.patch_radius_mm <= 100.0) {
+            return Err(format!("probe contact radius {} mm: between 0 and 100 mm", self.patch_radius_mm));
         }
         Ok(())
     }
@@ -215,6 +235,40 @@ pub fn default_fixed_region(grid: &ImmersedGrid, fix_label: Option<i64>, distanc
     let ys: Vec<f64> = (0..grid.node_count()).map(|n| grid.node_position(n).y).collect();
     let (lo, hi) = ys.iter().fold((f64::MAX, f64::MIN), |(a, b), &y| (a.min(y), b.max(y)));
     FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo, thickness_mm: POSTERIOR_FRACTION * (hi - lo) }
+}
+
+/// The contact radius of a probe (mm): about 1 cm², an instrument's tip, over which the
+/// force is spread with weights falling linearly to zero at the rim.
+pub const DEFAULT_PATCH_RADIUS_MM: f64 = 8.0;
+
+/// Each force spread over the mesh vertices within `radius_mm` of its point, with weights
+/// 1 - d / radius normalised to one: the resultant is kept exactly, the moment to within the
+/// offset of the patch's weighted centre (small on a smooth surface). A force with no vertex
+/// within the radius, or `radius_mm` 0, stays a point force.
+pub fn spread_forces(surface: &TriMesh, forces: &[PointForce], radius_mm: f64) -> Vec<PointForce> {
+    if radius_mm <= 0.0 {
+        return forces.to_vec();
+    }
+    let mut out = Vec::with_capacity(forces.len() * 16);
+    for f in forces {
+        let c = Vector3::from(f.point_mm);
+        let near: Vec<(Vector3<f64>, f64)> = surface
+            .positions
+            .iter()
+            .filter_map(|v| {
+                let d = (v - c).norm();
+                (d < radius_mm).then(|| (*v, 1.0 - d / radius_mm))
+            })
+            .collect();
+        let total: f64 = near.iter().map(|x| x.1).sum();
+        if !(total > 0.0) {
+            out.push(f.clone());
+            continue;
+        }
+        let force = Vector3::from(f.force_n);
+        out.extend(near.into_iter().map(|(v, w)| PointForce { point_mm: v.into(), force_n: (force * (w / total)).into() }));
+    }
+    out
 }
 
 /// Apply point forces to boundary conditions.

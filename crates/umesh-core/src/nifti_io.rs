@@ -238,6 +238,11 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, NiftiError> {
                 srow[r][k] = c.f32(280 + 16 * r + 4 * k);
             }
         }
+        // A NaN or infinite offset would otherwise read as 0 and be reported as such.
+        let vox_offset = c.f32(108);
+        if !vox_offset.is_finite() || vox_offset < 0.0 {
+            return Err(not(&format!("vox_offset {vox_offset} is not a finite, non-negative byte offset")));
+        }
         Header {
             version,
             little_endian: le,
@@ -245,7 +250,7 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, NiftiError> {
             datatype: c.i16(70) as i32,
             bitpix: c.i16(72) as i32,
             pixdim,
-            vox_offset: c.f32(108).max(0.0) as u64,
+            vox_offset: vox_offset as u64,
             scl_slope: c.f32(112),
             scl_inter: c.f32(116),
             xyzt_units: bytes[123] as i32,

@@ -58,6 +58,17 @@ impl Segmentation {
         if self.organ_labels.is_empty() {
             return Err(SegmentationError::Invalid { path: self.source.clone(), reason: "no organ label chosen".into() });
         }
+        // Structures may lie inside the organ (the phantom's tumours are organ labels too), but
+        // an organ made only of structure labels would draw the whole organ as a structure.
+        if self.organ_labels.iter().all(|l| self.structure_labels.contains(l)) {
+            return Err(SegmentationError::Invalid {
+                path: self.source.clone(),
+                reason: format!(
+                    "the organ labels {:?} are all also structure labels {:?}: a structure cannot be the whole organ",
+                    self.organ_labels, self.structure_labels
+                ),
+            });
+        }
         Ok(())
     }
 }
@@ -241,7 +252,15 @@ pub fn mask_folder(dir: &Path) -> Result<(Vec<MaskFile>, Vec<String>), Segmentat
             None => ignored.push(name),
         }
     }
-    files.sort_by(|a, b| a.name.cmp(&b.name));
+    files.sort_by(|a, b| a.name.cmp(&b.name).then_with(|| a.path.cmp(&b.path)));
+    // liver.nii beside liver.nii.gz: which one is meant cannot be told.
+    if let Some(w) = files.windows(2).find(|w| w[0].name == w[1].name) {
+        return Err(bad(format!(
+            "{} and {} are masks of the same structure; keep one",
+            w[0].path.file_name().unwrap_or_default().to_string_lossy(),
+            w[1].path.file_name().unwrap_or_default().to_string_lossy()
+        )));
+    }
     ignored.sort();
     if !files.iter().any(|f| f.role == Role::Organ) {
         return Err(bad("no liver.nii.gz (or liver.nii) mask in the folder".into()));

@@ -482,3 +482,79 @@ fn merge_refuses_another_dataset_in_the_target_and_a_failed_merge_leaves_it_inta
         .collect();
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
 }
+
+#[test]
+fn a_shard_copied_in_from_another_seed_is_recomputed_not_adopted() {
+    let seg = phantom();
+    let config = small_config(4);
+    let a = tmp("foreign-a");
+    let b = tmp("foreign-b");
+    run_generate(&seg, &a, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let own = file_bytes(&a, &shard_file_name(1));
+    let mut other = config.clone();
+    other.seed = 4;
+    run_generate(&seg, &b, &other, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let foreign = file_bytes(&b, &shard_file_name(1));
+    assert_ne!(own, foreign, "two seeds gave the same shard");
+    std::fs::write(a.join(shard_file_name(1)), &foreign).unwrap();
+    let r = run_generate(&seg, &a, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    // Shard 0 is the manifest's own; shard 1's bytes are not what the manifest recorded.
+    assert_eq!((r.samples_reused, r.samples_computed), (2, 2), "{r:?}");
+    assert_eq!(file_bytes(&a, &shard_file_name(1)), own, "the foreign shard survived");
+    let m = umesh_core::dataset::Manifest::read(&a).unwrap();
+    let rec = m.shards.iter().find(|s| s.file == shard_file_name(1)).unwrap();
+    assert_eq!(rec.hash, umesh_core::dataset::fnv_hex(&own));
+    Dataset::open(&a).unwrap();
+}
+
+#[test]
+fn a_probes_force_spread_over_its_contact_keeps_the_resultant_and_lands_within_the_radius() {
+    use umesh_core::loads::{PointForce, spread_forces};
+    let seg = phantom();
+    let mesh = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
+    let p = mesh.positions[mesh.positions.len() / 3];
+    let f = PointForce { point_mm: p.into(), force_n: [0.3, -1.2, 0.5] };
+    let spread = spread_forces(&mesh, std::slice::from_ref(&f), 8.0);
+    assert!(spread.len() > 5, "{} points", spread.len());
+    let total: Vector3<f64> = spread.iter().map(|s| Vector3::from(s.force_n)).sum();
+    assert!((total - Vector3::from(f.force_n)).norm() < 1e-12, "{total:?}");
+    for s in &spread {
+        assert!((Vector3::from(s.point_mm) - p).norm() < 8.0);
+    }
+    // The moment about the probe point: the patch's weighted centre lies near it (tolerance:
+    // a quarter of the radius, the offset on a curved surface).
+    let centre: Vector3<f64> =
+        spread.iter().map(|s| Vector3::from(s.point_mm) * (Vector3::from(s.force_n).dot(&total) / total.norm_squared())).sum();
+    assert!((centre - p).norm() < 2.0, "patch centre {:.2} mm from the probe", (centre - p).norm());
+    // Radius 0: the point load as given.
+    assert_eq!(spread_forces(&mesh, std::slice::from_ref(&f), 0.0), vec![f]);
+}
+
+#[test]
+fn a_doomed_set_up_is_refused_by_the_preflight_within_two_minutes_and_force_goes_on() {
+    use umesh_core::dataset::{DatasetError, PreflightCheck, PreflightSettings, run_generate_checked};
+    let seg = phantom();
+    // Held by a tube through the organ's middle (the portal vein), every pressing pattern
+    // squeezes the tissue against it: SVK collapses long before a 10 mm mean displacement.
+    let mut config = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
+    config.samples = 1000;
+    let dir = tmp("doomed");
+    let seen = std::sync::Mutex::new(Vec::new());
+    let report = |p: &umesh_core::dataset::Preflight| seen.lock().unwrap().push(p.clone());
+    let check = PreflightCheck { settings: PreflightSettings { samples: 6, ..Default::default() }, force: false, report: &report };
+    let t = std::time::Instant::now();
+    let e = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&check), &Progress::none(), &Cancel::new()).unwrap_err();
+    let secs = t.elapsed().as_secs_f64();
+    assert!(secs < 120.0, "the check took {secs:.0} s");
+    let DatasetError::Refused { message, preflight } = e else { panic!("not refused: {e}") };
+    assert!(preflight.acceptance < 0.9 && preflight.samples == 6, "{preflight:?}");
+    assert!(message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"), "{message}");
+    assert!(!dir.exists(), "a refused job wrote {}", dir.display());
+    assert_eq!(seen.lock().unwrap().len(), 1);
+    // Forced, the job runs (a short one here, still longer than the check).
+    config.samples = 8;
+    config.shard_size = 8;
+    let forced = PreflightCheck { force: true, ..check };
+    let r = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&forced), &Progress::none(), &Cancel::new()).unwrap();
+    assert!(r.complete && r.samples_computed == 8 && r.preflight.is_some(), "{r:?}");
+}

@@ -299,6 +299,12 @@ fn bad_nifti_input_gives_one_clear_error_naming_the_file() {
         s.qform_code = 1;
         check(&s.bytes(), "pixdim");
     }
+    // A NaN or infinite vox_offset is named as such, not read as 0.
+    for bad_offset in [f32::NAN, f32::INFINITY] {
+        let mut bytes = Spec::new([2, 3, 4], 2, 8, vec![0; 24]).bytes();
+        bytes[108..112].copy_from_slice(&bad_offset.to_le_bytes());
+        check(&bytes, &format!("vox_offset {bad_offset}").to_lowercase());
+    }
     let missing = read_volume(Path::new("/nonexistent/seg.nii.gz"), &ReadOptions::default()).unwrap_err().to_string();
     assert!(missing.contains("/nonexistent/seg.nii.gz"));
     // A truncated gzip stream.
@@ -448,4 +454,21 @@ proptest! {
             let _ = read_mesh(&p);
         }
     }
+}
+
+#[test]
+fn a_mask_folder_with_two_files_of_one_structure_and_an_organ_made_of_structures_are_refused() {
+    use umesh_core::segmentation::{Segmentation, mask_folder};
+    let d = tmp("twin-masks");
+    std::fs::create_dir_all(&d).unwrap();
+    let mut vol = Volume::new([4, 4, 4], Matrix4::identity());
+    vol.data[21] = 1.0;
+    nifti_io::write_volume(&d.join("liver.nii.gz"), &vol, WriteType::U8).unwrap();
+    assert!(mask_folder(&d).is_ok());
+    nifti_io::write_volume(&d.join("liver.nii"), &vol, WriteType::U8).unwrap();
+    let e = mask_folder(&d).unwrap_err().to_string();
+    assert!(e.contains("liver.nii") && e.contains("liver.nii.gz") && e.contains("same structure"), "{e}");
+    let seg = Segmentation { source: "seg.nii".into(), volume: vol, organ_labels: vec![1], structure_labels: vec![1] };
+    let e = seg.validate().unwrap_err().to_string();
+    assert!(e.contains("seg.nii") && e.contains("structure cannot be the whole organ"), "{e}");
 }

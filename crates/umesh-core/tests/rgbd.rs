@@ -214,6 +214,20 @@ fn recordings_with_bad_files_give_clear_errors() {
     run_rgbd_synth(&seg, &small_config(&seg), &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     let rec = Recording::open(&d, None).unwrap();
     assert_eq!(rec.len(), 2);
+    // A NaN depth noise made all-zero frames with success; now it is refused before any file.
+    let nan = tmp("nan-noise");
+    let e = run_rgbd_synth(
+        &seg,
+        &small_config(&seg),
+        &SynthSettings { noise_mm: f64::NAN, ..s.clone() },
+        &nan,
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("depth noise NaN mm") && e.contains("nan-noise"), "{e}");
+    assert!(!nan.exists());
     // Mismatched colour size.
     let small = image::RgbImage::new(10, 10);
     small.save(d.join("color/00001.png")).unwrap();

@@ -239,6 +239,7 @@ pub fn run_prepare(
     inputs: &[PathBuf],
     out: &Path,
     settings: &PrepareSettings,
+    preflight: Option<&umesh_core::dataset::PreflightCheck>,
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<PrepareReport, NetError> {
@@ -294,6 +295,23 @@ pub fn run_prepare(
             "{}: the folder is not empty and holds no patient.json; choose an empty folder",
             out.display()
         )));
+    }
+    // A new patient's dataset is checked before the folder exists: a job that would store too
+    // few samples stops here with its likely cause.
+    if let Some(check) = preflight
+        && !out.join("patient.json").exists()
+        && settings.dataset.samples > check.settings.samples
+    {
+        let p = ctx.preflight(&settings.dataset, &check.settings, progress, cancel).map_err(|e| match e {
+            umesh_core::dataset::DatasetError::Cancelled => NetError::Cancelled,
+            e => e.into(),
+        })?;
+        (check.report)(&p);
+        if let Some(message) = p.refusal(check.settings.min_acceptance)
+            && !check.force
+        {
+            return Err(NetError::Invalid(message));
+        }
     }
     drop(ctx);
     std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;

@@ -9,7 +9,7 @@ use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
-use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate};
+use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate_checked};
 use umesh_core::segmentation::Segmentation;
 use umesh_core::{Cancel, Progress};
 use umesh_net::patient::{PrepareSettings, run_prepare};
@@ -322,16 +322,25 @@ fn start(item: &mut WorkItem) {
             .start_handler(|_| lower_thread_priority())
             .build()
             .map_err(|e| e.to_string())?;
+        // The pre-flight figures go to the job's log; a job it refuses ends at once with the
+        // likely cause as its error.
+        let report_preflight = |p: &umesh_core::dataset::Preflight| {
+            if let Ok(mut l) = log.lock() {
+                l.push(p.summary());
+            }
+        };
+        let check = umesh_core::dataset::PreflightCheck { settings: Default::default(), force: false, report: &report_preflight };
         pool.install(|| match kind {
             WorkKind::Dataset { seg, config } => {
-                let r = run_generate(&seg, &out, &config, ShardSelection::all(), &sink, &cancel).map_err(|e| e.to_string())?;
+                let r = run_generate_checked(&seg, &out, &config, ShardSelection::all(), Some(&check), &sink, &cancel)
+                    .map_err(|e| e.to_string())?;
                 Ok(format!(
                     "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
                     r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
                 ))
             }
             WorkKind::Prepare { seg, inputs, settings } => {
-                let r = run_prepare(&seg, &inputs, &out, &settings, &sink, &cancel).map_err(|e| e.to_string())?;
+                let r = run_prepare(&seg, &inputs, &out, &settings, Some(&check), &sink, &cancel).map_err(|e| e.to_string())?;
                 Ok(format!(
                     "{} / {} samples accepted, validation TRE {:.2} mm; check TRE {} mm (rigid {}); report.html written",
                     r.dataset.accepted,

@@ -119,6 +119,54 @@ impl Solution {
     }
 }
 
+/// Which nodes a calibrated mean displacement averages over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MeanOver {
+    /// Every grid node, fixed ones included (datasets made before the free-node measure): a
+    /// large fixed region then pushes the free part towards collapse to reach the target.
+    All,
+    /// The nodes that can move (not fixed): the same target means the same motion of what
+    /// moves, whatever the size of the attachment.
+    Free,
+}
+
+impl MeanOver {
+    /// Datasets written before the field existed averaged over every node.
+    pub fn legacy() -> Self {
+        Self::All
+    }
+    pub fn is_all(&self) -> bool {
+        *self == Self::All
+    }
+    /// The mean displacement norm (mm) over the chosen nodes; `fixed[n]`: node n is held.
+    pub fn mean_mm(self, u: &[Vector3<f64>], fixed: &[bool]) -> f64 {
+        let (sum, count) = u
+            .iter()
+            .enumerate()
+            .filter(|(n, _)| self == Self::All || !fixed.get(*n).copied().unwrap_or(false))
+            .fold((0.0, 0usize), |(s, c), (_, v)| (s + v.norm(), c + 1));
+        sum / count.max(1) as f64
+    }
+}
+
+/// The outcome of `FeSolver::solve_to_mean_displacement`.
+#[derive(Clone, Debug)]
+pub struct MeanSolve {
+    pub solution: Solution,
+    /// The factor applied to the forces.
+    pub lambda: f64,
+    /// The mean displacement (mm, over the chosen nodes) of the solution.
+    pub mean_mm: f64,
+    /// False when the target could not be reached and the largest converged state below it
+    /// (at least `MIN_REACHED_FRACTION` of the target) was kept instead.
+    pub reached: bool,
+}
+
+/// A calibrated solve that cannot reach its target keeps its converged state nearest the target
+/// when that lies within this fraction of it (0.5: 0.5-1.5 x); otherwise the sample is rejected.
+pub const MIN_REACHED_FRACTION: f64 = 0.5;
+
 #[derive(Debug, thiserror::Error)]
 pub enum FemError {
     #[error("the solve did not converge: {reason} (after {} iterations)", history.len())]
@@ -155,6 +203,8 @@ struct Factorizer {
 enum FactorKind {
     Llt,
     Lu,
+    /// Cholesky failed and LU was not wanted (`reject_indefinite`): nothing was factorised.
+    Indefinite,
 }
 
 enum Factor {
@@ -246,7 +296,7 @@ impl Factorizer {
     }
 
     /// Factorise the assembled matrix; `at_rest` says it is the stiffness at u = 0.
-    fn factorize(&mut self, asm: &Assembler, at_rest: bool) -> Result<FactorKind, FemError> {
+    fn factorize(&mut self, asm: &Assembler, at_rest: bool, allow_lu: bool) -> Result<FactorKind, FemError> {
         if at_rest && self.rest_values.is_some() {
             self.current = Some(Factor::Rest);
             return Ok(FactorKind::Llt);
@@ -277,6 +327,12 @@ impl Factorizer {
                 self.current = Some(Factor::Llt);
             }
             return Ok(FactorKind::Llt);
+        }
+        // A sparse LU of a large grid costs seconds and gigabytes: a caller that rejects an
+        // indefinite tangent anyway is told at once.
+        if !allow_lu {
+            self.current = None;
+            return Ok(FactorKind::Indefinite);
         }
         if self.lu_symbolic.is_none() {
             self.lu_symbolic = Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| err(&e))?);
@@ -334,6 +390,7 @@ impl FactorKind {
         match self {
             FactorKind::Llt => "cholesky",
             FactorKind::Lu => "lu",
+            FactorKind::Indefinite => "indefinite",
         }
     }
 }
@@ -349,7 +406,7 @@ pub struct FeSolver<'g> {
     constrained_nodes: Vec<bool>,
     /// While probing a load factor: give up on the probe once the iterate's mean nodal
     /// displacement passes this (mm), as it is heading for a collapsed state.
-    overshoot_mm: Option<f64>,
+    overshoot_mm: Option<(f64, MeanOver)>,
 }
 
 fn ms(t: Instant) -> f64 {
@@ -404,9 +461,9 @@ impl<'g> FeSolver<'g> {
     /// Newton step.
     pub fn time_factorization(&mut self, u_mm: &[Vector3<f64>]) -> Result<f64, FemError> {
         self.asm.assemble(ElementModel::Hyperelastic(self.material.material()), u_mm, true);
-        self.fact.factorize(&self.asm, false)?;
+        self.fact.factorize(&self.asm, false, true)?;
         let t = Instant::now();
-        self.fact.factorize(&self.asm, false)?;
+        self.fact.factorize(&self.asm, false, true)?;
         Ok(ms(t))
     }
 
@@ -499,7 +556,7 @@ impl<'g> FeSolver<'g> {
         let (r, refn) = self.residual(&a, &bc.forces_n, 1.0);
         let t = Instant::now();
         // The small-strain stiffness equals the stiffness at rest, whatever u.
-        let fac = self.fact.factorize(&self.asm, true)?;
+        let fac = self.fact.factorize(&self.asm, true, true)?;
         let factorization_ms = ms(t);
         let t = Instant::now();
         let mut rhs = Mat::from_fn(r.len(), 1, |i, _| r[i]);
@@ -568,8 +625,11 @@ impl<'g> FeSolver<'g> {
             }
         }
         let t = Instant::now();
-        let kind = self.fact.factorize(&self.asm, at_rest)?;
+        let kind = self.fact.factorize(&self.asm, at_rest, !self.settings.reject_indefinite)?;
         let factorization_ms = ms(t);
+        if kind == FactorKind::Indefinite {
+            return Ok((Mat::zeros(r.len(), 1), kind.name(), factorization_ms, 0.0));
+        }
         let t = Instant::now();
         let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
         self.fact.solve(&mut du);
@@ -645,8 +705,9 @@ impl<'g> FeSolver<'g> {
         target_mm: f64,
         rel_tol: f64,
         first_lambda: f64,
+        over: MeanOver,
         cancel: &Cancel,
-    ) -> Result<(Solution, f64), FemError> {
+    ) -> Result<MeanSolve, FemError> {
         let n = self.grid.node_count();
         if bc.forces_n.len() != n || bc.fixed != self.constrained_nodes || !bc.prescribed_mm.is_empty() {
             return Err(FemError::InvalidInput(
@@ -659,7 +720,8 @@ impl<'g> FeSolver<'g> {
         let start = Instant::now();
         let s = self.settings.clone();
         let model = ElementModel::Hyperelastic(self.material.material());
-        let mean = |u: &[Vector3<f64>]| u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
+        let fixed = self.constrained_nodes.clone();
+        let mean = |u: &[Vector3<f64>]| over.mean_mm(u, &fixed);
         // Converged states (lambda, mean, u), sorted by lambda; the rest state is one.
         let mut states: Vec<(f64, f64, Vec<Vector3<f64>>)> = vec![(0.0, 0.0, vec![Vector3::zeros(); n])];
         let mut failed_above = f64::INFINITY;
@@ -668,13 +730,21 @@ impl<'g> FeSolver<'g> {
         let mut lambda = first_lambda;
         let mut increments = 0;
         let mut failures = 0;
+        let mut probes = 0;
         loop {
             if cancel.is_cancelled() {
                 return Err(FemError::Cancelled);
             }
-            if let Some(budget) = s.max_total_iterations
-                && history.len() >= budget
-            {
+            // Probes that converge at once (a warm start already in equilibrium) add no Newton
+            // iteration: the probe count bounds the search as well.
+            probes += 1;
+            if probes > MAX_PROBES || s.max_total_iterations.is_some_and(|budget| history.len() >= budget) {
+                let budget = s.max_total_iterations.unwrap_or(history.len());
+                if let Some(kept) =
+                    self.keep_largest_below(&mut states, bc, model, target_mm, over, &mut history, &mut timings, start, cancel)?
+                {
+                    return Ok(kept);
+                }
                 let closest = states.iter().skip(1).map(|x| x.1).min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
                 return Err(FemError::NotConverged {
                     reason: format!(
@@ -700,7 +770,7 @@ impl<'g> FeSolver<'g> {
             let tight = self.settings.clone();
             self.settings.residual_tol = tight.residual_tol.max(1e-3);
             self.settings.correction_tol = tight.correction_tol.max(1e-2);
-            self.overshoot_mm = Some(OVERSHOOT * target_mm);
+            self.overshoot_mm = Some((OVERSHOOT * target_mm, over));
             let probe = self.newton(&mut trial, bc, model, lambda, increments + 1, &mut history, &mut timings, &Progress::none(), cancel);
             self.settings = tight;
             self.overshoot_mm = None;
@@ -717,8 +787,9 @@ impl<'g> FeSolver<'g> {
                         };
                         let iterations = history.len();
                         timings.total_ms = ms(start);
-                        let sol = Solution { displacement_mm: trial, history, increments, iterations, timings, final_residual: res };
-                        return Ok((sol, lambda));
+                        let mean_mm = mean(&trial);
+                        let solution = Solution { displacement_mm: trial, history, increments, iterations, timings, final_residual: res };
+                        return Ok(MeanSolve { solution, lambda, mean_mm, reached: true });
                     }
                     let k = states.partition_point(|x| x.0 < lambda);
                     states.insert(k, (lambda, m, trial));
@@ -727,6 +798,11 @@ impl<'g> FeSolver<'g> {
                     failures += 1;
                     failed_above = failed_above.min(lambda);
                     if failures > s.max_halvings {
+                        if let Some(kept) =
+                            self.keep_largest_below(&mut states, bc, model, target_mm, over, &mut history, &mut timings, start, cancel)?
+                        {
+                            return Ok(kept);
+                        }
                         return Err(FemError::NotConverged {
                             reason: format!("{reason}; the load factor failed {failures} times short of the target ({target_mm:.2} mm)"),
                             history,
@@ -760,6 +836,56 @@ impl<'g> FeSolver<'g> {
             }
             lambda = next;
         }
+    }
+
+    /// The calibrated solve could not reach its target: keep the converged probe with the
+    /// largest mean displacement (the states are below the collapse), refined to the settings'
+    /// tolerance, when it moves at least `MIN_REACHED_FRACTION` of the target. The work already
+    /// done is kept rather than discarded; the caller records it as below its target.
+    #[allow(clippy::too_many_arguments)]
+    fn keep_largest_below(
+        &mut self,
+        states: &mut Vec<(f64, f64, Vec<Vector3<f64>>)>,
+        bc: &BoundaryConditions,
+        model: ElementModel,
+        target_mm: f64,
+        over: MeanOver,
+        history: &mut Vec<IterationRecord>,
+        timings: &mut Timings,
+        start: Instant,
+        cancel: &Cancel,
+    ) -> Result<Option<MeanSolve>, FemError> {
+        let best = states
+            .iter()
+            .enumerate()
+            .filter(|(_, x)| x.0 > 0.0 && x.1 >= MIN_REACHED_FRACTION * target_mm && x.1 <= (2.0 - MIN_REACHED_FRACTION) * target_mm)
+            .min_by(|a, b| (a.1.1 - target_mm).abs().total_cmp(&(b.1.1 - target_mm).abs()))
+            .map(|(k, _)| k);
+        let Some(k) = best else { return Ok(None) };
+        let (lambda, _, mut u) = states.swap_remove(k);
+        let increments = states.len() + 1;
+        // A few iterations from a state already converged to a loose residual.
+        let saved = self.settings.max_iterations;
+        self.settings.max_iterations = saved.min(8);
+        let refined = self.newton(&mut u, bc, model, lambda, increments, history, timings, &Progress::none(), cancel);
+        self.settings.max_iterations = saved;
+        let res = match refined? {
+            Ok((_, res)) => res,
+            Err(_) => return Ok(None),
+        };
+        let mean_mm = over.mean_mm(&u, &self.constrained_nodes);
+        timings.total_ms = ms(start);
+        let iterations = history.len();
+        let solution = Solution {
+            displacement_mm: u,
+            history: std::mem::take(history),
+            increments,
+            iterations,
+            timings: timings.clone(),
+            final_residual: res,
+        };
+        // Every state within the tolerance was accepted when it converged: this one is not.
+        Ok(Some(MeanSolve { solution, lambda, mean_mm, reached: false }))
     }
 
     fn solve_incremental(
@@ -863,7 +989,7 @@ impl<'g> FeSolver<'g> {
             }
             let at_rest = it == 1 && u.iter().all(|v| *v == Vector3::zeros());
             let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
-            if s.reject_indefinite && fac_name == "lu" {
+            if fac_name == "indefinite" || (s.reject_indefinite && fac_name == "lu") {
                 timings.factorization_ms += factorization_ms;
                 return Ok(Err("the tangent stiffness is indefinite (the material collapses under this load)".into()));
             }
@@ -929,8 +1055,8 @@ impl<'g> FeSolver<'g> {
                 0,
                 &format!("increment {increment} (load {:.0} %), iteration {it}: residual {rel:.2e}", load * 100.0),
             );
-            if let Some(limit) = self.overshoot_mm {
-                let m = u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
+            if let Some((limit, over)) = self.overshoot_mm {
+                let m = over.mean_mm(u, &self.constrained_nodes);
                 if m > limit {
                     timings.assembly_ms += assembly_ms;
                     return Ok(Err(format!("the mean displacement passed {limit:.1} mm (overshoot)")));
@@ -945,6 +1071,8 @@ impl<'g> FeSolver<'g> {
 /// A probe whose iterate's mean displacement passes this multiple of the target is abandoned:
 /// on the phantom such iterates were heading for a collapsed state (15 wasted iterations each).
 const OVERSHOOT: f64 = 2.0;
+/// Load factors a calibrated solve may try before it keeps its nearest state or gives up.
+const MAX_PROBES: usize = 24;
 
 /// The load factor at which a softening response through (lambda, m), with the linear slope
 /// t per unit factor at the origin, reaches t: m(l) = t l / (1 - t l / D).

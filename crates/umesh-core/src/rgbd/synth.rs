@@ -7,7 +7,7 @@ use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse}
 use crate::dataset::{DatasetConfig, DatasetContext};
 use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, MaterialParams};
-use crate::loads::{apply_forces, deform_mesh};
+use crate::loads::deform_mesh;
 use crate::phantom::SplitMix64;
 use crate::progress::{Cancel, Progress};
 use crate::register::overlay::rasterize;
@@ -234,6 +234,19 @@ pub fn run_rgbd_synth(
     };
     k.validate().map_err(bad)?;
     let finite_in = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
+    // A NaN noise made all-zero depth frames that looked like a recording.
+    if !finite_in(settings.noise_mm, 0.0, 100.0) {
+        return Err(bad(format!("depth noise {} mm: between 0 and 100 mm", settings.noise_mm)));
+    }
+    if !finite_in(settings.fps, 1e-3, 1e4) {
+        return Err(bad(format!("{} frames per second: between 0.001 and 10000", settings.fps)));
+    }
+    if !finite_in(settings.hole_radius_px, 0.0, 1e4) || settings.holes > 10_000 {
+        return Err(bad(format!("{} holes of {} px: at most 10000 holes of 0-10000 px", settings.holes, settings.hole_radius_px)));
+    }
+    if !(finite_in(settings.load_scale, 0.0, 100.0) && settings.load_scale > 0.0) {
+        return Err(bad(format!("load scale {}: above 0 and at most 100", settings.load_scale)));
+    }
     if !finite_in(settings.camera_motion_mm, 0.0, 500.0) || !finite_in(settings.camera_motion_deg, 0.0, 90.0) {
         return Err(bad(format!(
             "camera motion {} mm, {} degrees: between 0 and 500 mm, 0 and 90 degrees",
@@ -266,7 +279,7 @@ pub fn run_rgbd_synth(
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
     full.fixed = ctx.fixed.clone();
-    apply_forces(grid_ref, &mut full, &forces).map_err(bad)?;
+    ctx.apply_probes(&mut full, config, &forces).map_err(bad)?;
     let rest_surface = ctx.surface.clone();
     let fixed = ctx.fixed.clone();
     let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;

@@ -6,7 +6,7 @@
 //! files, each covering `shard_size` consecutive sample indices. Sample i depends only on
 //! (seed, i), so shards computed anywhere merge into exactly the single-run dataset.
 
-use crate::fem::solver::{FeSolver, FemError, SolveMethod, SolverSettings};
+use crate::fem::solver::{FeSolver, FemError, MeanSolve, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::{GridError, GridSettings, ImmersedGrid};
 use crate::loads::{self, ForceSettings, LoadCalibration, PointForce};
@@ -22,6 +22,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
+
+mod preflight;
+pub use preflight::{Preflight, PreflightSettings, run_preflight};
 
 pub const FORMAT: &str = "umesh-dataset";
 /// 2: shards carry each sample's simulated camera view (`obs_points`, `obs_count`).
@@ -102,8 +105,38 @@ pub enum DatasetError {
     Npz(#[from] NpzError),
     #[error(transparent)]
     Grid(#[from] GridError),
+    /// The pre-flight check projects too low an acceptance (the message names the likely cause).
+    #[error("{message}")]
+    Refused { message: String, preflight: Box<Preflight> },
     #[error("cancelled")]
     Cancelled,
+}
+
+/// Sets faer's process-wide parallelism to sequential while alive (each sample's solve runs
+/// on one core, the samples in parallel, so results do not depend on scheduling).
+struct SequentialFaer(faer::Par);
+
+impl SequentialFaer {
+    fn new() -> Self {
+        let previous = faer::get_global_parallelism();
+        faer::set_global_parallelism(faer::Par::Seq);
+        Self(previous)
+    }
+}
+
+impl Drop for SequentialFaer {
+    fn drop(&mut self) {
+        faer::set_global_parallelism(self.0);
+    }
+}
+
+/// A pre-flight check before a long dataset job (see `preflight`).
+pub struct PreflightCheck<'a> {
+    pub settings: PreflightSettings,
+    /// Run the job even when the check refuses it.
+    pub force: bool,
+    /// Called with the check's figures before the job goes on or is refused.
+    pub report: &'a (dyn Fn(&Preflight) + Sync),
 }
 
 fn invalid(path: &Path, reason: impl Into<String>) -> DatasetError {
@@ -260,6 +293,12 @@ impl DatasetContext {
         Ok(Self { grid, surface, visible, visible_nodes, fixed, grid_npz, segmentation_hash: segmentation_hash(seg) })
     }
 
+    /// The probes' forces on the grid, each spread over its contact patch on the surface
+    /// (`ForceSettings::patch_radius_mm`): the one load model of samples and recordings.
+    pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), String> {
+        loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, config.forces.patch_radius_mm))
+    }
+
     pub fn grid_hash(&self) -> String {
         fnv_hex(&self.grid_npz)
     }
@@ -292,9 +331,9 @@ impl DatasetContext {
         }
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
-        loads::apply_forces(&self.grid, &mut bc, &forces)?;
+        self.apply_probes(&mut bc, config, &forces)?;
         let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
-        loads::scale_forces(&mut forces, lin.mean_displacement_mm(), target * load_scale)?;
+        loads::scale_forces(&mut forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target * load_scale)?;
         Ok((forces, target * load_scale))
     }
 }
@@ -323,11 +362,12 @@ pub struct SampleResult {
 }
 
 impl SampleResult {
-    fn max_mean(&self) -> (f64, f64) {
+    /// Maximum and mean displacement norm (mm); the mean over the nodes the calibration uses.
+    fn max_mean(&self, ctx: &DatasetContext, config: &DatasetConfig) -> (f64, f64) {
         match &self.displacement_mm {
             Some(u) => {
                 let max = u.iter().map(|v| v.norm()).fold(0.0, f64::max);
-                (max, u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64)
+                (max, config.forces.mean_over.mean_mm(u, &ctx.fixed))
             }
             None => (0.0, 0.0),
         }
@@ -342,6 +382,9 @@ pub struct SolvedLoad {
     /// The factor applied to the linearly calibrated forces (1 for `energy-scale`).
     pub load_factor: f64,
     pub solution: Result<crate::fem::solver::Solution, (Rejection, String)>,
+    /// False when the target was out of reach and the converged state nearest it was kept
+    /// (`fem::solver::MIN_REACHED_FRACTION`); the manifest shows it as achieved / target.
+    pub reached: bool,
 }
 
 impl DatasetContext {
@@ -371,24 +414,26 @@ impl DatasetContext {
                 let (forces, _) = self.sample_forces(config, index);
                 let target_mm = config.forces.target_displacement_mm * load_scale;
                 let solution = Err((Rejection::Failed, format!("load calibration: {e}")));
-                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution, reached: false };
             }
         };
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
-        if let Err(e) = loads::apply_forces(&self.grid, &mut bc, &forces) {
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
+        if let Err(e) = self.apply_probes(&mut bc, config, &forces) {
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)), reached: false };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+            let reached = solution.is_ok();
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution, reached };
         }
-        match solver.solve_to_mean_displacement(&bc, target_mm, CALIBRATION_TOLERANCE, first_lambda, cancel) {
-            Ok((sol, lambda)) => {
+        let over = config.forces.mean_over;
+        match solver.solve_to_mean_displacement(&bc, target_mm, CALIBRATION_TOLERANCE, first_lambda, over, cancel) {
+            Ok(MeanSolve { solution, lambda, reached, .. }) => {
                 let _ = loads::scale_forces(&mut forces, 1.0, lambda);
-                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(sol) }
+                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(solution), reached }
             }
-            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)) },
+            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)), reached: false },
         }
     }
 
@@ -426,9 +471,8 @@ impl DatasetContext {
             .map(|k| {
                 let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings.clone()).map_err(|e| e.to_string())?;
                 let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
-                Ok(r.solution
-                    .ok()
-                    .map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, sol.mean_displacement_mm())))
+                let mean = |sol: &crate::fem::solver::Solution| config.forces.mean_over.mean_mm(&sol.displacement_mm, &self.fixed);
+                Ok(r.solution.ok().map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, mean(&sol))))
             })
             .collect();
         if cancel.is_cancelled() {
@@ -626,7 +670,7 @@ fn encode_shard(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
         }
     }
     let n = results.len();
-    let stats: Vec<(f64, f64)> = results.iter().map(SampleResult::max_mean).collect();
+    let stats: Vec<(f64, f64)> = results.iter().map(|r| r.max_mean(ctx, config)).collect();
     let arrays = vec![
         ("sample_index", Array::i64(vec![n], results.iter().map(|r| r.index as i64).collect())),
         ("accepted", Array::new(vec![n], ArrayData::U8(results.iter().map(|r| r.rejection.is_none() as u8).collect()))),
@@ -741,6 +785,9 @@ pub struct GenerateReport {
     pub seconds: f64,
     pub samples_per_minute: f64,
     pub complete: bool,
+    /// The pre-flight check, when one ran (a fresh job with more samples than the check).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub preflight: Option<Preflight>,
 }
 
 fn base_manifest(seg: &Segmentation, config: &DatasetConfig, ctx: &DatasetContext) -> Manifest {
@@ -779,7 +826,44 @@ pub fn run_generate(
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<GenerateReport, DatasetError> {
+    run_generate_checked(seg, out, config, selection, None, progress, cancel)
+}
+
+/// `run_generate` with a pre-flight check: a fresh job with more samples than the check first
+/// solves a few of its samples in parallel and, when their acceptance is below the check's
+/// threshold, stops with `DatasetError::Refused` before anything is written (unless forced).
+pub fn run_generate_checked(
+    seg: &Segmentation,
+    out: &Path,
+    config: &DatasetConfig,
+    selection: ShardSelection,
+    preflight: Option<&PreflightCheck>,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<GenerateReport, DatasetError> {
     let start = Instant::now();
+    let ctx = DatasetContext::prepare(seg, config, cancel)?;
+    let fresh = !out.join("manifest.json").exists();
+    let _seq = SequentialFaer::new();
+    // Each reference solve single-threaded like the samples, so every machine finds the same factor.
+    progress.report(0, config.samples as u64, "calibrating the load");
+    let mut softening: Option<f64> = None;
+    let mut checked = None;
+    if let Some(check) = preflight
+        && fresh
+        && config.samples > check.settings.samples
+    {
+        let d = ctx.reference_softening_mm(config, cancel)?;
+        softening = Some(d);
+        let p = preflight::preflight_with(&ctx, config, &check.settings, d, start, progress, cancel)?;
+        (check.report)(&p);
+        if let Some(message) = p.refusal(check.settings.min_acceptance)
+            && !check.force
+        {
+            return Err(DatasetError::Refused { message, preflight: Box::new(p) });
+        }
+        checked = Some(p);
+    }
     std::fs::create_dir_all(out).map_err(|source| DatasetError::Io { path: out.into(), source })?;
     // Temporary files of an interrupted run are never data.
     if let Ok(entries) = std::fs::read_dir(out) {
@@ -790,8 +874,9 @@ pub fn run_generate(
             }
         }
     }
-    let ctx = DatasetContext::prepare(seg, config, cancel)?;
     let mut manifest = base_manifest(seg, config, &ctx);
+    // Shard file -> content hash, as the manifest on disk recorded them when they were written.
+    let mut recorded: BTreeMap<String, String> = BTreeMap::new();
     if out.join("manifest.json").exists() {
         let old = Manifest::read(out)?;
         if old.config_hash != manifest.config_hash
@@ -802,6 +887,7 @@ pub fn run_generate(
         }
         // Keep what the old manifest knows (timings, reasons) for shards still on disk.
         manifest.samples = old.samples;
+        recorded = old.shards.into_iter().map(|s| (s.file, s.hash)).collect();
     } else if (0..config.shard_count()).any(|s| out.join(shard_file_name(s)).exists())
         || std::fs::read_dir(out).map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_"))).unwrap_or(false)
     {
@@ -822,10 +908,13 @@ pub fn run_generate(
     let mut reused = 0;
     for shard in 0..config.shard_count() {
         let path = out.join(shard_file_name(shard));
-        if path.exists()
+        // A shard is adopted only when its bytes are the ones this dataset's manifest recorded:
+        // a file copied in from another dataset (another seed, same grid) is recomputed.
+        let bytes = if path.exists() { std::fs::read(&path).ok() } else { None };
+        if let Some(bytes) = bytes
+            && recorded.get(&shard_file_name(shard)) == Some(&fnv_hex(&bytes))
             && let Ok((records, accepted)) = read_shard_records(&path, config, shard, padded)
         {
-            let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
             let range = config.shard_range(shard);
             manifest.shards.push(ShardRecord {
                 file: shard_file_name(shard),
@@ -859,22 +948,11 @@ pub fn run_generate(
     let manifest = Mutex::new(manifest);
     let first_error: Mutex<Option<DatasetError>> = Mutex::new(None);
     let shards_written = std::sync::atomic::AtomicUsize::new(0);
-    // Parallel over samples; each solve single-threaded so results do not depend on scheduling.
-    let previous_par = faer::get_global_parallelism();
-    faer::set_global_parallelism(faer::Par::Seq);
-    // Each reference solve single-threaded like the samples, so every machine finds the same factor.
-    let softening = if todo.is_empty() {
-        Ok(f64::INFINITY)
-    } else {
-        progress.report(0, total as u64, "calibrating the load");
-        ctx.reference_softening_mm(config, cancel)
-    };
+    // Parallel over samples; each solve single-threaded (`_seq`) so results do not depend on scheduling.
     let softening = match softening {
-        Ok(l) => l,
-        Err(e) => {
-            faer::set_global_parallelism(previous_par);
-            return Err(e);
-        }
+        Some(d) => d,
+        None if todo.is_empty() => f64::INFINITY,
+        None => ctx.reference_softening_mm(config, cancel)?,
     };
     let threads = rayon::current_num_threads().max(1).min(queue.len().max(1));
     std::thread::scope(|scope| {
@@ -926,7 +1004,6 @@ pub fn run_generate(
             });
         }
     });
-    faer::set_global_parallelism(previous_par);
     if let Ok(Some(e)) = first_error.into_inner() {
         return Err(e);
     }
@@ -951,6 +1028,7 @@ pub fn run_generate(
         seconds: secs,
         samples_per_minute: if secs > 0.0 { computed as f64 * 60.0 / secs } else { 0.0 },
         complete: manifest.complete,
+        preflight: checked,
     })
 }
 
@@ -984,7 +1062,7 @@ fn write_shard(
         hash: fnv_hex(&bytes),
     });
     for r in results {
-        let (max, mean) = r.max_mean();
+        let (max, mean) = r.max_mean(ctx, config);
         m.samples.push(SampleRecord {
             index: r.index,
             accepted: r.rejection.is_none(),
@@ -1231,6 +1309,12 @@ pub struct DatasetStats {
     pub calibration: LoadCalibration,
     /// Per accepted sample: achieved mean displacement / its calibrated target.
     pub achieved_over_target: Option<Distribution>,
+    /// Which nodes the mean displacement averages over (free: what can move).
+    pub mean_over: crate::fem::solver::MeanOver,
+    /// Accepted samples whose target was out of reach and whose converged state nearest it
+    /// was kept (achieved / target below 1 - `CALIBRATION_TOLERANCE`, at least
+    /// `fem::solver::MIN_REACHED_FRACTION`).
+    pub below_target: usize,
     pub newton_iterations: Option<Distribution>,
     pub solve_ms: Option<Distribution>,
     /// (index, why) of samples far from the rest.
@@ -1274,6 +1358,11 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
         ),
         newton_iterations: its,
         solve_ms: Distribution::of(acc.iter().filter_map(|s| s.solve_ms).collect()),
+        mean_over: m.config.forces.mean_over,
+        below_target: acc
+            .iter()
+            .filter(|s| s.target_displacement_mm.is_some_and(|t| s.mean_displacement_mm < (1.0 - CALIBRATION_TOLERANCE) * t * (1.0 - 1e-9)))
+            .count(),
         outliers,
     })
 }

@@ -203,8 +203,6 @@ struct Factorizer {
 enum FactorKind {
     Llt,
     Lu,
-    /// Cholesky failed and LU was not wanted (`reject_indefinite`): nothing was factorised.
-    Indefinite,
 }
 
 enum Factor {
@@ -296,7 +294,7 @@ impl Factorizer {
     }
 
     /// Factorise the assembled matrix; `at_rest` says it is the stiffness at u = 0.
-    fn factorize(&mut self, asm: &Assembler, at_rest: bool, allow_lu: bool) -> Result<FactorKind, FemError> {
+    fn factorize(&mut self, asm: &Assembler, at_rest: bool) -> Result<FactorKind, FemError> {
         if at_rest && self.rest_values.is_some() {
             self.current = Some(Factor::Rest);
             return Ok(FactorKind::Llt);
@@ -327,12 +325,6 @@ impl Factorizer {
                 self.current = Some(Factor::Llt);
             }
             return Ok(FactorKind::Llt);
-        }
-        // A sparse LU of a large grid costs seconds and gigabytes: a caller that rejects an
-        // indefinite tangent anyway is told at once.
-        if !allow_lu {
-            self.current = None;
-            return Ok(FactorKind::Indefinite);
         }
         if self.lu_symbolic.is_none() {
             self.lu_symbolic = Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| err(&e))?);
@@ -390,7 +382,6 @@ impl FactorKind {
         match self {
             FactorKind::Llt => "cholesky",
             FactorKind::Lu => "lu",
-            FactorKind::Indefinite => "indefinite",
         }
     }
 }
@@ -461,9 +452,9 @@ impl<'g> FeSolver<'g> {
     /// Newton step.
     pub fn time_factorization(&mut self, u_mm: &[Vector3<f64>]) -> Result<f64, FemError> {
         self.asm.assemble(ElementModel::Hyperelastic(self.material.material()), u_mm, true);
-        self.fact.factorize(&self.asm, false, true)?;
+        self.fact.factorize(&self.asm, false)?;
         let t = Instant::now();
-        self.fact.factorize(&self.asm, false, true)?;
+        self.fact.factorize(&self.asm, false)?;
         Ok(ms(t))
     }
 
@@ -556,7 +547,7 @@ impl<'g> FeSolver<'g> {
         let (r, refn) = self.residual(&a, &bc.forces_n, 1.0);
         let t = Instant::now();
         // The small-strain stiffness equals the stiffness at rest, whatever u.
-        let fac = self.fact.factorize(&self.asm, true, true)?;
+        let fac = self.fact.factorize(&self.asm, true)?;
         let factorization_ms = ms(t);
         let t = Instant::now();
         let mut rhs = Mat::from_fn(r.len(), 1, |i, _| r[i]);
@@ -625,11 +616,8 @@ impl<'g> FeSolver<'g> {
             }
         }
         let t = Instant::now();
-        let kind = self.fact.factorize(&self.asm, at_rest, !self.settings.reject_indefinite)?;
+        let kind = self.fact.factorize(&self.asm, at_rest)?;
         let factorization_ms = ms(t);
-        if kind == FactorKind::Indefinite {
-            return Ok((Mat::zeros(r.len(), 1), kind.name(), factorization_ms, 0.0));
-        }
         let t = Instant::now();
         let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
         self.fact.solve(&mut du);
@@ -989,7 +977,7 @@ impl<'g> FeSolver<'g> {
             }
             let at_rest = it == 1 && u.iter().all(|v| *v == Vector3::zeros());
             let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
-            if fac_name == "indefinite" || (s.reject_indefinite && fac_name == "lu") {
+            if s.reject_indefinite && fac_name == "lu" {
                 timings.factorization_ms += factorization_ms;
                 return Ok(Err("the tangent stiffness is indefinite (the material collapses under this load)".into()));
             }

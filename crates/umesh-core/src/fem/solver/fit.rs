@@ -138,7 +138,7 @@ impl<'g> PointFit<'g> {
                 }
             }
         }
-        solver.fact.factorize(&solver.asm, false, true)?;
+        solver.fact.factorize(&solver.asm, false)?;
         // Only ever a preconditioner: single precision halves every triangular solve.
         solver.fact.factorize32(&solver.asm);
         Ok(Self { solver, samples, rest_mm, k_n_per_mm, settings, buckets: Buckets::default() })

@@ -73,11 +73,12 @@ impl PreflightArgs {
     }
 }
 
-/// Print the pre-flight figures (stderr, so `--json` output stays one document).
-pub fn print_preflight(p: &umesh_core::dataset::Preflight) {
+/// Print the pre-flight figures (stderr, so `--json` output stays one document); a refused
+/// job's error carries the likely cause, a forced one gets it as a warning.
+pub fn print_preflight(p: &umesh_core::dataset::Preflight, forced: bool) {
     eprintln!("{}", p.summary());
-    if p.acceptance < umesh_core::dataset::PreflightSettings::default().min_acceptance {
-        eprintln!("warning: likely cause: {}", p.cause.as_deref().unwrap_or("unknown"));
+    if forced && p.acceptance < umesh_core::dataset::PreflightSettings::default().min_acceptance {
+        eprintln!("warning: run with --force; likely cause of the low acceptance: {}", p.cause.as_deref().unwrap_or("unknown"));
     }
 }
 
@@ -401,7 +402,7 @@ fn generate(a: GenerateArgs) -> Result<()> {
         settings: a.preflight.settings()?,
         force: a.preflight.force,
         report: &|p: &umesh_core::dataset::Preflight| {
-            pb.suspend(|| print_preflight(p));
+            pb.suspend(|| print_preflight(p, a.preflight.force));
         },
     };
     let report = run_generate_checked(&seg, &a.out, &config, selection, Some(&check), &progress, &super::cancel());

@@ -79,7 +79,7 @@ pub fn run(a: Args) -> Result<()> {
         settings: a.preflight.settings()?,
         force: a.preflight.force,
         report: &|p: &umesh_core::dataset::Preflight| {
-            pb.suspend(|| super::dataset::print_preflight(p));
+            pb.suspend(|| super::dataset::print_preflight(p, a.preflight.force));
         },
     };
     let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, Some(&check), &progress, &super::cancel());

@@ -306,12 +306,7 @@ pub fn run_prepare(
             umesh_core::dataset::DatasetError::Cancelled => NetError::Cancelled,
             e => e.into(),
         })?;
-        (check.report)(&p);
-        if let Some(message) = p.refusal(check.settings.min_acceptance)
-            && !check.force
-        {
-            return Err(NetError::Invalid(message));
-        }
+        check.judge(p).map_err(|e| NetError::Invalid(e.to_string()))?;
     }
     drop(ctx);
     std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;

@@ -139,6 +139,17 @@ pub struct PreflightCheck<'a> {
     pub report: &'a (dyn Fn(&Preflight) + Sync),
 }
 
+impl PreflightCheck<'_> {
+    /// Report the check's figures, then refuse the job when it would store too little (unless forced).
+    pub fn judge(&self, p: Preflight) -> Result<Preflight, DatasetError> {
+        (self.report)(&p);
+        match p.refusal(self.settings.min_acceptance) {
+            Some(message) if !self.force => Err(DatasetError::Refused { message, preflight: Box::new(p) }),
+            _ => Ok(p),
+        }
+    }
+}
+
 fn invalid(path: &Path, reason: impl Into<String>) -> DatasetError {
     DatasetError::Invalid { path: path.into(), reason: reason.into() }
 }
@@ -382,9 +393,6 @@ pub struct SolvedLoad {
     /// The factor applied to the linearly calibrated forces (1 for `energy-scale`).
     pub load_factor: f64,
     pub solution: Result<crate::fem::solver::Solution, (Rejection, String)>,
-    /// False when the target was out of reach and the converged state nearest it was kept
-    /// (`fem::solver::MIN_REACHED_FRACTION`); the manifest shows it as achieved / target.
-    pub reached: bool,
 }
 
 impl DatasetContext {
@@ -414,26 +422,26 @@ impl DatasetContext {
                 let (forces, _) = self.sample_forces(config, index);
                 let target_mm = config.forces.target_displacement_mm * load_scale;
                 let solution = Err((Rejection::Failed, format!("load calibration: {e}")));
-                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution, reached: false };
+                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
             }
         };
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         if let Err(e) = self.apply_probes(&mut bc, config, &forces) {
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)), reached: false };
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
-            let reached = solution.is_ok();
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution, reached };
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
         }
         let over = config.forces.mean_over;
         match solver.solve_to_mean_displacement(&bc, target_mm, CALIBRATION_TOLERANCE, first_lambda, over, cancel) {
-            Ok(MeanSolve { solution, lambda, reached, .. }) => {
+            // A state kept below an unreachable target shows in the manifest as achieved / target.
+            Ok(MeanSolve { solution, lambda, .. }) => {
                 let _ = loads::scale_forces(&mut forces, 1.0, lambda);
-                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(solution), reached }
+                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(solution) }
             }
-            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)), reached: false },
+            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)) },
         }
     }
 
@@ -855,14 +863,7 @@ pub fn run_generate_checked(
     {
         let d = ctx.reference_softening_mm(config, cancel)?;
         softening = Some(d);
-        let p = preflight::preflight_with(&ctx, config, &check.settings, d, start, progress, cancel)?;
-        (check.report)(&p);
-        if let Some(message) = p.refusal(check.settings.min_acceptance)
-            && !check.force
-        {
-            return Err(DatasetError::Refused { message, preflight: Box::new(p) });
-        }
-        checked = Some(p);
+        checked = Some(check.judge(preflight::preflight_with(&ctx, config, &check.settings, d, start, progress, cancel)?)?);
     }
     std::fs::create_dir_all(out).map_err(|source| DatasetError::Io { path: out.into(), source })?;
     // Temporary files of an interrupted run are never data.

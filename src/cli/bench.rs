@@ -198,7 +198,9 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
                 })
                 .collect()
         };
-        let mut fit = PointFit::new(&sc.grid, sc.settings.material, &bc0.fixed, &samples, PointFitSettings::default())?;
+        let normals = organ.vertex_normals();
+        let with_normals: Vec<_> = samples.iter().zip(normals.iter().step_by(4)).map(|(p, n)| (*p, *n)).collect();
+        let mut fit = PointFit::new(&sc.grid, sc.settings.material, &bc0.fixed, &with_normals, PointFitSettings::default())?;
         check_frame(&mut fit, &moved(0.95), &moved(1.0))?
     };
     let med = |v: &[umesh_core::fem::Solution], f: &dyn Fn(&umesh_core::fem::Solution) -> f64| median(v.iter().map(f).collect());

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
+use umesh_core::register::correction::CorrectionSettings;
 use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, RegisterReport, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
 use umesh_core::rgbd::stream::{FrameSource, RecordingSource, TcpSource};
@@ -38,9 +39,20 @@ pub struct Args {
     /// Overlay PNGs and report.json go here.
     #[arg(long)]
     pub out: PathBuf,
-    /// Also register with the co-rotational FE model driven by the same surface displacements.
+    /// Also register the same organ points with the co-rotational FE fit alone (no network).
     #[arg(long)]
     pub compare_fe: bool,
+    /// With --compare-fe: run each frame's FE fit until an update moves the nodes by at most
+    /// 0.01 mm RMS (at most 60 updates; seconds to minutes a frame) instead of the fixed
+    /// per-frame work.
+    #[arg(long)]
+    pub fe_converged: bool,
+    /// Physics correction after each network prediction: FE fit updates per frame (0: off).
+    #[arg(long, default_value_t = CorrectionSettings::default().updates)]
+    pub correction_updates: usize,
+    /// Conjugate-gradient iterations per correction update at most.
+    #[arg(long, default_value_t = CorrectionSettings::default().cg_iterations)]
+    pub correction_cg: usize,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -80,6 +92,9 @@ fn open_source(a: &Args) -> Result<(Box<dyn FrameSource>, Option<Matrix4<f64>>, 
 }
 
 pub fn run(a: Args) -> Result<()> {
+    if a.fe_converged && !a.compare_fe {
+        bail!("--fe-converged applies to --compare-fe");
+    }
     let (model_dir, seg) = match &a.patient {
         Some(p) => {
             let patient = umesh_net::patient::Patient::read(p)?;
@@ -109,8 +124,10 @@ pub fn run(a: Args) -> Result<()> {
         iterations: a.iterations.max(1),
         icp_every_frame: a.icp_every_frame,
         overlay: !a.no_overlay,
+        correction: CorrectionSettings { updates: a.correction_updates, cg_iterations: a.correction_cg },
         ..Default::default()
     };
+    settings.correction.validate().map_err(|e| anyhow::anyhow!("--correction-updates / --correction-cg: {e}"))?;
     settings.segment.depth_min_mm = a.depth_min_mm;
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
@@ -121,6 +138,9 @@ pub fn run(a: Args) -> Result<()> {
         let Some(dir) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
         let (mut src, _, _) = open_source(&Args { recording: Some(dir.clone()), source: None, ..a.clone() })?;
         let mut fe = FeDisplacementModel::new(&ctx, config.material).map_err(anyhow::Error::msg)?;
+        if a.fe_converged {
+            fe = fe.converged(0.01, 60);
+        }
         Some(register_with(&mut *src, &ctx, &mut fe, pose, truth.as_ref(), &settings, &a.out.join("overlay_fe"), "registering (FE)")?)
     } else {
         None
@@ -136,6 +156,7 @@ pub fn run(a: Args) -> Result<()> {
             "frames_with_warning": s.frames_with_warning, "residual_p95_median_mm": s.residual_p95_median_mm,
             "confidence_calibrated": r.frames.first().is_some_and(|f| f.confidence.calibrated),
             "latency_ms_median": latency_medians(r),
+            "correction_moved_rms_mm_median": correction_moved_median(r),
         })
     };
     let mut v = summary(&report);
@@ -183,8 +204,12 @@ pub fn run(a: Args) -> Result<()> {
         for r in std::iter::once(&report).chain(fe_report.as_ref()) {
             let s = &r.summary;
             println!(
-                "{}: {} frames ({} skipped, {} with a confidence warning), {:.1} ms median, {:.1} ms p95{}",
+                "{}{}: {} frames ({} skipped, {} with a confidence warning), {:.1} ms median, {:.1} ms p95{}",
                 r.model,
+                match correction_moved_median(r) {
+                    Some(m) => format!(" + physics correction (moved {m:.2} mm RMS median)"),
+                    None => String::new(),
+                },
                 s.frames,
                 s.skipped,
                 s.frames_with_warning,
@@ -201,6 +226,14 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
+/// The median over the frames of how far the physics correction moved the prediction (mm
+/// RMS over the nodes); None when it was off.
+fn correction_moved_median(r: &RegisterReport) -> Option<f64> {
+    let mut v: Vec<f64> = r.frames.iter().filter_map(|f| f.correction.map(|c| c.moved_rms_mm)).collect();
+    v.sort_by(f64::total_cmp);
+    (!v.is_empty()).then(|| v[v.len() / 2])
+}
+
 fn latency_medians(r: &RegisterReport) -> serde_json::Value {
     let med = |f: &dyn Fn(&umesh_core::register::pipeline::Latency) -> f64| {
         let mut v: Vec<f64> = r.frames.iter().map(|x| f(&x.latency)).collect();
@@ -209,7 +242,8 @@ fn latency_medians(r: &RegisterReport) -> serde_json::Value {
     };
     serde_json::json!({
         "points": med(&|l| l.points_ms), "icp": med(&|l| l.icp_ms), "u_s": med(&|l| l.surface_ms),
-        "predict": med(&|l| l.predict_ms), "overlay": med(&|l| l.overlay_ms), "total": med(&|l| l.total_ms),
+        "predict": med(&|l| l.predict_ms), "correction": med(&|l| l.correction_ms), "overlay": med(&|l| l.overlay_ms),
+        "total": med(&|l| l.total_ms),
     })
 }
 

@@ -187,6 +187,8 @@ pub struct DatasetContext {
     pub fixed: Vec<bool>,
     pub grid_npz: Vec<u8>,
     pub segmentation_hash: String,
+    /// The material the samples are solved with (registration's physics correction uses it).
+    pub material: MaterialParams,
 }
 
 /// What a dataset's camera sees and which nodes its fixed region holds, checked as
@@ -301,7 +303,16 @@ impl DatasetContext {
             Array::new(vec![surface.triangles.len()], ArrayData::U8(visible.visible.iter().map(|&v| v as u8).collect())),
         ));
         let grid_npz = encode_npz_with(&grid_arrays, true).map_err(|e| DatasetError::Io { path: "grid.npz".into(), source: e })?;
-        Ok(Self { grid, surface, visible, visible_nodes, fixed, grid_npz, segmentation_hash: segmentation_hash(seg) })
+        Ok(Self {
+            grid,
+            surface,
+            visible,
+            visible_nodes,
+            fixed,
+            grid_npz,
+            segmentation_hash: segmentation_hash(seg),
+            material: config.material,
+        })
     }
 
     /// The probes' forces on the grid, each spread over its contact patch on the surface

@@ -476,6 +476,11 @@ impl Assembler<'_> {
         }
     }
 
+    /// Cell `c`'s rotation at the last co-rotational assembly (identity before any).
+    pub fn cell_rotation(&self, c: usize) -> Matrix3<f64> {
+        self.rot[c]
+    }
+
     /// Each node's rotation: the rotation of the mean of its cells' rotations at the last
     /// co-rotational assembly (stiffness warping turns the rest factor's solves with these).
     pub fn nodal_rotations(&self) -> Vec<Matrix3<f64>> {

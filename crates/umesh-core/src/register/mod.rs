@@ -3,6 +3,7 @@
 //! -> internal structures deformed through their grid embedding -> overlay on the image.
 
 pub mod confidence;
+pub mod correction;
 pub mod icp;
 pub mod nn;
 pub mod overlay;
@@ -71,6 +72,8 @@ pub struct RegistrationContext {
     /// Grid nodes of the network input (u_s is non-zero there).
     pub visible_nodes: Vec<usize>,
     pub fixed: Vec<bool>,
+    /// The dataset's material (the physics correction's model).
+    pub material: crate::fem::MaterialParams,
     pub structures: Vec<Structure>,
     /// Visible node -> neighbouring visible nodes (6-connected), to fill unobserved nodes.
     node_neighbours: Vec<Vec<usize>>,
@@ -163,6 +166,7 @@ impl RegistrationContext {
             visible_vertices,
             visible_nodes: ctx.visible_nodes,
             fixed: ctx.fixed,
+            material: ctx.material,
             structures,
             node_neighbours,
             icp_target,

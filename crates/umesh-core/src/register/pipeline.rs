@@ -1,11 +1,12 @@
 //! The per-frame registration pipeline and its latency breakdown.
 
 use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
+use super::correction::{CorrectionReport, CorrectionSettings, SurfaceFit};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{depth_preview, draw_overlay};
 use super::{RegistrationContext, displacement_at};
 use crate::fem::MaterialParams;
-use crate::fem::solver::fit::{PointFit, PointFitReport, PointFitSettings};
+use crate::fem::solver::fit::{FitWork, PointFitReport, PointFitSettings};
 use crate::progress::{Cancel, Progress};
 use crate::rgbd::segment::{SegmentSettings, segment_frame};
 use crate::rgbd::stream::{FrameSource, Poll};
@@ -35,14 +36,13 @@ pub trait DisplacementModel {
     }
 }
 
-/// The FE baseline: a co-rotational FE registration of the rest grid to the frame's organ
-/// points (world, after the rigid alignment) by closest-point soft springs on the surface the
-/// training camera sees, warm-started from the previous frame; no network, no encoding.
+/// The FE registration alone: the rest grid's co-rotational model pulled onto the frame's
+/// organ points (`correction::SurfaceFit`), warm-started from the previous frame; no network,
+/// no encoding. `work`: per frame, the fixed work of the registration frame or a converged fit.
 pub struct FeDisplacementModel<'g> {
-    ctx: &'g RegistrationContext,
-    fit: PointFit<'g>,
-    u: Vec<Vector3<f64>>,
+    fit: SurfaceFit<'g>,
     pub last: PointFitReport,
+    pub work: FitWork,
 }
 
 impl<'g> FeDisplacementModel<'g> {
@@ -51,45 +51,36 @@ impl<'g> FeDisplacementModel<'g> {
     }
 
     pub fn with_settings(ctx: &'g RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, String> {
-        // Samples of the rest surface where all three corners are seen by the training camera.
-        let mut seen = vec![false; ctx.surface.positions.len()];
-        for &v in &ctx.visible_vertices {
-            seen[v] = true;
-        }
-        let part = crate::mesh::TriMesh {
-            positions: ctx.surface.positions.clone(),
-            triangles: ctx.surface.triangles.iter().copied().filter(|t| t.iter().all(|&v| seen[v as usize])).collect(),
-        };
-        let samples: Vec<Vector3<f64>> = crate::observation::dense_surface_points(&part, 0.05).into_iter().map(|p| p.0).collect();
-        let fit = PointFit::new(&ctx.grid, material, &ctx.fixed, &samples, settings).map_err(|e| e.to_string())?;
-        Ok(Self { ctx, fit, u: vec![Vector3::zeros(); ctx.grid.node_count()], last: PointFitReport::default() })
+        let work = FitWork::fixed(&settings);
+        Ok(Self { fit: SurfaceFit::new(ctx, material, settings)?, last: PointFitReport::default(), work })
+    }
+
+    /// Each frame's fit run until an update moves the nodes by at most `tol_mm` RMS (at most
+    /// `max_updates` updates of tight inner solves).
+    pub fn converged(mut self, tol_mm: f64, max_updates: usize) -> Self {
+        self.work = FitWork::converged(tol_mm, max_updates);
+        self
     }
 }
 
 impl DisplacementModel for FeDisplacementModel<'_> {
     fn name(&self) -> String {
-        "co-rotational FE (closest-point springs)".into()
+        match self.work.stop_mm {
+            Some(_) => "co-rotational FE fit (point-to-plane, converged)".into(),
+            None => "co-rotational FE fit (point-to-plane)".into(),
+        }
     }
     fn predict(&mut self, _u_s: &[f32], _out: &mut Vec<f32>) -> Result<(), String> {
         Err("the FE registration takes the observed points".into())
     }
     fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, String>> {
-        let r = match self.fit.fit(points_world_mm, &mut self.u) {
+        let r = match self.fit.fit(points_world_mm, self.work) {
             Ok(r) => r,
-            Err(e) => return Some(Err(e.to_string())),
+            Err(e) => return Some(Err(e)),
         };
         self.last = r;
-        let g = &self.ctx.grid;
-        let [x, y, z] = self.ctx.padded_shape();
-        let cells = x * y * z;
         out.clear();
-        out.resize(3 * cells, 0.0);
-        for (n, u) in self.u.iter().enumerate() {
-            let d = g.dense_index(n);
-            for c in 0..3 {
-                out[c * cells + d] = u[c] as f32;
-            }
-        }
+        self.fit.write_field(out);
         Some(Ok(r.samples_matched))
     }
 }
@@ -116,6 +107,9 @@ pub struct RegisterSettings {
     /// COVERAGE_RADIUS_MM) are not registered.
     #[serde(default = "default_min_coverage")]
     pub min_coverage: f64,
+    /// The physics correction after each network prediction (`correction`).
+    #[serde(default)]
+    pub correction: CorrectionSettings,
 }
 
 /// A surface point counts as seen when an organ point lies this close (mm).
@@ -138,6 +132,7 @@ impl Default for RegisterSettings {
             overlay: true,
             overlay_alpha: 0.6,
             min_coverage: default_min_coverage(),
+            correction: CorrectionSettings::default(),
         }
     }
 }
@@ -188,6 +183,8 @@ pub struct Latency {
     pub predict_ms: f64,
     pub overlay_ms: f64,
     pub confidence_ms: f64,
+    /// The physics correction (the first frame's includes building its model).
+    pub correction_ms: f64,
     pub total_ms: f64,
 }
 
@@ -210,6 +207,8 @@ pub struct FrameReport {
     /// Without ground truth: the fit of the prediction to the observed points and the
     /// warnings when it leaves the range seen in training.
     pub confidence: Confidence,
+    /// What the physics correction did (None: off, or the FE registration itself).
+    pub correction: Option<CorrectionReport>,
 }
 
 /// What one frame produced (for the GUI and the overlay writer).
@@ -238,6 +237,8 @@ pub struct Registrar<'c> {
     observer: Option<crate::observation::Observer>,
     /// The organ surface's vertex rings, for the confidence residual.
     rings: super::confidence::VertexRings,
+    /// The physics correction's FE model, built on the first frame that needs it.
+    corrector: Option<SurfaceFit<'c>>,
 }
 
 impl<'c> Registrar<'c> {
@@ -254,6 +255,7 @@ impl<'c> Registrar<'c> {
             field: Vec::new(),
             observer: None,
             rings: super::confidence::VertexRings::new(&ctx.surface),
+            corrector: None,
         }
     }
 
@@ -329,7 +331,8 @@ impl<'c> Registrar<'c> {
         }
         let t = Instant::now();
         let fitted = model.fit_points(&world, &mut self.field);
-        let direct = fitted.is_some() || observation.is_some();
+        let fe_fit = fitted.is_some();
+        let direct = fe_fit || observation.is_some();
         if let Some(r) = fitted {
             measured = r.map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
             predict_ms += ms(t);
@@ -360,6 +363,19 @@ impl<'c> Registrar<'c> {
         }
         if measured == 0 {
             return Err(format!("frame {}: no visible surface point found in the depth image", frame.index));
+        }
+        // The physics correction: the prediction pulled onto the observed points by the FE model
+        // (not after the FE registration, which is that fit already).
+        let mut correction = None;
+        let mut correction_ms = 0.0;
+        if self.settings.correction.updates > 0 && !fe_fit {
+            let t = Instant::now();
+            if self.corrector.is_none() {
+                self.corrector = Some(SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?);
+            }
+            let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction)).transpose();
+            correction = c.map_err(|e| format!("frame {}: physics correction: {e}", frame.index))?;
+            correction_ms = ms(t);
         }
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
@@ -407,7 +423,7 @@ impl<'c> Registrar<'c> {
                 disp = Some(mean(&d));
             }
         }
-        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, total_ms: ms(t0) };
+        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, correction_ms, total_ms: ms(t0) };
         Ok(FrameOutput {
             report: FrameReport {
                 frame: frame.index,
@@ -422,6 +438,7 @@ impl<'c> Registrar<'c> {
                 tre_rigid_mean_mm: tre_rigid,
                 marker_displacement_mean_mm: disp,
                 confidence,
+                correction,
             },
             field: self.field.clone(),
             overlay,

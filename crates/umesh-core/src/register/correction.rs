@@ -1,0 +1,139 @@
+//! The rest grid's co-rotational FE model pulled onto a frame's organ points (world, after the
+//! rigid alignment) by point-to-plane springs on the surface the training camera sees, the
+//! fixed region held (`fem::solver::fit`). Two uses, one fit: the physics correction after a
+//! network's prediction (a bounded number of updates warm-started from the prediction), and
+//! the FE registration alone (`FeDisplacementModel`, warm-started from the previous frame).
+
+use super::RegistrationContext;
+use crate::fem::MaterialParams;
+use crate::fem::solver::fit::{FitWork, PointFit, PointFitReport, PointFitSettings};
+use nalgebra::Vector3;
+use std::time::Instant;
+
+/// The correction after each prediction.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CorrectionSettings {
+    /// FE updates per frame (each one closest-point search and one co-rotational assembly);
+    /// 0: no correction.
+    pub updates: usize,
+    /// Conjugate-gradient iterations per update at most (each one pair of triangular solves).
+    pub cg_iterations: usize,
+}
+
+impl Default for CorrectionSettings {
+    fn default() -> Self {
+        Self { updates: 1, cg_iterations: 6 }
+    }
+}
+
+impl CorrectionSettings {
+    pub fn off() -> Self {
+        Self { updates: 0, ..Self::default() }
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.updates > 100 || (self.updates > 0 && !(1..=1000).contains(&self.cg_iterations)) {
+            return Err(format!(
+                "correction: {} updates of {} CG iterations (at most 100 updates of 1-1000 iterations)",
+                self.updates, self.cg_iterations
+            ));
+        }
+        Ok(())
+    }
+
+    pub fn work(&self) -> FitWork {
+        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None }
+    }
+}
+
+/// What the correction did to one frame's prediction.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct CorrectionReport {
+    /// How far it moved the prediction's nodes (mm): RMS over the nodes and the largest.
+    pub moved_rms_mm: f64,
+    pub moved_max_mm: f64,
+    pub fit: PointFitReport,
+    pub ms: f64,
+}
+
+/// The FE model of a registration context with its current nodal displacement.
+pub struct SurfaceFit<'c> {
+    ctx: &'c RegistrationContext,
+    fit: PointFit<'c>,
+    pub u: Vec<Vector3<f64>>,
+}
+
+impl<'c> SurfaceFit<'c> {
+    /// Samples every ~4.5 mm on the rest surface where all three corners of a triangle are
+    /// seen by the training camera, each with its triangle's normal.
+    pub fn new(ctx: &'c RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, String> {
+        let mut seen = vec![false; ctx.surface.positions.len()];
+        for &v in &ctx.visible_vertices {
+            seen[v] = true;
+        }
+        let part = crate::mesh::TriMesh {
+            positions: ctx.surface.positions.clone(),
+            triangles: ctx.surface.triangles.iter().copied().filter(|t| t.iter().all(|&v| seen[v as usize])).collect(),
+        };
+        let samples = crate::observation::dense_surface_points(&part, 0.05);
+        let fit = PointFit::new(&ctx.grid, material, &ctx.fixed, &samples, settings).map_err(|e| e.to_string())?;
+        Ok(Self { ctx, fit, u: vec![Vector3::zeros(); ctx.grid.node_count()] })
+    }
+
+    /// Start from a dense [3, X, Y, Z] field (mm); the fixed nodes stay at zero.
+    pub fn set_field(&mut self, field: &[f32]) {
+        let g = &self.ctx.grid;
+        let [x, y, z] = g.padded_shape();
+        let cells = x * y * z;
+        for (n, u) in self.u.iter_mut().enumerate() {
+            let d = g.dense_index(n);
+            *u = if self.ctx.fixed[n] {
+                Vector3::zeros()
+            } else {
+                Vector3::new(field[d] as f64, field[cells + d] as f64, field[2 * cells + d] as f64)
+            };
+        }
+    }
+
+    /// The current displacement written into a dense [3, X, Y, Z] field (mm) at the grid's
+    /// nodes, resized to the grid (entries off the grid are left as they are).
+    pub fn write_field(&self, out: &mut Vec<f32>) {
+        let g = &self.ctx.grid;
+        let [x, y, z] = g.padded_shape();
+        let cells = x * y * z;
+        out.resize(3 * cells, 0.0);
+        for (n, u) in self.u.iter().enumerate() {
+            let d = g.dense_index(n);
+            for c in 0..3 {
+                out[c * cells + d] = u[c] as f32;
+            }
+        }
+    }
+
+    /// `work` updates toward the points (world, mm), correspondences searched at each.
+    pub fn fit(&mut self, points_world_mm: &[Vector3<f64>], work: FitWork) -> Result<PointFitReport, String> {
+        self.fit.fit_with(points_world_mm, &mut self.u, work).map_err(|e| e.to_string())
+    }
+
+    /// The physics correction of a predicted field in place.
+    pub fn correct(
+        &mut self,
+        points_world_mm: &[Vector3<f64>],
+        field: &mut Vec<f32>,
+        settings: &CorrectionSettings,
+    ) -> Result<CorrectionReport, String> {
+        let t = Instant::now();
+        self.set_field(field);
+        let before = self.u.clone();
+        let fit = self.fit(points_world_mm, settings.work())?;
+        let (mut sq, mut max) = (0.0f64, 0.0f64);
+        for (a, b) in self.u.iter().zip(&before) {
+            let d = (a - b).norm_squared();
+            sq += d;
+            max = max.max(d);
+        }
+        self.write_field(field);
+        let n = self.u.len().max(1) as f64;
+        Ok(CorrectionReport { moved_rms_mm: (sq / n).sqrt(), moved_max_mm: max.sqrt(), fit, ms: t.elapsed().as_secs_f64() * 1e3 })
+    }
+}

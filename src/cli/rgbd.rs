@@ -63,6 +63,11 @@ pub struct SynthArgs {
     /// Instrument shafts occluding the organ.
     #[arg(long, default_value_t = 0)]
     pub instruments: usize,
+    /// The load family of the truth: pressing (the dataset's own pattern), instrument (1-3
+    /// local contacts pushing), grasp (1-2 contacts pulled outward and sideways) or gravity (a
+    /// body force in a random direction).
+    #[arg(long, default_value = "pressing")]
+    pub loads: String,
     /// The truth's material (svk, neo-hookean, linear; default: the dataset's), a test off the
     /// training distribution.
     #[arg(long)]
@@ -126,7 +131,9 @@ fn synth(a: SynthArgs) -> Result<()> {
             })
         }
     };
+    let loads = umesh_core::loads::LoadFamily::parse(&a.loads).map_err(|e| anyhow::anyhow!("--loads: {e}"))?;
     let settings = SynthSettings {
+        loads,
         camera_motion_mm: a.camera_motion_mm,
         camera_motion_deg: a.camera_motion_deg,
         instruments: a.instruments,

@@ -308,3 +308,121 @@ pub fn visible_random_forces(
     let pts = crate::visible::sample_points(surface, &vis.visible, settings.probes, &mut rng);
     Ok(random_forces(&pts, organ_size_mm(grid), material, settings, &mut rng))
 }
+
+/// How an organ is loaded. `Pressing` is the datasets' pattern (many probes on the visible
+/// surface); the others are deformations a network trained on it has not seen, for test
+/// recordings (`rgbd synth --loads`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LoadFamily {
+    /// `ForceSettings::probes` probes on the visible surface, pressing (the datasets').
+    Pressing,
+    /// An instrument pushing locally: 1-3 contacts on the visible surface, nearly along the
+    /// inward normal, each spread over the probe contact patch.
+    Instrument,
+    /// Grasping and pulling: 1-2 contacts pulled outward and sideways.
+    Grasp,
+    /// A change of support: a body force (the organ's weight turned) in a random direction.
+    Gravity,
+}
+
+impl LoadFamily {
+    pub const ALL: [LoadFamily; 4] = [Self::Pressing, Self::Instrument, Self::Grasp, Self::Gravity];
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Pressing => "pressing",
+            Self::Instrument => "instrument",
+            Self::Grasp => "grasp",
+            Self::Gravity => "gravity",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|f| f.name() == s)
+            .ok_or_else(|| format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", ")))
+    }
+
+    /// Whether the forces press on the surface (spread over contact patches) or act on the
+    /// volume.
+    pub fn on_surface(&self) -> bool {
+        !matches!(self, Self::Gravity)
+    }
+}
+
+fn random_unit(rng: &mut SplitMix64) -> Vector3<f64> {
+    loop {
+        let v = Vector3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 2.0 - Vector3::repeat(1.0);
+        if v.norm_squared() <= 1.0 && v.norm_squared() > 1e-6 {
+            break v.normalize();
+        }
+    }
+}
+
+/// The forces of one load family, before calibration (their scale is arbitrary: they are
+/// scaled to a target mean displacement afterwards). `visible_points`: points on the
+/// visible surface with outward normals, drawn by the caller; `Pressing` uses them all,
+/// `Instrument` the first 1-3, `Grasp` the first 1-2; `Gravity` none (a force on every cell
+/// in proportion to its volume).
+pub fn family_forces(
+    family: LoadFamily,
+    visible_points: &[(Vector3<f64>, Vector3<f64>)],
+    grid: &ImmersedGrid,
+    material: &MaterialParams,
+    settings: &ForceSettings,
+    rng: &mut SplitMix64,
+) -> Vec<PointForce> {
+    let contact = |(p, _): &(Vector3<f64>, Vector3<f64>), f: Vector3<f64>| PointForce { point_mm: [p.x, p.y, p.z], force_n: f.into() };
+    match family {
+        LoadFamily::Pressing => random_forces(visible_points, organ_size_mm(grid), material, settings, rng),
+        LoadFamily::Instrument => {
+            let n = 1 + (rng.next_u64() % 3) as usize;
+            visible_points
+                .iter()
+                .take(n)
+                .map(|pn| {
+                    let dir = (-pn.1 + random_unit(rng) * 0.3).normalize();
+                    contact(pn, dir * (0.5 + rng.next_f64()))
+                })
+                .collect()
+        }
+        LoadFamily::Grasp => {
+            let n = 1 + (rng.next_u64() % 2) as usize;
+            visible_points
+                .iter()
+                .take(n)
+                .map(|pn| {
+                    let nrm = pn.1;
+                    let r = random_unit(rng);
+                    let tangent = (r - nrm * r.dot(&nrm)).try_normalize(1e-9).unwrap_or_else(|| nrm.cross(&Vector3::x()).normalize());
+                    let dir = (nrm * 0.6 + tangent).normalize();
+                    contact(pn, dir * (0.5 + rng.next_f64()))
+                })
+                .collect()
+        }
+        LoadFamily::Gravity => {
+            let g = random_unit(rng);
+            let h = grid.cell_size_mm;
+            grid.cells
+                .iter()
+                .map(|c| {
+                    let [i, j, k] = c.ijk;
+                    let centre = grid.origin_mm + Vector3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * h;
+                    PointForce { point_mm: centre.into(), force_n: (g * c.volume_fraction).into() }
+                })
+                .collect()
+        }
+    }
+}
+
+/// How many surface points a family draws (`family_forces`'s `visible_points`).
+pub fn family_points(family: LoadFamily, settings: &ForceSettings) -> usize {
+    match family {
+        LoadFamily::Pressing => settings.probes,
+        LoadFamily::Instrument => 3,
+        LoadFamily::Grasp => 2,
+        LoadFamily::Gravity => 0,
+    }
+}

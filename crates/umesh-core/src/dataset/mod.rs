@@ -318,7 +318,41 @@ impl DatasetContext {
     /// The probes' forces on the grid, each spread over its contact patch on the surface
     /// (`ForceSettings::patch_radius_mm`): the one load model of samples and recordings.
     pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), String> {
-        loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, config.forces.patch_radius_mm))
+        self.apply_load(bc, config, forces, true)
+    }
+
+    /// `apply_probes` for surface loads; body forces (`on_surface` false) go to the grid as
+    /// they are.
+    pub fn apply_load(
+        &self,
+        bc: &mut BoundaryConditions,
+        config: &DatasetConfig,
+        forces: &[PointForce],
+        on_surface: bool,
+    ) -> Result<(), String> {
+        if on_surface {
+            loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, config.forces.patch_radius_mm))
+        } else {
+            loads::apply_forces(&self.grid, bc, forces)
+        }
+    }
+
+    /// Scale `forces` so that their linear mean displacement (over the nodes the configuration
+    /// averages) is `target_mm`: the calibration of samples, for any load.
+    pub fn calibrate_forces(
+        &self,
+        solver: &mut FeSolver,
+        config: &DatasetConfig,
+        forces: &mut [PointForce],
+        target_mm: f64,
+        on_surface: bool,
+    ) -> Result<(), String> {
+        let mut bc = BoundaryConditions::new(self.grid.node_count());
+        bc.fixed = self.fixed.clone();
+        self.apply_load(&mut bc, config, forces, on_surface)?;
+        let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+        loads::scale_forces(forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target_mm)?;
+        Ok(())
     }
 
     pub fn grid_hash(&self) -> String {
@@ -351,11 +385,7 @@ impl DatasetContext {
             let _ = loads::scale_forces(&mut forces, 1.0, load_scale);
             return Ok((forces, config.forces.target_displacement_mm * load_scale));
         }
-        let mut bc = BoundaryConditions::new(self.grid.node_count());
-        bc.fixed = self.fixed.clone();
-        self.apply_probes(&mut bc, config, &forces)?;
-        let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
-        loads::scale_forces(&mut forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target * load_scale)?;
+        self.calibrate_forces(solver, config, &mut forces, target * load_scale, true)?;
         Ok((forces, target * load_scale))
     }
 }
@@ -422,12 +452,7 @@ impl DatasetContext {
         first_lambda: f64,
         cancel: &Cancel,
     ) -> SolvedLoad {
-        let classify = |e: FemError| match e {
-            FemError::NotConverged { reason, .. } if reason.contains("invert") => (Rejection::Inverted, reason),
-            FemError::NotConverged { reason, .. } => (Rejection::NotConverged, reason),
-            other => (Rejection::Failed, other.to_string()),
-        };
-        let (mut forces, target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
+        let (forces, target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
             Ok(x) => x,
             Err(e) => {
                 let (forces, _) = self.sample_forces(config, index);
@@ -436,9 +461,31 @@ impl DatasetContext {
                 return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
             }
         };
+        self.solve_calibrated(solver, config, forces, target_mm, true, first_lambda, cancel)
+    }
+
+    /// Solve calibrated forces (`calibrate_forces`) on the SVK model: the load factor that
+    /// gives `target_mm` found by continuation from `first_lambda`. `on_surface`: the forces
+    /// press on the surface (spread over the probe contacts) rather than act on the volume.
+    #[allow(clippy::too_many_arguments)]
+    pub fn solve_calibrated(
+        &self,
+        solver: &mut FeSolver,
+        config: &DatasetConfig,
+        mut forces: Vec<PointForce>,
+        target_mm: f64,
+        on_surface: bool,
+        first_lambda: f64,
+        cancel: &Cancel,
+    ) -> SolvedLoad {
+        let classify = |e: FemError| match e {
+            FemError::NotConverged { reason, .. } if reason.contains("invert") => (Rejection::Inverted, reason),
+            FemError::NotConverged { reason, .. } => (Rejection::NotConverged, reason),
+            other => (Rejection::Failed, other.to_string()),
+        };
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
-        if let Err(e) = self.apply_probes(&mut bc, config, &forces) {
+        if let Err(e) = self.apply_load(&mut bc, config, &forces, on_surface) {
             return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {

@@ -7,7 +7,7 @@ use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse}
 use crate::dataset::{DatasetConfig, DatasetContext};
 use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, MaterialParams};
-use crate::loads::deform_mesh;
+use crate::loads::{LoadFamily, deform_mesh};
 use crate::phantom::SplitMix64;
 use crate::progress::{Cancel, Progress};
 use crate::register::overlay::rasterize;
@@ -48,6 +48,15 @@ pub struct SynthSettings {
     /// distribution); the loads are still the dataset's.
     #[serde(default)]
     pub material: Option<MaterialParams>,
+    /// The load family of the truth (`pressing`: one of the dataset's own patterns; the others
+    /// are deformations its samples do not draw). Calibrated as samples are: the last frame's
+    /// mean nodal displacement is the dataset's target times `load_scale`.
+    #[serde(default = "pressing")]
+    pub loads: LoadFamily,
+}
+
+fn pressing() -> LoadFamily {
+    LoadFamily::Pressing
 }
 
 impl Default for SynthSettings {
@@ -70,6 +79,7 @@ impl Default for SynthSettings {
             camera_motion_deg: 0.0,
             instruments: 0,
             material: None,
+            loads: LoadFamily::Pressing,
         }
     }
 }
@@ -264,7 +274,28 @@ pub fn run_rgbd_synth(
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
     let index = 10_000_000 + settings.seed as usize;
-    let forces = if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+    let on_surface = settings.loads.on_surface();
+    let forces = if settings.loads != LoadFamily::Pressing {
+        // Another family: its own draw from the seed, calibrated and solved as a sample's.
+        let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
+        let pts = crate::visible::sample_points(
+            &ctx.surface,
+            &ctx.visible.visible,
+            crate::loads::family_points(settings.loads, &config.forces),
+            &mut rng,
+        );
+        let mut f = crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
+        let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
+        let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+        let target = config.forces.target_displacement_mm * settings.load_scale;
+        if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+            return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
+        }
+        ctx.calibrate_forces(&mut s0, config, &mut f, target, on_surface).map_err(|e| bad(format!("the recording's load: {e}")))?;
+        let r = ctx.solve_calibrated(&mut s0, config, f, target, on_surface, 0.5, cancel);
+        r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+        r.forces
+    } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
         let mut f = ctx.sample_forces(config, index).0;
         let _ = crate::loads::scale_forces(&mut f, 1.0, settings.load_scale);
         f
@@ -279,7 +310,7 @@ pub fn run_rgbd_synth(
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
     full.fixed = ctx.fixed.clone();
-    ctx.apply_probes(&mut full, config, &forces).map_err(bad)?;
+    ctx.apply_load(&mut full, config, &forces, on_surface).map_err(bad)?;
     let rest_surface = ctx.surface.clone();
     let fixed = ctx.fixed.clone();
     let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;

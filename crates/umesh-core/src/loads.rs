@@ -345,12 +345,21 @@ impl LoadFamily {
             .ok_or_else(|| format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", ")))
     }
 
-    /// Whether the forces press on the surface (spread over contact patches) or act on the
-    /// volume.
-    pub fn on_surface(&self) -> bool {
-        !matches!(self, Self::Gravity)
+    /// The radius its contacts are spread over (`spread_forces`), given the configuration's
+    /// probe radius; None for a body force. An instrument's or a grasper's jaw contact is at
+    /// least INSTRUMENT_CONTACT_RADIUS_MM: on a point load (the radius of datasets made before
+    /// contacts existed) one calibrated contact inverts the cell under it.
+    pub fn contact_radius_mm(&self, probe_radius_mm: f64) -> Option<f64> {
+        match self {
+            Self::Pressing => Some(probe_radius_mm),
+            Self::Instrument | Self::Grasp => Some(probe_radius_mm.max(INSTRUMENT_CONTACT_RADIUS_MM)),
+            Self::Gravity => None,
+        }
     }
 }
+
+/// An instrument's contact: 12 mm of radius, about 4.5 cm² ("a few cm²").
+pub const INSTRUMENT_CONTACT_RADIUS_MM: f64 = 12.0;
 
 fn random_unit(rng: &mut SplitMix64) -> Vector3<f64> {
     loop {

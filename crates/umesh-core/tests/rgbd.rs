@@ -634,3 +634,51 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     assert!(c.moved_rms_mm > 0.5 && c.fit.updates == 1, "{c:?}");
     assert!(corrected.tre_mean_mm.unwrap() < 0.85 * rigid_tre, "corrected {:?} against rigid {rigid_tre:.2}", corrected.tre_mean_mm);
 }
+
+#[test]
+fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_organ() {
+    use umesh_core::loads::{ForceSettings, LoadFamily, family_forces, family_points};
+    use umesh_core::phantom::SplitMix64;
+    let seg = phantom();
+    let mut config = small_config(&seg);
+    config.forces = ForceSettings::default();
+    let ctx = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
+    for family in LoadFamily::ALL {
+        let mut rng = SplitMix64(5);
+        let pts = umesh_core::visible::sample_points(&ctx.surface, &ctx.visible.visible, family_points(family, &config.forces), &mut rng);
+        let f = family_forces(family, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
+        let normal_of = |p: &[f64; 3]| pts.iter().find(|(q, _)| (q - Vector3::from(*p)).norm() < 1e-9).map(|(_, n)| *n);
+        match family {
+            LoadFamily::Pressing => assert_eq!(f.len(), config.forces.probes),
+            LoadFamily::Instrument => {
+                assert!((1..=3).contains(&f.len()), "{} contacts", f.len());
+                // Pushing: against the outward normal (tilted by at most 0.3).
+                for x in &f {
+                    assert!(Vector3::from(x.force_n).normalize().dot(&normal_of(&x.point_mm).unwrap()) < -0.6, "{x:?}");
+                }
+            }
+            LoadFamily::Grasp => {
+                assert!((1..=2).contains(&f.len()), "{} contacts", f.len());
+                // Pulling outward and sideways: direction (0.6 n + t) / |..|, n.d = 0.51.
+                for x in &f {
+                    let d = Vector3::from(x.force_n).normalize().dot(&normal_of(&x.point_mm).unwrap());
+                    assert!((d - 0.6 / 1.36f64.sqrt()).abs() < 1e-6, "{d}");
+                }
+            }
+            LoadFamily::Gravity => {
+                // A force on every cell, all in one direction, in proportion to the cell's volume.
+                assert_eq!(f.len(), ctx.grid.cells.len());
+                let g =
+                    Vector3::from(f.iter().max_by(|a, b| a.force_n[0].abs().total_cmp(&b.force_n[0].abs())).unwrap().force_n).normalize();
+                for x in &f {
+                    assert!(Vector3::from(x.force_n).cross(&g).norm() < 1e-9);
+                }
+            }
+        }
+    }
+    // A grasp recording: calibrated to the dataset's target, the markers move by several mm.
+    let d = tmp("grasp");
+    let s = SynthSettings { frames: 2, width: 160, height: 120, focal_px: 131.25, loads: LoadFamily::Grasp, ..Default::default() };
+    let r = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
+    assert!(r.mean_marker_displacement_mm > 3.0, "{r:?}");
+}

@@ -9,7 +9,7 @@
 use crate::fem::solver::{FeSolver, FemError, MeanSolve, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::{GridError, GridSettings, ImmersedGrid};
-use crate::loads::{self, ForceSettings, LoadCalibration, PointForce};
+use crate::loads::{self, ForceSettings, LoadCalibration, LoadFamily, PointForce};
 use crate::mesh::TriMesh;
 use crate::npz::{Array, ArrayData, Npz, NpzError, encode_npz_with};
 use crate::phantom::SplitMix64;
@@ -318,22 +318,21 @@ impl DatasetContext {
     /// The probes' forces on the grid, each spread over its contact patch on the surface
     /// (`ForceSettings::patch_radius_mm`): the one load model of samples and recordings.
     pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), String> {
-        self.apply_load(bc, config, forces, true)
+        self.apply_load(bc, config, forces, LoadFamily::Pressing)
     }
 
-    /// `apply_probes` for surface loads; body forces (`on_surface` false) go to the grid as
-    /// they are.
+    /// The forces of a load family on the grid: contacts spread over the family's contact
+    /// radius (`LoadFamily::contact_radius_mm`), body forces as they are.
     pub fn apply_load(
         &self,
         bc: &mut BoundaryConditions,
         config: &DatasetConfig,
         forces: &[PointForce],
-        on_surface: bool,
+        family: LoadFamily,
     ) -> Result<(), String> {
-        if on_surface {
-            loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, config.forces.patch_radius_mm))
-        } else {
-            loads::apply_forces(&self.grid, bc, forces)
+        match family.contact_radius_mm(config.forces.patch_radius_mm) {
+            Some(r) => loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, r)),
+            None => loads::apply_forces(&self.grid, bc, forces),
         }
     }
 
@@ -345,11 +344,11 @@ impl DatasetContext {
         config: &DatasetConfig,
         forces: &mut [PointForce],
         target_mm: f64,
-        on_surface: bool,
+        family: LoadFamily,
     ) -> Result<(), String> {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
-        self.apply_load(&mut bc, config, forces, on_surface)?;
+        self.apply_load(&mut bc, config, forces, family)?;
         let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
         loads::scale_forces(forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target_mm)?;
         Ok(())
@@ -385,7 +384,7 @@ impl DatasetContext {
             let _ = loads::scale_forces(&mut forces, 1.0, load_scale);
             return Ok((forces, config.forces.target_displacement_mm * load_scale));
         }
-        self.calibrate_forces(solver, config, &mut forces, target * load_scale, true)?;
+        self.calibrate_forces(solver, config, &mut forces, target * load_scale, LoadFamily::Pressing)?;
         Ok((forces, target * load_scale))
     }
 }
@@ -461,12 +460,12 @@ impl DatasetContext {
                 return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
             }
         };
-        self.solve_calibrated(solver, config, forces, target_mm, true, first_lambda, cancel)
+        self.solve_calibrated(solver, config, forces, target_mm, LoadFamily::Pressing, first_lambda, cancel)
     }
 
     /// Solve calibrated forces (`calibrate_forces`) on the SVK model: the load factor that
-    /// gives `target_mm` found by continuation from `first_lambda`. `on_surface`: the forces
-    /// press on the surface (spread over the probe contacts) rather than act on the volume.
+    /// gives `target_mm` found by continuation from `first_lambda`; the forces applied as
+    /// `family`'s (`apply_load`).
     #[allow(clippy::too_many_arguments)]
     pub fn solve_calibrated(
         &self,
@@ -474,7 +473,7 @@ impl DatasetContext {
         config: &DatasetConfig,
         mut forces: Vec<PointForce>,
         target_mm: f64,
-        on_surface: bool,
+        family: LoadFamily,
         first_lambda: f64,
         cancel: &Cancel,
     ) -> SolvedLoad {
@@ -485,7 +484,7 @@ impl DatasetContext {
         };
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
-        if let Err(e) = self.apply_load(&mut bc, config, &forces, on_surface) {
+        if let Err(e) = self.apply_load(&mut bc, config, &forces, family) {
             return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {

@@ -274,7 +274,6 @@ pub fn run_rgbd_synth(
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
     let index = 10_000_000 + settings.seed as usize;
-    let on_surface = settings.loads.on_surface();
     let forces = if settings.loads != LoadFamily::Pressing {
         // Another family: its own draw from the seed, calibrated and solved as a sample's.
         let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
@@ -291,8 +290,8 @@ pub fn run_rgbd_synth(
         if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
             return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
         }
-        ctx.calibrate_forces(&mut s0, config, &mut f, target, on_surface).map_err(|e| bad(format!("the recording's load: {e}")))?;
-        let r = ctx.solve_calibrated(&mut s0, config, f, target, on_surface, 0.5, cancel);
+        ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
+        let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
         r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
         r.forces
     } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
@@ -310,7 +309,7 @@ pub fn run_rgbd_synth(
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
     full.fixed = ctx.fixed.clone();
-    ctx.apply_load(&mut full, config, &forces, on_surface).map_err(bad)?;
+    ctx.apply_load(&mut full, config, &forces, settings.loads).map_err(bad)?;
     let rest_surface = ctx.surface.clone();
     let fixed = ctx.fixed.clone();
     let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;

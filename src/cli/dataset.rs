@@ -118,6 +118,11 @@ pub struct ConfigArgs {
     /// (0: point loads, as datasets made before).
     #[arg(long, default_value_t = ForceSettings::default().patch_radius_mm)]
     pub probe_radius_mm: f64,
+    /// Load families the samples are drawn from, each sample one of them: `mixture` (all four)
+    /// or a comma-separated list of pressing (many probes), instrument (1-3 local contacts),
+    /// grasp (1-2 contacts pulled) and gravity (a body force in a random direction).
+    #[arg(long, default_value = "mixture")]
+    pub loads: String,
     /// How forces are scaled: mean-displacement (calibrated per sample, the default) or
     /// energy-scale (F = E L D / N, as datasets made before calibration).
     #[arg(long, default_value = "mean-displacement", value_parser = ["mean-displacement", "energy-scale"])]
@@ -187,6 +192,7 @@ impl ConfigArgs {
         opt("target-displacement-mm", self.target_displacement_mm != d.target_displacement_mm, self.target_displacement_mm.to_string());
         opt("target-spread", self.target_spread != d.target_spread, self.target_spread.to_string());
         opt("probe-radius-mm", self.probe_radius_mm != d.probe_radius_mm, self.probe_radius_mm.to_string());
+        opt("loads", self.loads != d.loads, self.loads.clone());
         opt("calibration", self.calibration != d.calibration, self.calibration.clone());
         opt("visible-fraction", self.visible_fraction != d.visible_fraction, self.visible_fraction.to_string());
         opt("young-pa", self.young_pa != d.young_pa, self.young_pa.to_string());
@@ -284,9 +290,17 @@ impl ConfigArgs {
             target_spread: self.target_spread,
             patch_radius_mm: self.probe_radius_mm,
             calibration: if self.calibration == "energy-scale" { LoadCalibration::EnergyScale } else { LoadCalibration::MeanDisplacement },
+            // The uncalibrated scale knows only pressing: its default is that, not the mixture.
+            families: if self.calibration == "energy-scale" && self.loads == Self::default().loads {
+                vec![umesh_core::loads::LoadFamily::Pressing]
+            } else {
+                ForceSettings::parse_families(&self.loads).map_err(|e| anyhow::anyhow!("--loads {}: {e}", self.loads))?
+            },
             ..Default::default()
         };
-        c.forces.validate().map_err(|e| anyhow::anyhow!("--probes/--target-displacement-mm/--target-spread/--probe-radius-mm: {e}"))?;
+        c.forces
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--probes/--target-displacement-mm/--target-spread/--probe-radius-mm/--loads: {e}"))?;
         anyhow::ensure!(
             self.visible_fraction > 0.0 && self.visible_fraction <= 1.0,
             "--visible-fraction {}: must lie in (0, 1]",
@@ -348,6 +362,10 @@ pub fn run(a: Args) -> Result<()> {
             );
             for (why, n) in &st.rejected {
                 println!("  rejected ({why}): {n}");
+            }
+            if !st.families.is_empty() {
+                let f: Vec<String> = st.families.iter().map(|(f, n, a)| format!("{} {a}/{n}", f.name())).collect();
+                println!("  load families (accepted/samples): {}", f.join(", "));
             }
             if st.below_target > 0 {
                 println!("  accepted below their target (the converged state nearest an unreachable target): {}", st.below_target);

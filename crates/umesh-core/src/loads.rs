@@ -40,6 +40,19 @@ pub struct ForceSettings {
     /// lands on long before the organ reaches its target.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub patch_radius_mm: f64,
+    /// The load families samples are drawn from, each sample one of them chosen uniformly
+    /// (`family_of`). Datasets made before families existed: pressing only (not written then,
+    /// so their configuration hash is unchanged).
+    #[serde(default = "pressing_only", skip_serializing_if = "is_pressing_only")]
+    pub families: Vec<LoadFamily>,
+}
+
+fn pressing_only() -> Vec<LoadFamily> {
+    vec![LoadFamily::Pressing]
+}
+
+fn is_pressing_only(f: &[LoadFamily]) -> bool {
+    f == [LoadFamily::Pressing]
 }
 
 fn is_zero(v: &f64) -> bool {
@@ -69,6 +82,7 @@ impl Default for ForceSettings {
             target_spread: 0.5,
             mean_over: MeanOver::Free,
             patch_radius_mm: DEFAULT_PATCH_RADIUS_MM,
+            families: LoadFamily::ALL.to_vec(),
         }
     }
 }
@@ -76,7 +90,14 @@ impl Default for ForceSettings {
 impl ForceSettings {
     /// The uncalibrated scale F = E L D / N (one-off solves and the FE benchmark).
     pub fn energy_scale(probes: usize, target_displacement_mm: f64) -> Self {
-        Self { probes, target_displacement_mm, calibration: LoadCalibration::EnergyScale, target_spread: 0.0, ..Self::default() }
+        Self {
+            probes,
+            target_displacement_mm,
+            calibration: LoadCalibration::EnergyScale,
+            target_spread: 0.0,
+            families: pressing_only(),
+            ..Self::default()
+        }
     }
 
     pub fn validate(&self) -> Result<(), String> {
@@ -95,7 +116,35 @@ impl ForceSettings {
         if !(self.patch_radius_mm >= 0.0 && self.patch_radius_mm <= 100.0) {
             return Err(format!("probe contact radius {} mm: between 0 and 100 mm", self.patch_radius_mm));
         }
+        if self.families.is_empty() {
+            return Err("no load family: give at least one of pressing, instrument, grasp, gravity".into());
+        }
+        if self.families.iter().enumerate().any(|(i, f)| self.families[..i].contains(f)) {
+            return Err(format!("load families {:?}: each at most once", self.families.iter().map(|f| f.name()).collect::<Vec<_>>()));
+        }
+        if self.calibration == LoadCalibration::EnergyScale && !is_pressing_only(&self.families) {
+            return Err("load families other than pressing need the mean-displacement calibration".into());
+        }
         Ok(())
+    }
+
+    /// The family of sample `index`: uniform over `families`, from its own random stream (a
+    /// single family draws nothing, so pressing-only datasets are the ones they always were).
+    pub fn family_of(&self, seed: u64, index: usize) -> LoadFamily {
+        if self.families.len() <= 1 {
+            return self.families.first().copied().unwrap_or(LoadFamily::Pressing);
+        }
+        let mut rng = SplitMix64(seed ^ 0xFA41_17E5 ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        rng.next_u64();
+        self.families[(rng.next_u64() % self.families.len() as u64) as usize]
+    }
+
+    /// Parse a comma-separated list of families, or `mixture` (all four).
+    pub fn parse_families(s: &str) -> Result<Vec<LoadFamily>, String> {
+        if s.trim() == "mixture" {
+            return Ok(LoadFamily::ALL.to_vec());
+        }
+        s.split(',').map(|f| LoadFamily::parse(f.trim())).collect()
     }
 
     /// The target mean displacement of one sample: the configured target times a factor

@@ -557,3 +557,45 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     let r = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&forced), &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.complete && r.samples_computed == 7 && r.preflight.is_some(), "{r:?}");
 }
+
+#[test]
+fn a_mixture_dataset_records_each_samples_family_and_pressing_only_configs_keep_their_hash() {
+    use umesh_core::loads::{ForceSettings, LoadFamily};
+    // Datasets made before families existed read as pressing only, and such a configuration
+    // writes no `families` key (its hash and its shards are what they were).
+    let mut old = serde_json::to_value(ForceSettings::energy_scale(100, 3.0)).unwrap();
+    assert!(old.get("families").is_none(), "{old}");
+    old.as_object_mut().unwrap().remove("families");
+    let read: ForceSettings = serde_json::from_value(old).unwrap();
+    assert_eq!(read.families, vec![LoadFamily::Pressing]);
+    assert_eq!(ForceSettings::default().families, LoadFamily::ALL.to_vec());
+    // Bad lists are refused with their reason.
+    let mut bad = ForceSettings::default();
+    bad.families.clear();
+    assert!(bad.validate().unwrap_err().contains("no load family"));
+    bad.families = vec![LoadFamily::Grasp, LoadFamily::Grasp];
+    assert!(bad.validate().unwrap_err().contains("at most once"));
+    assert!(ForceSettings::parse_families("pressing,twisting").unwrap_err().contains("twisting"));
+    // A mixture: every sample's family in the manifest, the one `family_of` gives, and the
+    // statistics count them.
+    let config = small_config(12);
+    let d = tmp("families");
+    run_generate(&phantom(), &d, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let m = umesh_core::dataset::Manifest::read(&d).unwrap();
+    for s in &m.samples {
+        assert_eq!(s.family, Some(config.forces.family_of(config.seed, s.index)), "sample {}", s.index);
+    }
+    let kinds: std::collections::BTreeSet<String> = m.samples.iter().map(|s| s.family.unwrap().name().to_string()).collect();
+    assert!(kinds.len() >= 3, "12 samples drew only {kinds:?}");
+    let st = umesh_core::dataset::run_stats(&d).unwrap();
+    assert_eq!(st.families.iter().map(|f| f.1).sum::<usize>(), 12);
+    assert_eq!(st.families.iter().map(|f| f.2).sum::<usize>(), st.accepted);
+    // A pressing-only dataset records no family.
+    let mut pressing = small_config(2);
+    pressing.forces.families = vec![LoadFamily::Pressing];
+    let d2 = tmp("families_pressing");
+    run_generate(&phantom(), &d2, &pressing, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let m2 = umesh_core::dataset::Manifest::read(&d2).unwrap();
+    assert!(m2.samples.iter().all(|s| s.family.is_none()));
+    assert!(!std::fs::read_to_string(d2.join("manifest.json")).unwrap().contains("families"));
+}

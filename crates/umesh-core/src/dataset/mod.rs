@@ -363,9 +363,15 @@ impl DatasetContext {
     pub fn sample_forces(&self, config: &DatasetConfig, index: usize) -> (Vec<PointForce>, f64) {
         let mut rng = SplitMix64(config.seed ^ (index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
         rng.next_u64();
-        let pts = sample_points(&self.surface, &self.visible.visible, config.forces.probes, &mut rng);
-        let forces = loads::random_forces(&pts, loads::organ_size_mm(&self.grid), &config.material, &config.forces, &mut rng);
+        let family = self.sample_family(config, index);
+        let pts = sample_points(&self.surface, &self.visible.visible, loads::family_points(family, &config.forces), &mut rng);
+        let forces = loads::family_forces(family, &pts, &self.grid, &config.material, &config.forces, &mut rng);
         (forces, config.forces.sample_target_mm(&mut rng))
+    }
+
+    /// The load family of sample `index` (`ForceSettings::family_of`).
+    pub fn sample_family(&self, config: &DatasetConfig, index: usize) -> LoadFamily {
+        config.forces.family_of(config.seed, index)
     }
 
     /// The forces of sample `index` as they are solved: with `mean-displacement` calibration,
@@ -384,7 +390,7 @@ impl DatasetContext {
             let _ = loads::scale_forces(&mut forces, 1.0, load_scale);
             return Ok((forces, config.forces.target_displacement_mm * load_scale));
         }
-        self.calibrate_forces(solver, config, &mut forces, target * load_scale, LoadFamily::Pressing)?;
+        self.calibrate_forces(solver, config, &mut forces, target * load_scale, self.sample_family(config, index))?;
         Ok((forces, target * load_scale))
     }
 }
@@ -460,7 +466,7 @@ impl DatasetContext {
                 return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
             }
         };
-        self.solve_calibrated(solver, config, forces, target_mm, LoadFamily::Pressing, first_lambda, cancel)
+        self.solve_calibrated(solver, config, forces, target_mm, self.sample_family(config, index), first_lambda, cancel)
     }
 
     /// Solve calibrated forces (`calibrate_forces`) on the SVK model: the load factor that
@@ -631,6 +637,9 @@ pub struct SampleRecord {
     /// The mean displacement the sample's forces were calibrated for (mm).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_displacement_mm: Option<f64>,
+    /// The sample's load family (datasets of more than one family).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub family: Option<LoadFamily>,
     pub newton_iterations: usize,
     /// Wall time of the solve (absent for shards adopted from an interrupted run).
     pub solve_ms: Option<f64>,
@@ -696,6 +705,12 @@ impl Manifest {
     pub fn accepted(&self) -> impl Iterator<Item = &SampleRecord> {
         self.samples.iter().filter(|s| s.accepted)
     }
+}
+
+/// A sample's family as the manifest records it: None for pressing-only datasets (as before
+/// families existed).
+fn recorded_family(config: &DatasetConfig, index: usize) -> Option<LoadFamily> {
+    (config.forces.families != [LoadFamily::Pressing]).then(|| config.forces.family_of(config.seed, index))
 }
 
 pub fn shard_file_name(shard: usize) -> String {
@@ -808,6 +823,7 @@ pub fn read_shard_records(
             max_displacement_mm: mx[k],
             mean_displacement_mm: mean[k],
             target_displacement_mm: target.as_ref().map(|t| t[k]),
+            family: recorded_family(config, range.start + k),
             newton_iterations: it[k] as usize,
             solve_ms: None,
             shard: file.clone(),
@@ -1129,6 +1145,7 @@ fn write_shard(
             max_displacement_mm: max,
             mean_displacement_mm: mean,
             target_displacement_mm: Some(r.target_mm),
+            family: recorded_family(config, r.index),
             newton_iterations: r.newton_iterations,
             solve_ms: Some(r.solve_ms),
             shard: file.clone(),
@@ -1373,6 +1390,9 @@ pub struct DatasetStats {
     /// was kept (achieved / target below 1 - `CALIBRATION_TOLERANCE`, at least
     /// `fem::solver::MIN_REACHED_FRACTION`).
     pub below_target: usize,
+    /// Per load family (datasets of more than one): (family, samples, accepted).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub families: Vec<(LoadFamily, usize, usize)>,
     pub newton_iterations: Option<Distribution>,
     pub solve_ms: Option<Distribution>,
     /// (index, why) of samples far from the rest.
@@ -1401,7 +1421,20 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
             }
         }
     }
+    let mut families: Vec<(LoadFamily, usize, usize)> = Vec::new();
+    for s in &m.samples {
+        let Some(f) = s.family else { continue };
+        match families.iter_mut().find(|e| e.0 == f) {
+            Some(e) => {
+                e.1 += 1;
+                e.2 += s.accepted as usize;
+            }
+            None => families.push((f, 1, s.accepted as usize)),
+        }
+    }
+    families.sort_by_key(|e| LoadFamily::ALL.iter().position(|f| *f == e.0));
     Ok(DatasetStats {
+        families,
         samples: m.samples.len(),
         accepted: acc.len(),
         rejected,

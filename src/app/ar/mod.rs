@@ -12,6 +12,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::time::{Duration, Instant};
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
+use umesh_core::register::correction::CorrectionSettings;
 use umesh_core::register::pipeline::{FrameReport, GroundTruth, RegisterSettings, Registrar};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::segment::segment_frame;
@@ -39,6 +40,8 @@ pub enum ArCommand {
     /// Write each overlay to this folder as PNG (None: stop).
     Record(Option<PathBuf>),
     ShowPoints(bool),
+    /// The physics correction after each prediction (on: the default work; off: none).
+    Correction(bool),
     Stop,
 }
 
@@ -234,6 +237,10 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 show_points = s;
                 want = last_index;
             }
+            Ok(ArCommand::Correction(on)) => {
+                reg.settings.correction = if on { CorrectionSettings::default() } else { CorrectionSettings::off() };
+                want = last_index;
+            }
             Err(_) => {}
         }
         // The frame to process now, if any.
@@ -391,6 +398,8 @@ pub struct Ar {
     pub record: bool,
     pub record_dir: String,
     pub show_points: bool,
+    /// The physics correction after each prediction (on by default).
+    pub correction: bool,
     pub generation: u64,
 }
 
@@ -454,6 +463,6 @@ pub struct ArPlugin;
 
 impl Plugin for ArPlugin {
     fn build(&self, app: &mut App) {
-        app.insert_resource(Ar { show_points: true, ..Default::default() }).add_systems(Update, poll_ar);
+        app.insert_resource(Ar { show_points: true, correction: true, ..Default::default() }).add_systems(Update, poll_ar);
     }
 }

@@ -55,6 +55,7 @@ pub fn left_panel(
             Some(o) => {
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
                 s.send(ArCommand::ShowPoints(ar.show_points));
+                s.send(ArCommand::Correction(ar.correction));
                 ar.session = Some(s);
                 ar.last = None;
                 ar.frames = None;
@@ -134,6 +135,13 @@ pub fn left_panel(
     ui.separator();
     if ui.checkbox(&mut ar.show_points, "observed organ points").changed() {
         s.send(ArCommand::ShowPoints(ar.show_points));
+    }
+    if ui
+        .checkbox(&mut ar.correction, "physics correction")
+        .on_hover_text("After the network, one FE fit update pulls the prediction onto the observed points (about 90 ms a frame on the phantom)")
+        .changed()
+    {
+        s.send(ArCommand::Correction(ar.correction));
     }
     ui.horizontal(|ui| {
         if ui.checkbox(&mut ar.record, "record overlays to").changed() {

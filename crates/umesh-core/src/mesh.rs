@@ -146,8 +146,12 @@ impl TriMesh {
     /// Voxelise a closed mesh by ray parity along z on an axis-aligned lattice of `spacing_mm`.
     pub fn voxelize(&self, spacing_mm: f64) -> Option<Mask> {
         let (lo, hi) = self.bounds()?;
+        // NIfTI keeps the lattice in single precision: an origin and spacing exact in f32 read
+        // back as this very lattice, so a segmentation saved from a mesh gives the same grid
+        // (and grid hash) as the mesh did (a patient prepared from a mesh accepts its model).
+        let spacing_mm = spacing_mm as f32 as f64;
         let pad = 2.0 * spacing_mm;
-        let origin = lo - Vector3::repeat(pad);
+        let origin = (lo - Vector3::repeat(pad)).map(|v| v as f32 as f64);
         let dims = [0, 1, 2].map(|a| (((hi[a] - lo[a]) + 2.0 * pad) / spacing_mm).ceil() as usize + 1);
         let [nx, ny, nz] = dims;
         if nx.saturating_mul(ny).saturating_mul(nz) > crate::nifti_io::DEFAULT_MAX_VOXELS as usize {

@@ -472,3 +472,27 @@ fn a_mask_folder_with_two_files_of_one_structure_and_an_organ_made_of_structures
     let e = seg.validate().unwrap_err().to_string();
     assert!(e.contains("seg.nii") && e.contains("structure cannot be the whole organ"), "{e}");
 }
+
+#[test]
+fn a_segmentation_voxelised_from_a_mesh_reads_back_from_nifti_on_the_same_lattice_and_grid() {
+    // Bounds and spacing not exact in single precision: NIfTI keeps f32, so before the lattice
+    // was snapped the grid read back moved by about 1e-5 mm and its hash changed.
+    let mut m = cube();
+    for v in &mut m.positions {
+        *v = *v * 3.3 + Vector3::new(0.123_456_789, 10.333_333_3, -7.777_777_7);
+    }
+    let p = tmp("odd_cube.obj");
+    write_mesh(&p, &m).unwrap();
+    let seg = umesh_core::segmentation::load_meshes(&p, &[], 0.7, 1.0).unwrap();
+    let nii = tmp("odd_cube.nii.gz");
+    nifti_io::write_volume(&nii, &seg.volume, WriteType::U8).unwrap();
+    let back = read_volume(&nii, &ReadOptions::default()).unwrap();
+    assert_eq!(back.dims, seg.volume.dims);
+    assert_eq!(back.world_from_voxel, seg.volume.world_from_voxel, "the lattice moved in the round trip");
+    let settings = umesh_core::grid::GridSettings { cell_size_mm: 3.0, ..Default::default() };
+    let grid = |v: &Volume| {
+        let mask = v.mask(&[1]);
+        umesh_core::grid::ImmersedGrid::from_mask(&mask, &settings, &umesh_core::Progress::none(), &umesh_core::Cancel::new()).unwrap()
+    };
+    assert_eq!(grid(&back).to_npz_arrays(), grid(&seg.volume).to_npz_arrays());
+}

@@ -138,7 +138,9 @@ pub fn left_panel(
     }
     if ui
         .checkbox(&mut ar.correction, "physics correction")
-        .on_hover_text("After the network, one FE fit update pulls the prediction onto the observed points (about 90 ms a frame on the phantom)")
+        .on_hover_text(
+            "After the network, one FE fit update pulls the prediction onto the observed points (about 90 ms a frame on the phantom)",
+        )
         .changed()
     {
         s.send(ArCommand::Correction(ar.correction));

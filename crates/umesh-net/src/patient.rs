@@ -231,6 +231,15 @@ fn stage_progress(global: &Progress, offset: u64, width: u64, total: u64, stage:
     })
 }
 
+/// Whether `settings` are the `stored` ones read back from `patient.json`: compared as stored,
+/// since JSON's float parsing is not always exact (a camera coordinate with decimals came back
+/// one ulp off, and a folder refused to resume with two identical hashes in its message).
+pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> Result<bool, NetError> {
+    let text = serde_json::to_string(settings).map_err(|e| NetError::Invalid(e.to_string()))?;
+    let now: PrepareSettings = serde_json::from_str(&text).map_err(|e| NetError::Invalid(e.to_string()))?;
+    Ok(*stored == now)
+}
+
 /// Run (or resume) the whole job for `seg` into `out`. `inputs` are the files the
 /// segmentation was read from (hashed and stored); nothing is written before every input
 /// and setting has been checked.
@@ -282,11 +291,17 @@ pub fn run_prepare(
     };
     if out.join("patient.json").exists() {
         let old = Patient::read(out)?;
-        if old.segmentation_hash != seg_hash || old.settings != *settings {
+        if old.segmentation_hash != seg_hash {
             return Err(NetError::Invalid(format!(
-                "{}: holds a patient prepared from other inputs or settings (segmentation hash {} vs {seg_hash}); choose an empty folder",
+                "{}: holds a patient prepared from another segmentation (segmentation hash {} vs {seg_hash}); choose an empty folder",
                 out.display(),
                 old.segmentation_hash
+            )));
+        }
+        if !same_as_stored(&old.settings, settings)? {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient prepared with other settings (same segmentation); choose an empty folder or the same options",
+                out.display()
             )));
         }
         patient.stages = old.stages;

@@ -366,7 +366,7 @@ impl DatasetContext {
         let family = self.sample_family(config, index);
         let pts = sample_points(&self.surface, &self.visible.visible, loads::family_points(family, &config.forces), &mut rng);
         let forces = loads::family_forces(family, &pts, &self.grid, &config.material, &config.forces, &mut rng);
-        (forces, config.forces.sample_target_mm(&mut rng))
+        (forces, config.forces.sample_target_mm(&mut rng) * family.target_factor())
     }
 
     /// The load family of sample `index` (`ForceSettings::family_of`).

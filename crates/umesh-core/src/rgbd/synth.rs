@@ -49,8 +49,8 @@ pub struct SynthSettings {
     #[serde(default)]
     pub material: Option<MaterialParams>,
     /// The load family of the truth (`pressing`: one of the dataset's own patterns; the others
-    /// are deformations its samples do not draw). Calibrated as samples are: the last frame's
-    /// mean nodal displacement is the dataset's target times `load_scale`.
+    /// drawn from the seed). Calibrated as samples are: the last frame's mean nodal displacement
+    /// is the dataset's target times `load_scale` (times the family's `target_factor`).
     #[serde(default = "pressing")]
     pub loads: LoadFamily,
 }
@@ -286,7 +286,7 @@ pub fn run_rgbd_synth(
         let mut f = crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
         let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
         let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-        let target = config.forces.target_displacement_mm * settings.load_scale;
+        let target = config.forces.target_displacement_mm * settings.load_scale * settings.loads.target_factor();
         if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
             return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
         }

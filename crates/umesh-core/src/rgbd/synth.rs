@@ -231,6 +231,11 @@ pub fn run_rgbd_synth(
     cancel: &Cancel,
 ) -> Result<SynthReport, RgbdError> {
     let bad = |r: String| super::invalid(out, r);
+    // A pressing recording is one of the dataset's pressing patterns, whatever families the
+    // dataset mixes (its sample index would otherwise draw any of them).
+    let mut pressing = config.clone();
+    pressing.forces.families = vec![LoadFamily::Pressing];
+    let config = if settings.loads == LoadFamily::Pressing { &pressing } else { config };
     if settings.frames == 0 || settings.frames > 100_000 {
         return Err(bad(format!("{} frames: between 1 and 100000", settings.frames)));
     }

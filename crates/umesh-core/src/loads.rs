@@ -122,10 +122,16 @@ impl ForceSettings {
         if self.families.iter().enumerate().any(|(i, f)| self.families[..i].contains(f)) {
             return Err(format!("load families {:?}: each at most once", self.families.iter().map(|f| f.name()).collect::<Vec<_>>()));
         }
-        if self.calibration == LoadCalibration::EnergyScale && !is_pressing_only(&self.families) {
+        if self.calibration == LoadCalibration::EnergyScale && self.mixes_families() {
             return Err("load families other than pressing need the mean-displacement calibration".into());
         }
         Ok(())
+    }
+
+    /// Whether samples are drawn from more than pressing (the manifest then records each
+    /// sample's family).
+    pub fn mixes_families(&self) -> bool {
+        !is_pressing_only(&self.families)
     }
 
     /// The family of sample `index`: uniform over `families`, from its own random stream (a

@@ -710,7 +710,7 @@ impl Manifest {
 /// A sample's family as the manifest records it: None for pressing-only datasets (as before
 /// families existed).
 fn recorded_family(config: &DatasetConfig, index: usize) -> Option<LoadFamily> {
-    (config.forces.families != [LoadFamily::Pressing]).then(|| config.forces.family_of(config.seed, index))
+    config.forces.mixes_families().then(|| config.forces.family_of(config.seed, index))
 }
 
 pub fn shard_file_name(shard: usize) -> String {

@@ -268,6 +268,10 @@ pub fn run_rgbd_synth(
             settings.camera_motion_mm, settings.camera_motion_deg
         )));
     }
+    if settings.loads != LoadFamily::Pressing && config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+        // Checked before the grid is built: only pressing has an uncalibrated scale.
+        return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
+    }
     if settings.instruments > 10 {
         return Err(bad(format!("{} instruments: at most 10", settings.instruments)));
     }
@@ -292,9 +296,6 @@ pub fn run_rgbd_synth(
         let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
         let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
         let target = config.forces.target_displacement_mm * settings.load_scale * settings.loads.target_factor();
-        if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
-            return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
-        }
         ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
         let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
         r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;

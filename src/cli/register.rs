@@ -9,7 +9,7 @@ use std::time::Duration;
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::CorrectionSettings;
-use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, RegisterReport, RegisterSettings, run_register};
+use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
 use umesh_core::rgbd::stream::{FrameSource, RecordingSource, TcpSource};
 
@@ -56,9 +56,18 @@ pub struct Args {
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
-    /// Redo rigid ICP on every frame.
-    #[arg(long)]
-    pub icp_every_frame: bool,
+    /// Where the camera pose comes from: tracked (keep the recording's or stream's pose, refined
+    /// on the first frame by a trimmed ICP within --pose-bound-mm), icp-first (full ICP on the
+    /// first frame) or icp-every-frame.
+    #[arg(long, default_value = "icp-first")]
+    pub pose: String,
+    /// With --pose tracked: the refinement moves the cloud by at most this much (RMS, mm).
+    #[arg(long, default_value_t = RegisterSettings::default().pose_bound_mm)]
+    pub pose_bound_mm: f64,
+    /// Frames whose organ points cover less than this share of the organ's surface (rest or
+    /// last predicted) are not registered.
+    #[arg(long, default_value_t = RegisterSettings::default().min_coverage)]
+    pub min_coverage: f64,
     /// Depth range of the organ when the recording has no masks (mm).
     #[arg(long, default_value_t = 100.0)]
     pub depth_min_mm: f32,
@@ -121,13 +130,15 @@ pub fn run(a: Args) -> Result<()> {
         None => rec_pose.context("no initial camera pose: give --initial-pose FILE.log (Open3D trajectory format)")?,
     };
     let mut settings = RegisterSettings {
-        iterations: a.iterations.max(1),
-        icp_every_frame: a.icp_every_frame,
+        iterations: a.iterations,
+        pose: PosePolicy::parse(&a.pose).map_err(|e| anyhow::anyhow!("--pose: {e}"))?,
+        pose_bound_mm: a.pose_bound_mm,
+        min_coverage: a.min_coverage,
         overlay: !a.no_overlay,
         correction: CorrectionSettings { updates: a.correction_updates, cg_iterations: a.correction_cg },
         ..Default::default()
     };
-    settings.correction.validate().map_err(|e| anyhow::anyhow!("--correction-updates / --correction-cg: {e}"))?;
+    settings.validate().map_err(anyhow::Error::msg)?;
     settings.segment.depth_min_mm = a.depth_min_mm;
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
@@ -148,7 +159,7 @@ pub fn run(a: Args) -> Result<()> {
     let summary = |r: &RegisterReport| {
         let s = &r.summary;
         serde_json::json!({
-            "model": r.model, "frames": s.frames, "skipped": s.skipped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
+            "model": r.model, "pose": r.pose.name(), "pose_moved_max_mm": s.pose_moved_max_mm, "frames": s.frames, "skipped": s.skipped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
             "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
             "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
             "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
@@ -220,6 +231,9 @@ pub fn run(a: Args) -> Result<()> {
                     _ => String::new(),
                 }
             );
+        }
+        if let Some(m) = report.summary.pose_moved_max_mm {
+            println!("pose: {} (ICP moved the organ points by at most {m:.2} mm RMS)", report.pose);
         }
         println!("overlays and report.json in {}", a.out.display());
     }

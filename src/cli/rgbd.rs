@@ -68,6 +68,14 @@ pub struct SynthArgs {
     /// body force in a random direction).
     #[arg(long, default_value = "pressing")]
     pub loads: String,
+    /// The share of the final load already on at the first frame (0: starts at rest; 0.5: the
+    /// sequence starts half deformed).
+    #[arg(long, default_value_t = 0.0)]
+    pub first_load: f64,
+    /// Write each frame as a cloud of this many organ points (points/*.ply, camera frame)
+    /// instead of a depth image (0: depth images).
+    #[arg(long, default_value_t = 0)]
+    pub cloud_points: usize,
     /// The truth's material (svk, neo-hookean, linear; default: the dataset's), a test off the
     /// training distribution.
     #[arg(long)]
@@ -134,6 +142,8 @@ fn synth(a: SynthArgs) -> Result<()> {
     let loads = umesh_core::loads::LoadFamily::parse(&a.loads).map_err(|e| anyhow::anyhow!("--loads: {e}"))?;
     let settings = SynthSettings {
         loads,
+        first_load: a.first_load,
+        cloud_points: a.cloud_points,
         camera_motion_mm: a.camera_motion_mm,
         camera_motion_deg: a.camera_motion_deg,
         instruments: a.instruments,

@@ -283,6 +283,22 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
     Ok(m)
 }
 
+/// Write points as a binary PLY of vertices only (a point cloud), atomically.
+pub fn write_point_cloud(path: &Path, points: &[Vector3<f64>], comment: &str) -> Result<(), MeshIoError> {
+    let mut b = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment {}\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+        comment.replace('\n', " "),
+        points.len()
+    )
+    .into_bytes();
+    for p in points {
+        for v in p.iter() {
+            b.extend_from_slice(&(*v as f32).to_le_bytes());
+        }
+    }
+    crate::write_atomic(path, &b).map_err(|source| MeshIoError::Io { path: path.into(), source })
+}
+
 /// Write a mesh as OBJ, binary PLY or binary STL by extension, atomically.
 pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshIoError> {
     let bytes = match ext(path).as_str() {

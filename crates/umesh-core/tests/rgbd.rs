@@ -107,6 +107,82 @@ fn icp_recovers_a_known_rigid_transform() {
     assert!(moved < 0.05, "max point error {moved} mm (matrix error {err})");
 }
 
+#[test]
+fn a_tracked_refinement_trims_the_deformed_part_and_never_moves_past_its_bound() {
+    let seg = phantom();
+    let surf =
+        umesh_core::surface::extract_surface(&seg.organ_mask(), &umesh_core::surface::SurfaceSettings { step: 2, ..Default::default() });
+    let normals = surf.vertex_normals();
+    let target = IcpTarget::new(surf.positions.clone(), normals.clone(), 3.0);
+    let c = surf.positions.iter().sum::<Vector3<f64>>() / surf.positions.len() as f64;
+    // The anterior half seen from a pose 1 mm off; a quarter of it (one side) pushed 8 mm
+    // inward along its normals, as an instrument would.
+    let offset = Vector3::new(0.6, -0.5, 0.6);
+    let observed: Vec<(Vector3<f64>, bool)> = surf
+        .positions
+        .iter()
+        .zip(&normals)
+        .filter(|(p, _)| p.y > c.y)
+        .step_by(2)
+        .map(|(p, n)| {
+            let pushed = p.x > c.x + 0.5 * (p.x - c.x).abs().max(1.0) && p.z > c.z;
+            (if pushed { p - n * 8.0 } else { *p } + offset, pushed)
+        })
+        .collect();
+    let pushed = observed.iter().filter(|o| o.1).count() as f64 / observed.len() as f64;
+    assert!((0.1..0.4).contains(&pushed), "pushed share {pushed}");
+    let source: Vec<Vector3<f64>> = observed.iter().map(|o| o.0).collect();
+    // Residual offset after the fit: the mean of the undeformed points' error.
+    let error = |t: &Matrix4<f64>| {
+        let v: Vec<f64> =
+            observed.iter().filter(|o| !o.1).map(|o| (transform_point(t, &o.0) - (o.0 - offset)).norm()).collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    let tracked = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::tracked(3.0));
+    let full = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::default());
+    eprintln!("tracked: error {:.3} mm, moved {:.3}; full: error {:.3}, moved {:.3}", error(&tracked.transform), tracked.moved_mm, error(&full.transform), full.moved_mm);
+    // Tolerances: the 1 mm offset recovered to within 0.35 mm by the trimmed fit; the full fit,
+    // pulled by the pushed quarter, does worse.
+    assert!(!tracked.bounded && tracked.moved_mm <= 3.0, "{tracked:?}");
+    assert!(error(&tracked.transform) < 0.35, "trimmed fit leaves {} mm", error(&tracked.transform));
+    assert!(error(&full.transform) > error(&tracked.transform), "{full:?}");
+    // A 10 mm offset with a 2 mm bound: the fit stops on the bound (to 1e-6 mm).
+    let far: Vec<Vector3<f64>> = source.iter().map(|p| p + Vector3::new(10.0, 0.0, 0.0)).collect();
+    let b = icp_point_to_plane(&far, &target, &Matrix4::identity(), &IcpSettings::tracked(2.0));
+    assert!(b.bounded && (b.moved_mm - 2.0).abs() < 1e-6, "{b:?}");
+}
+
+#[test]
+fn a_streamed_frame_carries_its_cloud_and_tracked_pose_and_the_cloud_is_used_whole() {
+    let k = Intrinsics { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5 };
+    // 500 points on a plane 400 mm away: more than the image's 3072 pixels hold at a stride.
+    let mut rng = umesh_core::phantom::SplitMix64(5);
+    let cloud: Vec<Vector3<f64>> = (0..500)
+        .map(|_| {
+            let (u, v) = (rng.next_f64() * 60.0 + 2.0, rng.next_f64() * 44.0 + 2.0);
+            k.unproject(u, v, 400.0 + rng.next_f64())
+        })
+        .collect();
+    let pose = Matrix4::new_translation(&Vector3::new(1.0, -2.0, 300.0));
+    let mut f = frame(k, 0);
+    f.depth.depth_mm.iter_mut().for_each(|d| *d = 0.0);
+    f.color = None;
+    f.points = Some(cloud.clone());
+    f.world_from_camera = Some(pose);
+    let mut bytes = Vec::new();
+    write_frame(&mut bytes, &f, 1000.0).unwrap();
+    let got = umesh_core::rgbd::stream::read_frame(&mut bytes.as_slice(), 0).unwrap().unwrap();
+    assert_eq!(got.world_from_camera, Some(pose));
+    let pts = got.points.as_ref().unwrap();
+    assert_eq!(pts.len(), 500);
+    // f32 on the wire: within 1e-4 mm at 400 mm.
+    assert!(pts.iter().zip(&cloud).all(|(a, b)| (a - b).norm() < 1e-4));
+    // The empty depth image became the cloud's splat, and segmentation keeps every point.
+    assert!(got.depth.depth_mm.iter().any(|&d| d > 0.0));
+    let keep = umesh_core::rgbd::segment::segment_frame(&got, &Default::default()).unwrap();
+    assert_eq!(got.organ_points(&keep, 4).len(), 500);
+}
+
 fn frame(k: Intrinsics, index: usize) -> Frame {
     let depth =
         DepthImage { width: k.width, height: k.height, depth_mm: (0..k.width * k.height).map(|i| 500.0 + (i % 50) as f32).collect() };
@@ -118,6 +194,7 @@ fn frame(k: Intrinsics, index: usize) -> Frame {
         color: Some(umesh_core::rgbd::ColorImage::new(k.width, k.height, [10, 20, 30])),
         mask: None,
         world_from_camera: None,
+        points: None,
     }
 }
 

@@ -73,8 +73,7 @@ pub fn calibrate_confidence(
     progress: &umesh_core::Progress,
 ) -> Result<umesh_core::register::confidence::ConfidenceReference, NetError> {
     use umesh_core::dataset::Dataset;
-    use umesh_core::register::confidence::{ConfidenceReference, surface_coverage, surface_residual};
-    use umesh_core::register::pipeline::COVERAGE_RADIUS_MM;
+    use umesh_core::register::confidence::{ConfidenceReference, frame_coverage, surface_residual};
     let mut predictor = Predictor::load(model_dir)?;
     let Some(observation) = predictor.info.settings.observation.clone() else {
         return Err(NetError::Invalid(format!(
@@ -117,8 +116,8 @@ pub fn calibrate_confidence(
             let (mean, p95) = surface_residual(points, &predicted);
             means.push(mean);
             p95s.push(p95);
-            // Coverage as registration measures it: the points against the rest surface.
-            coverages.push(surface_coverage(&surface, points, COVERAGE_RADIUS_MM));
+            // Coverage as registration measures it: the points against the predicted surface.
+            coverages.push(frame_coverage(&predicted, points));
             r.views += 1;
             progress.report(r.views as u64, val.len() as u64, "confidence range on the validation views");
         }

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::CorrectionSettings;
-use umesh_core::register::pipeline::{FrameReport, GroundTruth, RegisterSettings, Registrar};
+use umesh_core::register::pipeline::{FrameReport, GroundTruth, PosePolicy, RegisterSettings, Registrar};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::segment::segment_frame;
 use umesh_core::rgbd::stream::{FrameSource, Poll, TcpSource};
@@ -42,6 +42,8 @@ pub enum ArCommand {
     ShowPoints(bool),
     /// The physics correction after each prediction (on: the default work; off: none).
     Correction(bool),
+    /// Where the camera pose comes from; the alignment restarts with it.
+    Pose(PosePolicy),
     Stop,
 }
 
@@ -241,6 +243,11 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 reg.settings.correction = if on { CorrectionSettings::default() } else { CorrectionSettings::off() };
                 want = last_index;
             }
+            Ok(ArCommand::Pose(p)) => {
+                reg.settings.pose = p;
+                reg.reset(reg.world_from_camera);
+                want = last_index;
+            }
             Err(_) => {}
         }
         // The frame to process now, if any.
@@ -400,6 +407,8 @@ pub struct Ar {
     pub show_points: bool,
     /// The physics correction after each prediction (on by default).
     pub correction: bool,
+    /// Where the camera pose comes from.
+    pub pose: PosePolicy,
     pub generation: u64,
 }
 

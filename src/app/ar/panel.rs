@@ -3,6 +3,7 @@
 
 use crate::app::ar::{Ar, ArCommand, ArSession, ArSource};
 use crate::app::state::{ActiveModel, Organ, UiMessages};
+use umesh_core::register::pipeline::PosePolicy;
 use bevy_egui::egui;
 use std::path::PathBuf;
 
@@ -56,6 +57,7 @@ pub fn left_panel(
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
                 s.send(ArCommand::ShowPoints(ar.show_points));
                 s.send(ArCommand::Correction(ar.correction));
+                s.send(ArCommand::Pose(ar.pose));
                 ar.session = Some(s);
                 ar.last = None;
                 ar.frames = None;
@@ -104,11 +106,33 @@ pub fn left_panel(
     }
     ui.separator();
     ui.strong("Rigid alignment");
+    let before = ar.pose;
+    ui.horizontal(|ui| {
+        ui.label("pose").on_hover_text(
+            "tracked: keep the recording's or stream's camera pose, refined on the first frame by at most 3 mm; \
+             icp-first: full ICP on the first frame; icp-every-frame: full ICP on each frame",
+        );
+        egui::ComboBox::from_id_salt("ar_pose").selected_text(ar.pose.name()).show_ui(ui, |ui| {
+            for p in PosePolicy::ALL {
+                ui.selectable_value(&mut ar.pose, p, p.name());
+            }
+        });
+    });
+    if ar.pose != before {
+        s.send(ArCommand::Pose(ar.pose));
+    }
     if ui.button("ICP on this frame").clicked() {
         s.send(ArCommand::Icp);
     }
     if let Some(icp) = ar.last.as_ref().and_then(|f| f.report.icp.as_ref()) {
-        ui.label(format!("last ICP: fitness {:.2}, RMS {:.2} mm, {} iterations", icp.fitness, icp.rms_mm, icp.iterations));
+        ui.label(format!(
+            "last ICP: fitness {:.2}, RMS {:.2} mm, {} iterations, moved the points {:.2} mm{}",
+            icp.fitness,
+            icp.rms_mm,
+            icp.iterations,
+            icp.moved_mm,
+            if icp.bounded { " (at the bound)" } else { "" }
+        ));
     }
     ui.label("initial pose offset (drag the values; camera axes):");
     let mut changed = false;

@@ -131,6 +131,34 @@ pub fn frame_confidence(
     c
 }
 
+/// A surface point counts as seen when an organ point lies this close (mm), or closer than
+/// 1.5 times the cloud's median point spacing when the cloud is sparser (a 500-point cloud
+/// covers the area it spans, not 500 discs of 5 mm), at most COVERAGE_RADIUS_MAX_MM.
+pub const COVERAGE_RADIUS_MM: f64 = 5.0;
+pub const COVERAGE_RADIUS_MAX_MM: f64 = 20.0;
+
+/// The coverage radius of a cloud (see COVERAGE_RADIUS_MM): from the nearest-neighbour
+/// spacing of at most 500 of its points.
+pub fn coverage_radius_mm(points: &[Vector3<f64>]) -> f64 {
+    if points.len() < 2 {
+        return COVERAGE_RADIUS_MM;
+    }
+    let grid = super::nn::PointGrid::new(points.to_vec(), COVERAGE_RADIUS_MM);
+    let step = points.len().div_ceil(500);
+    let mut d: Vec<f64> = (0..points.len())
+        .step_by(step)
+        .map(|i| grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i).map_or(COVERAGE_RADIUS_MAX_MM, |(_, d)| d))
+        .collect();
+    d.sort_by(f64::total_cmp);
+    (1.5 * d[d.len() / 2]).clamp(COVERAGE_RADIUS_MM, COVERAGE_RADIUS_MAX_MM)
+}
+
+/// The share of `surface` a frame's organ points cover (`surface_coverage` at the cloud's
+/// `coverage_radius_mm`); registration measures it on the deformed organ.
+pub fn frame_coverage(surface: &TriMesh, points: &[Vector3<f64>]) -> f64 {
+    surface_coverage(surface, points, coverage_radius_mm(points))
+}
+
 /// The share of `surface`'s vertices (at most about 2000, every n-th) within `radius_mm` of
 /// an observed point.
 pub fn surface_coverage(surface: &TriMesh, points: &[Vector3<f64>], radius_mm: f64) -> f64 {

@@ -27,6 +27,11 @@ impl PointGrid {
 
     /// Index and distance of the nearest point within `radius_mm`.
     pub fn nearest(&self, q: &Vector3<f64>, radius_mm: f64) -> Option<(usize, f64)> {
+        self.nearest_except(q, radius_mm, usize::MAX)
+    }
+
+    /// As `nearest`, leaving out point `skip` (a point's nearest other point).
+    pub fn nearest_except(&self, q: &Vector3<f64>, radius_mm: f64, skip: usize) -> Option<(usize, f64)> {
         let r = (radius_mm / self.cell_mm).ceil() as i32;
         let k = Self::key(q, self.cell_mm);
         let mut best: Option<(usize, f64)> = None;
@@ -37,7 +42,7 @@ impl PointGrid {
                     let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) else { continue };
                     for &i in ids {
                         let d2 = (self.points[i as usize] - q).norm_squared();
-                        if d2 <= r2 && best.is_none_or(|(_, b)| d2 < b) {
+                        if d2 <= r2 && i as usize != skip && best.is_none_or(|(_, b)| d2 < b) {
                             best = Some((i as usize, d2));
                         }
                     }

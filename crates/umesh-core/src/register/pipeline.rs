@@ -10,7 +10,7 @@ use crate::fem::solver::fit::{FitWork, PointFitReport, PointFitSettings};
 use crate::progress::{Cancel, Progress};
 use crate::rgbd::segment::{SegmentSettings, segment_frame};
 use crate::rgbd::stream::{FrameSource, Poll};
-use crate::rgbd::{ColorImage, DepthImage, Frame, Intrinsics, depth_to_points, rigid_inverse, transform_point};
+use crate::rgbd::{ColorImage, DepthImage, Frame, Intrinsics, rigid_inverse, transform_point};
 use nalgebra::{Matrix4, Vector3};
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -85,12 +85,55 @@ impl DisplacementModel for FeDisplacementModel<'_> {
     }
 }
 
+/// Where each frame's camera pose comes from. The tracked pose is the frame's own (a
+/// recording's `trajectory.log`, the stream's `world_from_camera`), else the initial pose.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PosePolicy {
+    /// Keep the tracked pose; on the first frame a trimmed ICP (the best-fitting half of the
+    /// cloud) refines it by at most `pose_bound_mm`, and later frames carry that refinement.
+    /// For a tracked camera, and for sequences that start deformed.
+    Tracked,
+    /// Full ICP on the first frame from the tracked or initial pose; later frames carry it
+    /// (the organ deforms after the first frame).
+    #[default]
+    IcpFirst,
+    /// Full ICP on every frame (a camera whose pose is unknown and moves).
+    IcpEveryFrame,
+}
+
+impl PosePolicy {
+    pub const ALL: [PosePolicy; 3] = [PosePolicy::Tracked, PosePolicy::IcpFirst, PosePolicy::IcpEveryFrame];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PosePolicy::Tracked => "tracked",
+            PosePolicy::IcpFirst => "icp-first",
+            PosePolicy::IcpEveryFrame => "icp-every-frame",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Self, String> {
+        Self::ALL.into_iter().find(|p| p.name() == s).ok_or_else(|| format!("pose policy {s:?}: one of tracked, icp-first, icp-every-frame"))
+    }
+}
+
+impl std::fmt::Display for PosePolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct RegisterSettings {
     pub segment: SegmentSettings,
+    /// The full ICP of `icp-first` and `icp-every-frame`.
     pub icp: IcpSettings,
-    /// Redo the rigid ICP on every frame (else on the first frame only: later frames deform).
-    pub icp_every_frame: bool,
+    #[serde(default)]
+    pub pose: PosePolicy,
+    /// With `pose: tracked`: the refinement moves the cloud by at most this much (RMS, mm).
+    #[serde(default = "default_pose_bound")]
+    pub pose_bound_mm: f64,
     /// Back-project every n-th pixel for ICP.
     pub point_stride: usize,
     /// Search range along each surface normal for the observed surface (mm).
@@ -103,8 +146,8 @@ pub struct RegisterSettings {
     /// Draw the overlay image.
     pub overlay: bool,
     pub overlay_alpha: f32,
-    /// Frames whose organ points cover less of the surface than this (within
-    /// COVERAGE_RADIUS_MM) are not registered.
+    /// Frames whose organ points cover less of the surface than this are not registered
+    /// (`confidence::frame_coverage`, on the rest and the last predicted surface).
     #[serde(default = "default_min_coverage")]
     pub min_coverage: f64,
     /// The physics correction after each network prediction (`correction`).
@@ -112,11 +155,41 @@ pub struct RegisterSettings {
     pub correction: CorrectionSettings,
 }
 
-/// A surface point counts as seen when an organ point lies this close (mm).
-pub const COVERAGE_RADIUS_MM: f64 = 5.0;
-
 fn default_min_coverage() -> f64 {
     0.05
+}
+
+/// About the error of an optically tracked laparoscope after hand-eye calibration: the
+/// refinement corrects that much and no more (on a deformed organ a rigid fit would otherwise
+/// explain part of the deformation as camera motion: 3.9 mm on a phantom sequence that starts
+/// at 3.7 mm of marker motion, from the exact pose).
+fn default_pose_bound() -> f64 {
+    1.5
+}
+
+impl RegisterSettings {
+    /// Check the options a user sets (named as the CLI names them).
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.pose_bound_mm.is_finite() && (0.0..=100.0).contains(&self.pose_bound_mm)) {
+            return Err(format!("--pose-bound-mm {}: between 0 and 100 mm", self.pose_bound_mm));
+        }
+        if !(self.min_coverage.is_finite() && (0.0..=1.0).contains(&self.min_coverage)) {
+            return Err(format!("--min-coverage {}: a share between 0 and 1", self.min_coverage));
+        }
+        if self.iterations == 0 || self.iterations > 100 {
+            return Err(format!("--iterations {}: between 1 and 100", self.iterations));
+        }
+        self.icp.validate()?;
+        self.correction.validate().map_err(|e| format!("--correction-updates / --correction-cg: {e}"))
+    }
+
+    /// The ICP the pose policy runs.
+    fn icp_settings(&self) -> IcpSettings {
+        match self.pose {
+            PosePolicy::Tracked => IcpSettings::tracked(self.pose_bound_mm),
+            _ => self.icp.clone(),
+        }
+    }
 }
 
 impl Default for RegisterSettings {
@@ -124,7 +197,8 @@ impl Default for RegisterSettings {
         Self {
             segment: SegmentSettings::default(),
             icp: IcpSettings::default(),
-            icp_every_frame: false,
+            pose: PosePolicy::IcpFirst,
+            pose_bound_mm: default_pose_bound(),
             point_stride: 4,
             search_mm: 30.0,
             warm_start: true,
@@ -193,7 +267,7 @@ pub struct FrameReport {
     pub frame: usize,
     pub timestamp_s: f64,
     pub observed_points: usize,
-    /// Share of the organ's surface within COVERAGE_RADIUS_MM of an organ point.
+    /// Share of the predicted organ surface the organ points cover (`confidence::frame_coverage`).
     pub surface_coverage: f64,
     /// Visible surface vertices whose displacement was measured.
     pub measured_vertices: usize,
@@ -239,6 +313,8 @@ pub struct Registrar<'c> {
     rings: super::confidence::VertexRings,
     /// The physics correction's FE model, built on the first frame that needs it.
     corrector: Option<SurfaceFit<'c>>,
+    /// The last frame's predicted organ surface (the coverage gate's deformed reference).
+    prev_organ: Option<crate::mesh::TriMesh>,
 }
 
 impl<'c> Registrar<'c> {
@@ -256,6 +332,7 @@ impl<'c> Registrar<'c> {
             observer: None,
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
+            prev_organ: None,
         }
     }
 
@@ -265,6 +342,7 @@ impl<'c> Registrar<'c> {
         self.posed = false;
         self.correction = None;
         self.prev_field.iter_mut().for_each(|v| *v = 0.0);
+        self.prev_organ = None;
     }
 
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
@@ -286,26 +364,34 @@ impl<'c> Registrar<'c> {
                 *d = 0.0;
             }
         }
-        let points = depth_to_points(&depth, &k, None, self.settings.point_stride);
+        // A cloud from the camera is used whole; a depth image every `point_stride` pixels.
+        let points = frame.organ_points(&keep, self.settings.point_stride);
         if points.is_empty() {
             return Err(format!("frame {}: no organ point in the depth image (the previous overlay stays)", frame.index));
         }
         let points_ms = ms(t0);
         let t1 = Instant::now();
         let mut icp = None;
-        if let (Some(c), Some(t)) = (self.correction, frame.world_from_camera) {
-            self.world_from_camera = c * t;
+        // The frame's tracked pose, with the refinement of the last alignment.
+        if let Some(t) = frame.world_from_camera {
+            self.world_from_camera = self.correction.map_or(t, |c| c * t);
         }
-        if !self.posed || self.settings.icp_every_frame {
-            let r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp);
+        let policy = self.settings.pose;
+        if !self.posed || policy == PosePolicy::IcpEveryFrame {
+            let mut r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp_settings());
             if r.fitness < 0.3 {
-                return Err(format!(
-                    "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
-                    frame.index, r.fitness, r.rms_mm
-                ));
+                if policy != PosePolicy::Tracked {
+                    return Err(format!(
+                        "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
+                        frame.index, r.fitness, r.rms_mm
+                    ));
+                }
+                // A tracked pose stands on its own: kept as it is when too little fits.
+                r.transform = self.world_from_camera;
+                r.moved_mm = 0.0;
             }
-            self.world_from_camera = r.transform;
             self.correction = frame.world_from_camera.map(|t| r.transform * rigid_inverse(&t));
+            self.world_from_camera = r.transform;
             self.posed = true;
             icp = Some(r);
         }
@@ -319,8 +405,15 @@ impl<'c> Registrar<'c> {
         let observation = model.observation();
         let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
         // Too little of the organ seen (a cloud off the organ, a camera looking away): no
-        // deformation can be inferred from it.
-        let coverage = self.ctx.surface_coverage(&world, COVERAGE_RADIUS_MM);
+        // deformation can be inferred from it. Measured on the rest organ and on the last
+        // prediction, so that a deformed organ (an instrument pushing) is not refused.
+        let radius = super::confidence::coverage_radius_mm(&world);
+        let mut coverage = self.ctx.surface_coverage(&world, radius);
+        if let Some(prev) = &self.prev_organ
+            && coverage < self.settings.min_coverage
+        {
+            coverage = coverage.max(super::confidence::surface_coverage(prev, &world, radius));
+        }
         if coverage < self.settings.min_coverage {
             return Err(format!(
                 "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
@@ -380,6 +473,8 @@ impl<'c> Registrar<'c> {
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
         let organ = self.ctx.deformed_surface(&self.field);
+        // The coverage of the frame, on the organ as predicted.
+        let coverage = super::confidence::surface_coverage(&organ, &world, radius);
         let surface_ms_deform = ms(t);
         let reference = model.confidence_reference();
         // The confidence figures and the overlay both read the prediction only: side by side on
@@ -423,6 +518,7 @@ impl<'c> Registrar<'c> {
                 disp = Some(mean(&d));
             }
         }
+        self.prev_organ = Some(organ);
         let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, correction_ms, total_ms: ms(t0) };
         Ok(FrameOutput {
             report: FrameReport {
@@ -576,6 +672,8 @@ pub struct Summary {
     pub frames_with_warning: usize,
     /// The median of the frames' residual 95th percentiles (mm).
     pub residual_p95_median_mm: f64,
+    /// The most any frame's ICP moved the cloud from the pose it started from (RMS, mm).
+    pub pose_moved_max_mm: Option<f64>,
 }
 
 pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
@@ -604,12 +702,15 @@ pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
             r.sort_by(f64::total_cmp);
             if r.is_empty() { 0.0 } else { r[(r.len() - 1) / 2] }
         },
+        pose_moved_max_mm: frames.iter().filter_map(|f| f.icp.as_ref().map(|i| i.moved_mm)).reduce(f64::max),
     }
 }
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct RegisterReport {
     pub model: String,
+    /// The pose policy the frames were registered with.
+    pub pose: PosePolicy,
     pub summary: Summary,
     pub frames: Vec<FrameReport>,
     pub log: Vec<String>,
@@ -668,5 +769,5 @@ pub fn run_register(
     }
     log.extend(source.take_log());
     skipped += source.dropped() as usize;
-    Ok(RegisterReport { model: model.name(), summary: summarize(&frames, skipped), frames, log })
+    Ok(RegisterReport { model: model.name(), pose: settings.pose, summary: summarize(&frames, skipped), frames, log })
 }

@@ -231,7 +231,13 @@ pub struct Frame {
     pub mask: Option<Vec<bool>>,
     /// Camera pose (world_from_camera, mm), when the recording has a trajectory.
     pub world_from_camera: Option<Matrix4<f64>>,
+    /// The camera's own point cloud (camera frame, mm) when the source gives points rather
+    /// than depth; `depth` is then their splat, for display and segmentation only.
+    pub points: Option<Vec<Vector3<f64>>>,
 }
+
+/// Refuse clouds larger than this (4 M points): a corrupt count must not allocate gigabytes.
+pub const MAX_POINTS: usize = 1 << 22;
 
 impl Frame {
     /// Check that the images agree with the intrinsics and with each other.
@@ -251,7 +257,39 @@ impl Frame {
         {
             return Err(format!("the mask has {} pixels, depth has {}", m.len(), w * h));
         }
+        if let Some(p) = &self.points {
+            if p.len() > MAX_POINTS {
+                return Err(format!("the point cloud has {} points, at most {MAX_POINTS}", p.len()));
+            }
+            if p.iter().any(|q| !q.iter().all(|v| v.is_finite())) {
+                return Err("a point of the cloud is not finite".into());
+            }
+        }
         Ok(())
+    }
+
+    /// The organ's points (camera frame, mm): the frame's own cloud when it has one, each
+    /// point kept when its pixel is an organ pixel (`keep`, from `segment_frame`) and used
+    /// whole; else every `stride`-th organ pixel of the depth image.
+    pub fn organ_points(&self, keep: &[bool], stride: usize) -> Vec<Vector3<f64>> {
+        let k = &self.intrinsics;
+        match &self.points {
+            Some(cloud) => cloud
+                .iter()
+                .filter(|p| {
+                    k.project(p).is_some_and(|(u, v, _)| {
+                        let (u, v) = (u.round(), v.round());
+                        u >= 0.0
+                            && v >= 0.0
+                            && (u as usize) < k.width
+                            && (v as usize) < k.height
+                            && keep.get(v as usize * k.width + u as usize).copied().unwrap_or(false)
+                    })
+                })
+                .copied()
+                .collect(),
+            None => depth_to_points(&self.depth, k, Some(keep), stride),
+        }
     }
 }
 

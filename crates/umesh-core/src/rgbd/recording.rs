@@ -4,7 +4,7 @@
 //! DIR/color/NNNNN.png|jpg     colour frames (optional)
 //! DIR/depth/NNNNN.png         16-bit depth, 0 = no data
 //! DIR/mask/NNNNN.png          organ masks, non-zero = organ (optional)
-//! DIR/points/NNNNN.ply        point clouds in the camera frame, mm (instead of depth)
+//! DIR/points/NNNNN.ply        point clouds in the camera frame, mm (instead of depth; used whole)
 //! DIR/trajectory.log          world_from_camera per frame, Open3D/Redwood .log, metres (optional)
 //! DIR/intrinsics.json         Open3D PinholeCameraIntrinsic (or any such JSON in DIR or its parent)
 //! DIR/recording.json          {"depth_scale": 1000, "fps": 20} (optional)
@@ -210,6 +210,7 @@ impl Recording {
     pub fn read_frame(&self, i: usize) -> Result<Frame, RgbdError> {
         let f = self.frames.get(i).ok_or_else(|| invalid(&self.dir, format!("frame {i} out of range (0..{})", self.frames.len())))?;
         let k = self.intrinsics;
+        let mut cloud = None;
         let depth = match (&f.depth, &f.points) {
             (Some(p), _) => {
                 let d = read_depth_png(p, self.meta.depth_scale)?;
@@ -220,7 +221,13 @@ impl Recording {
             }
             (None, Some(p)) => {
                 let pts = crate::mesh_io::read_point_cloud(p).map_err(|e| invalid(p, e.to_string()))?;
-                splat_points(&pts, &k)
+                if pts.len() > super::MAX_POINTS {
+                    return Err(invalid(p, format!("{} points, at most {}", pts.len(), super::MAX_POINTS)));
+                }
+                let d = splat_points(&pts, &k);
+                // The points themselves go to registration; the splat is for display.
+                cloud = Some(pts);
+                d
             }
             (None, None) => return Err(invalid(&self.dir, format!("frame {} has neither depth nor points", f.stem))),
         };
@@ -249,7 +256,7 @@ impl Recording {
             None => None,
         };
         let world_from_camera = self.trajectory.as_ref().and_then(|t| t.get(i.min(t.len().saturating_sub(1))).copied());
-        Ok(Frame { index: i, timestamp_s: i as f64 / self.meta.fps, intrinsics: k, depth, color, mask, world_from_camera })
+        Ok(Frame { index: i, timestamp_s: i as f64 / self.meta.fps, intrinsics: k, depth, color, mask, world_from_camera, points: cloud })
     }
 }
 

@@ -64,7 +64,10 @@ pub fn segment_frame(frame: &Frame, s: &SegmentSettings) -> Result<Vec<bool>, St
                 *k = r >= TISSUE_MIN_RED && rf > TISSUE_RATIO * g as f32 && rf > TISSUE_RATIO * b as f32;
             }
         }
-        keep_largest_region(&mut keep, frame.depth.width, frame.depth.height);
+        // A sparse cloud's splats do not touch: each would be a region of its own.
+        if frame.points.is_none() {
+            keep_largest_region(&mut keep, frame.depth.width, frame.depth.height);
+        }
     }
     let count = keep.iter().filter(|&&k| k).count();
     if count == 0 {

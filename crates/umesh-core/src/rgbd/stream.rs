@@ -12,14 +12,20 @@
 //!               "timestamp_s": 12.345, "depth_scale": 1000.0, "color": true}
 //! depth        width * height u16, little endian, `depth_scale` units per metre, 0 = no data
 //! color        width * height * 3 u8 RGB, only when "color" is true
+//! points       "points" * 3 f32, little endian, camera frame in mm (x, y, z per point),
+//!              only when the header has "points" (a camera that gives a cloud)
 //! ```
+//!
+//! Optional header fields: `"points": N` (a cloud follows; registration uses it whole and the
+//! depth image, which may be all zeros, only for display) and `"world_from_camera": [16
+//! numbers]` (the tracked camera pose, row-major, mm), which `--pose tracked` keeps.
 //!
 //! A reader thread keeps only the newest complete frame: frames the consumer is too slow
 //! for are dropped (and counted), never queued. A stream that stops mid-frame, or sends
 //! nothing for `stall_timeout`, ends with an error message instead of stalling the pipeline.
 
 use super::recording::Recording;
-use super::{ColorImage, DepthImage, Frame, Intrinsics, MAX_PIXELS, RgbdError};
+use super::{ColorImage, DepthImage, Frame, Intrinsics, MAX_PIXELS, MAX_POINTS, RgbdError};
 use std::io::{Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
 use std::sync::{Arc, Condvar, Mutex};
@@ -107,6 +113,14 @@ struct Header {
     timestamp_s: f64,
     depth_scale: f64,
     color: bool,
+    #[serde(default, skip_serializing_if = "is_zero")]
+    points: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    world_from_camera: Option<[f64; 16]>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Write one frame in the stream protocol.
@@ -122,6 +136,12 @@ pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std:
         timestamp_s: frame.timestamp_s,
         depth_scale,
         color: frame.color.is_some(),
+        points: frame.points.as_ref().map_or(0, Vec::len),
+        world_from_camera: frame.world_from_camera.map(|m| {
+            let mut a = [0.0; 16];
+            a.copy_from_slice(m.transpose().as_slice());
+            a
+        }),
     };
     let header = serde_json::to_vec(&h).map_err(std::io::Error::other)?;
     let mut buf = Vec::with_capacity(12 + header.len() + k.width * k.height * 5);
@@ -134,6 +154,11 @@ pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std:
     }
     if let Some(c) = &frame.color {
         buf.extend_from_slice(&c.rgb);
+    }
+    for p in frame.points.iter().flatten() {
+        for v in p.iter() {
+            buf.extend_from_slice(&(*v as f32).to_le_bytes());
+        }
     }
     w.write_all(&buf)
 }
@@ -166,6 +191,14 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
         return Err(format!("frame header: depth_scale {} must be finite and positive", h.depth_scale));
     }
     debug_assert!(k.width * k.height <= MAX_PIXELS);
+    if h.points > MAX_POINTS {
+        return Err(format!("frame header: {} points, at most {MAX_POINTS}", h.points));
+    }
+    let world_from_camera = match h.world_from_camera {
+        Some(m) if m.iter().all(|v| v.is_finite()) => Some(nalgebra::Matrix4::from_row_slice(&m)),
+        Some(_) => return Err("frame header: world_from_camera holds a value that is not finite".into()),
+        None => None,
+    };
     let n = k.width * k.height;
     let mut raw = vec![0u8; 2 * n];
     r.read_exact(&mut raw).map_err(|e| cut(e, "depth"))?;
@@ -178,14 +211,34 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
     } else {
         None
     };
+    let points = if h.points > 0 {
+        let mut raw = vec![0u8; 12 * h.points];
+        r.read_exact(&mut raw).map_err(|e| cut(e, "points"))?;
+        let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64;
+        let pts: Vec<nalgebra::Vector3<f64>> = raw.chunks_exact(12).map(|b| nalgebra::Vector3::new(f(&b[0..4]), f(&b[4..8]), f(&b[8..12]))).collect();
+        if pts.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
+            return Err("a point of the frame's cloud is not finite".into());
+        }
+        Some(pts)
+    } else {
+        None
+    };
+    // A cloud with an empty depth image: its splat, so that segmentation and display see it.
+    let mut depth = DepthImage { width: k.width, height: k.height, depth_mm };
+    if let Some(p) = &points
+        && depth.depth_mm.iter().all(|&d| d == 0.0)
+    {
+        depth = super::recording::splat_points(p, &k);
+    }
     Ok(Some(Frame {
         index,
         timestamp_s: h.timestamp_s,
         intrinsics: k,
-        depth: DepthImage { width: k.width, height: k.height, depth_mm },
+        depth,
         color,
         mask: None,
-        world_from_camera: None,
+        world_from_camera,
+        points,
     }))
 }
 

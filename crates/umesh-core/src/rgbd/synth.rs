@@ -53,6 +53,14 @@ pub struct SynthSettings {
     /// is the dataset's target times `load_scale` (times the family's `target_factor`).
     #[serde(default = "pressing")]
     pub loads: LoadFamily,
+    /// The share of the final load already on at the first frame (0: the sequence starts at
+    /// rest; 0.5: half deformed, a recording begun after the instrument touched the organ).
+    #[serde(default)]
+    pub first_load: f64,
+    /// Write each frame as a cloud of this many organ points (`points/*.ply`, camera frame,
+    /// with the colour image) instead of a depth image; 0: depth images.
+    #[serde(default)]
+    pub cloud_points: usize,
 }
 
 fn pressing() -> LoadFamily {
@@ -80,6 +88,8 @@ impl Default for SynthSettings {
             instruments: 0,
             material: None,
             loads: LoadFamily::Pressing,
+            first_load: 0.0,
+            cloud_points: 0,
         }
     }
 }
@@ -272,6 +282,12 @@ pub fn run_rgbd_synth(
         // Checked before the grid is built: only pressing has an uncalibrated scale.
         return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
     }
+    if !finite_in(settings.first_load, 0.0, 1.0) {
+        return Err(bad(format!("first-frame load {}: between 0 and 1 (a share of the final load)", settings.first_load)));
+    }
+    if settings.cloud_points > super::MAX_POINTS {
+        return Err(bad(format!("{} cloud points: at most {}", settings.cloud_points, super::MAX_POINTS)));
+    }
     if settings.instruments > 10 {
         return Err(bad(format!("{} instruments: at most 10", settings.instruments)));
     }
@@ -362,7 +378,8 @@ pub fn run_rgbd_synth(
             return Err(RgbdError::Cancelled);
         }
         progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
-        let ramp = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
+        let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
+        let ramp = settings.first_load + (1.0 - settings.first_load) * t;
         let mut bc = full.clone();
         for v in &mut bc.forces_n {
             *v *= ramp;
@@ -402,8 +419,13 @@ pub fn run_rgbd_synth(
             color: Some(color),
             mask: Some(mask),
             world_from_camera: Some(poses[f]),
+            points: None,
         };
-        write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
+        if settings.cloud_points > 0 {
+            write_cloud_frame(out, &format!("{f:05}"), &frame, settings.cloud_points, &mut rng)?;
+        } else {
+            write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
+        }
     }
     let io = |p: PathBuf| move |e: std::io::Error| RgbdError::Io { path: p, source: e };
     let w = |name: &str, text: String| -> Result<(), RgbdError> {
@@ -425,6 +447,31 @@ pub fn run_rgbd_synth(
         mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
         solve_ms_total: solve_ms,
     })
+}
+
+/// A frame as a camera's sparse cloud: `count` organ pixels with depth drawn at random
+/// (fewer when the organ shows fewer), back-projected; the colour image beside it.
+fn write_cloud_frame(dir: &Path, stem: &str, frame: &Frame, count: usize, rng: &mut SplitMix64) -> Result<(), RgbdError> {
+    let mut organ: Vec<usize> =
+        (0..frame.depth.depth_mm.len()).filter(|&i| frame.mask.as_ref().is_none_or(|m| m[i]) && frame.depth.depth_mm[i] > 0.0).collect();
+    // A partial Fisher-Yates shuffle: the first `count` are a uniform draw.
+    let n = count.min(organ.len());
+    for i in 0..n {
+        let j = i + (rng.next_u64() % (organ.len() - i) as u64) as usize;
+        organ.swap(i, j);
+    }
+    let k = &frame.intrinsics;
+    let points: Vec<Vector3<f64>> =
+        organ[..n].iter().map(|&i| k.unproject((i % k.width) as f64, (i / k.width) as f64, frame.depth.depth_mm[i] as f64)).collect();
+    let p = dir.join("points").join(format!("{stem}.ply"));
+    crate::mesh_io::write_point_cloud(&p, &points, "umesh synthetic cloud, camera frame millimetres")
+        .map_err(|e| super::invalid(&p, e.to_string()))?;
+    if let Some(c) = &frame.color {
+        let p = dir.join("color").join(format!("{stem}.png"));
+        let bytes = c.encode_png().map_err(|r| super::invalid(&p, r))?;
+        crate::write_atomic(&p, &bytes).map_err(|e| RgbdError::Io { path: p.clone(), source: e })?;
+    }
+    Ok(())
 }
 
 fn json<T: serde::Serialize>(v: &T) -> String {

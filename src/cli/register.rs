@@ -142,9 +142,10 @@ pub fn run(a: Args) -> Result<()> {
     settings.segment.depth_min_mm = a.depth_min_mm;
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let report =
-        register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &a.out.join("overlay"), "registering (U-Net)")?;
+    // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
+    let staged = umesh_core::StagedDir::new(&a.out).with_context(|| format!("creating a staging folder beside {}", a.out.display()))?;
+    let dir = staged.path().to_path_buf();
+    let report = register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
     let fe_report = if a.compare_fe {
         let Some(dir) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
         let (mut src, _, _) = open_source(&Args { recording: Some(dir.clone()), source: None, ..a.clone() })?;
@@ -152,7 +153,7 @@ pub fn run(a: Args) -> Result<()> {
         if a.fe_converged {
             fe = fe.converged(0.01, 60);
         }
-        Some(register_with(&mut *src, &ctx, &mut fe, pose, truth.as_ref(), &settings, &a.out.join("overlay_fe"), "registering (FE)")?)
+        Some(register_with(&mut *src, &ctx, &mut fe, pose, truth.as_ref(), &settings, &dir.join("overlay_fe"), "registering (FE)")?)
     } else {
         None
     };
@@ -176,13 +177,14 @@ pub fn run(a: Args) -> Result<()> {
     }
     let full =
         serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
-    umesh_core::write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())?;
+    umesh_core::write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())?;
     for l in &report.log {
         eprintln!("{l}");
     }
     if report.summary.frames == 0 {
-        bail!("no frame could be registered (see the log lines above)");
+        bail!("no frame could be registered (see the log lines above); {} left as it was", a.out.display());
     }
+    staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     if a.json {
         super::print_json(&v);
     } else {

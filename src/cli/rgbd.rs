@@ -161,9 +161,13 @@ fn synth(a: SynthArgs) -> Result<()> {
         ..Default::default()
     };
     let (pb, progress) = super::progress_bar("synthetic recording");
-    let r = run_rgbd_synth(&seg, &config, &settings, &a.out, &progress, &super::cancel());
+    // Written beside --out and swapped in whole: no frame of an earlier recording survives.
+    let staged = umesh_core::StagedDir::new(&a.out).with_context(|| format!("creating a staging folder beside {}", a.out.display()))?;
+    let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::cancel());
     pb.finish_and_clear();
-    let r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;
+    let mut r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;
+    staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
+    r.out = a.out.clone();
     if a.json {
         super::print_json(&serde_json::to_value(&r)?);
     } else {

@@ -27,6 +27,64 @@ pub mod vtk;
 
 pub use progress::{Cancel, Progress};
 
+/// A folder replaced whole or not at all: a command writes into `path()`, a staging folder
+/// beside the target, and `commit` swaps it in; dropped without a commit (a failure), the
+/// staging folder goes and the target stays exactly as it was. No stale file of an earlier
+/// run survives in the new folder.
+#[derive(Debug)]
+pub struct StagedDir {
+    staging: std::path::PathBuf,
+    target: std::path::PathBuf,
+    committed: bool,
+}
+
+impl StagedDir {
+    pub fn new(target: &std::path::Path) -> std::io::Result<Self> {
+        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+        let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+        std::fs::create_dir_all(parent)?;
+        let staging = parent.join(format!(".{name}.staging-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&staging);
+        std::fs::create_dir_all(&staging)?;
+        Ok(Self { staging, target: target.to_path_buf(), committed: false })
+    }
+
+    /// Where the command writes.
+    pub fn path(&self) -> &std::path::Path {
+        &self.staging
+    }
+
+    /// Swap the staging folder in for the target (the old target removed after the swap).
+    pub fn commit(mut self) -> std::io::Result<()> {
+        let old = self.staging.with_file_name(format!(
+            ".{}.old-{}",
+            self.target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+            std::process::id()
+        ));
+        if self.target.exists() {
+            let _ = std::fs::remove_dir_all(&old);
+            std::fs::rename(&self.target, &old)?;
+            if let Err(e) = std::fs::rename(&self.staging, &self.target) {
+                let _ = std::fs::rename(&old, &self.target);
+                return Err(e);
+            }
+            let _ = std::fs::remove_dir_all(&old);
+        } else {
+            std::fs::rename(&self.staging, &self.target)?;
+        }
+        self.committed = true;
+        Ok(())
+    }
+}
+
+impl Drop for StagedDir {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = std::fs::remove_dir_all(&self.staging);
+        }
+    }
+}
+
 /// Write `bytes` to `path` atomically: a temporary file beside it, then a rename,
 /// so a crash never leaves a half-written output.
 pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {

@@ -134,13 +134,18 @@ fn a_tracked_refinement_trims_the_deformed_part_and_never_moves_past_its_bound()
     let source: Vec<Vector3<f64>> = observed.iter().map(|o| o.0).collect();
     // Residual offset after the fit: the mean of the undeformed points' error.
     let error = |t: &Matrix4<f64>| {
-        let v: Vec<f64> =
-            observed.iter().filter(|o| !o.1).map(|o| (transform_point(t, &o.0) - (o.0 - offset)).norm()).collect();
+        let v: Vec<f64> = observed.iter().filter(|o| !o.1).map(|o| (transform_point(t, &o.0) - (o.0 - offset)).norm()).collect();
         v.iter().sum::<f64>() / v.len() as f64
     };
     let tracked = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::tracked(3.0));
     let full = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::default());
-    eprintln!("tracked: error {:.3} mm, moved {:.3}; full: error {:.3}, moved {:.3}", error(&tracked.transform), tracked.moved_mm, error(&full.transform), full.moved_mm);
+    eprintln!(
+        "tracked: error {:.3} mm, moved {:.3}; full: error {:.3}, moved {:.3}",
+        error(&tracked.transform),
+        tracked.moved_mm,
+        error(&full.transform),
+        full.moved_mm
+    );
     // Tolerances: the 1 mm offset recovered to within 0.35 mm by the trimmed fit; the full fit,
     // pulled by the pushed quarter, does worse.
     assert!(!tracked.bounded && tracked.moved_mm <= 3.0, "{tracked:?}");

@@ -381,11 +381,21 @@ pub fn run_prepare(
     let rec_dir = out.join("check").join("recording");
     let synth_path = out.join("check").join("recording.json");
     run_stage(&mut patient, Stage::Recording, &mut |p| {
-        let r = run_rgbd_synth(seg, &settings.dataset, &settings.check, &rec_dir, p, cancel).map_err(|e| match e {
-            umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
-            e => NetError::Invalid(e.to_string()),
-        })?;
-        write_json(&synth_path, &r)
+        // An organ whose check load does not converge (an element inverts) is checked at a
+        // lighter load, said in the report, rather than failing the job after its model trained.
+        let mut check = settings.check.clone();
+        let mut failures = Vec::new();
+        for _ in 0..3 {
+            let _ = std::fs::remove_dir_all(&rec_dir);
+            match run_rgbd_synth(seg, &settings.dataset, &check, &rec_dir, p, cancel) {
+                Ok(r) => return write_json(&synth_path, &r),
+                Err(umesh_core::rgbd::RgbdError::Cancelled) => return Err(NetError::Cancelled),
+                Err(e @ umesh_core::rgbd::RgbdError::Io { .. }) => return Err(NetError::Invalid(e.to_string())),
+                Err(e) => failures.push(format!("at load scale {:.2}: {e}", check.load_scale)),
+            }
+            check.load_scale *= 0.6;
+        }
+        Err(NetError::Invalid(format!("the check recording could not be made: {}", failures.join("; "))))
     })?;
     let check_path = out.join("check").join("register.json");
     run_stage(&mut patient, Stage::Register, &mut |p| {

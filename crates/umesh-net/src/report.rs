@@ -7,7 +7,7 @@ use crate::training::EpochMetrics;
 use std::fmt::Write;
 use std::path::Path;
 use umesh_core::dataset::{DatasetStats, Distribution};
-use umesh_core::rgbd::synth::SynthReport;
+use umesh_core::rgbd::synth::{SynthReport, SynthSettings};
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
@@ -377,8 +377,17 @@ figcaption{{font-size:12px;color:#555}}pre{{background:#f5f5f5;padding:.5em;over
     if let Some(r) = synth {
         let _ = write!(
             h,
-            "<p>{} frames, {} markers; mean marker displacement at the last frame {:.2} mm (max over frames {:.2} mm).</p>",
-            r.frames, r.markers, r.mean_marker_displacement_mm, r.max_marker_displacement_mm
+            "<p>{} frames, {} markers; mean marker displacement at the last frame {:.2} mm (max over frames {:.2} mm); load scale {:.2}{}.</p>",
+            r.frames,
+            r.markers,
+            r.mean_marker_displacement_mm,
+            r.max_marker_displacement_mm,
+            r.load_scale,
+            if r.load_scale > 0.0 && r.load_scale < SynthSettings::default().load_scale - 1e-9 {
+                " (lighter than the default: the organ did not converge at the default load)"
+            } else {
+                ""
+            }
         );
     }
     let c = &check.summary;

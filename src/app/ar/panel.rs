@@ -3,9 +3,9 @@
 
 use crate::app::ar::{Ar, ArCommand, ArSession, ArSource};
 use crate::app::state::{ActiveModel, Organ, UiMessages};
-use umesh_core::register::pipeline::PosePolicy;
 use bevy_egui::egui;
 use std::path::PathBuf;
+use umesh_core::register::pipeline::PosePolicy;
 
 /// Default recording folder of the synthetic sequence the AR view offers to generate.
 pub fn synthetic_recording_dir() -> PathBuf {

@@ -114,7 +114,10 @@ impl PosePolicy {
     }
 
     pub fn parse(s: &str) -> Result<Self, String> {
-        Self::ALL.into_iter().find(|p| p.name() == s).ok_or_else(|| format!("pose policy {s:?}: one of tracked, icp-first, icp-every-frame"))
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| format!("pose policy {s:?}: one of tracked, icp-first, icp-every-frame"))
     }
 }
 

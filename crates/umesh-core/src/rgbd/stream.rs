@@ -215,7 +215,8 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
         let mut raw = vec![0u8; 12 * h.points];
         r.read_exact(&mut raw).map_err(|e| cut(e, "points"))?;
         let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64;
-        let pts: Vec<nalgebra::Vector3<f64>> = raw.chunks_exact(12).map(|b| nalgebra::Vector3::new(f(&b[0..4]), f(&b[4..8]), f(&b[8..12]))).collect();
+        let pts: Vec<nalgebra::Vector3<f64>> =
+            raw.chunks_exact(12).map(|b| nalgebra::Vector3::new(f(&b[0..4]), f(&b[4..8]), f(&b[8..12]))).collect();
         if pts.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
             return Err("a point of the frame's cloud is not finite".into());
         }
@@ -230,16 +231,7 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
     {
         depth = super::recording::splat_points(p, &k);
     }
-    Ok(Some(Frame {
-        index,
-        timestamp_s: h.timestamp_s,
-        intrinsics: k,
-        depth,
-        color,
-        mask: None,
-        world_from_camera,
-        points,
-    }))
+    Ok(Some(Frame { index, timestamp_s: h.timestamp_s, intrinsics: k, depth, color, mask: None, world_from_camera, points }))
 }
 
 #[derive(Default)]

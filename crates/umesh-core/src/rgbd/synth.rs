@@ -102,6 +102,9 @@ pub struct SynthReport {
     pub max_marker_displacement_mm: f64,
     pub mean_marker_displacement_mm: f64,
     pub solve_ms_total: f64,
+    /// The load scale the recording was made at (`SynthSettings::load_scale`).
+    #[serde(default)]
+    pub load_scale: f64,
 }
 
 /// world_from_camera (OpenCV axes: x right, y down, z forward) of a look-at camera.
@@ -446,6 +449,7 @@ pub fn run_rgbd_synth(
         max_marker_displacement_mm: disp.iter().copied().fold(0.0, f64::max),
         mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
         solve_ms_total: solve_ms,
+        load_scale: settings.load_scale,
     })
 }
 

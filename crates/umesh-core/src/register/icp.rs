@@ -44,7 +44,7 @@ impl IcpSettings {
             return Err(format!("ICP trim {}: above 0 and at most 1", self.trim));
         }
         if let Some(b) = self.max_motion_mm
-            && !(b.is_finite() && b >= 0.0 && b <= 1000.0)
+            && !(b.is_finite() && (0.0..=1000.0).contains(&b))
         {
             return Err(format!("pose bound {b} mm: between 0 and 1000 mm"));
         }

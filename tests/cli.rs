@@ -428,6 +428,72 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
 }
 
 #[test]
+fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
+    let rec = tmp("corrupt-model-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let (ok, _, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "2",
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--focal-px",
+        "262.5",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let bundled = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/model");
+    let copy = |name: &str| {
+        let d = tmp(name);
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        for e in std::fs::read_dir(&bundled).unwrap().flatten() {
+            std::fs::copy(e.path(), d.join(e.file_name())).unwrap();
+        }
+        d
+    };
+    let register = |model: &PathBuf| {
+        umesh(&[
+            "register",
+            "--model",
+            model.to_str().unwrap(),
+            "--recording",
+            rec.to_str().unwrap(),
+            "--no-overlay",
+            "--json",
+            "--out",
+            tmp("corrupt-model-out").to_str().unwrap(),
+        ])
+    };
+    // Absurd settings in model.json: refused on reading, naming the file and the value.
+    for (key, path, value) in [("band", "/settings/observation/band_mm", 1e30), ("scale", "/normalization/output_scale_mm", 1e38)] {
+        let d = copy(&format!("corrupt-model-{key}"));
+        let mut info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("model.json")).unwrap()).unwrap();
+        *info.pointer_mut(path).unwrap() = serde_json::json!(value);
+        std::fs::write(d.join("model.json"), info.to_string()).unwrap();
+        let (ok, out, err) = register(&d);
+        assert!(!ok && out.is_empty() && err.contains("model.json"), "{key}: {err}");
+    }
+    // NaN weights (a run of bytes overwritten in the middle of the weights file; through the
+    // ReLU they gave finite, wrong predictions and a TRE) and huge finite ones: refused on
+    // loading, naming the weights file, no TRE reported.
+    for (key, byte) in [("nan", 0xFFu8), ("huge", 0x7Eu8)] {
+        let d = copy(&format!("corrupt-model-weights-{key}"));
+        let mut w = std::fs::read(d.join("model.safetensors")).unwrap();
+        let mid = w.len() / 2;
+        w[mid..mid + 4096].fill(byte);
+        std::fs::write(d.join("model.safetensors"), w).unwrap();
+        let (ok, out, err) = register(&d);
+        assert!(!ok && out.is_empty(), "{key}: {out}");
+        assert!(err.contains("corrupt") && err.contains("model.safetensors"), "{key}: {err}");
+    }
+}
+
+#[test]
 fn confidence_warns_on_a_deformation_far_beyond_the_datasets_scale() {
     // Three times the default load: about 30 mm of marker motion against the dataset's 10 mm
     // (measured: last-frame TRE 14.7 mm, the points 10.2 mm from the predicted surface at the

@@ -64,6 +64,20 @@ impl Default for ObservationSettings {
     }
 }
 
+impl ObservationSettings {
+    /// Settings whose work and memory stay bounded (a band of 1e30 mm made the encoder grow
+    /// to tens of gigabytes).
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.band_mm.is_finite() && self.band_mm > 0.0 && self.band_mm <= 200.0) {
+            return Err(format!("observation band {} mm: above 0 and at most 200 mm", self.band_mm));
+        }
+        if !(self.rest_density_per_mm2.is_finite() && self.rest_density_per_mm2 > 0.0 && self.rest_density_per_mm2 <= 10.0) {
+            return Err(format!("rest sampling density {} per mm^2: above 0 and at most 10", self.rest_density_per_mm2));
+        }
+        Ok(())
+    }
+}
+
 /// The encoder for one rest grid: the lattice, the rest baseline and reusable scratch.
 pub struct Observer {
     pub settings: ObservationSettings,

@@ -83,7 +83,26 @@ fn up_of(c: &burn::nn::conv::ConvTranspose3d) -> Up {
     Up { cin, cout, w, b }
 }
 
+/// A weight beyond this is no trained network's: the file is corrupt (flipped exponent bits).
+pub const MAX_WEIGHT: f32 = 1e4;
+
 impl FastUNet {
+    /// Every weight and bias finite and at most `MAX_WEIGHT` in magnitude (NaN weights give
+    /// finite, wrong predictions through the ReLU's `max`, so the output check cannot see them).
+    pub fn check_weights(&self) -> Result<(), String> {
+        let convs = self.down.iter().chain(&self.dec).chain(std::iter::once(&self.bottom)).flat_map(|(a, b)| [a, b]);
+        let all = convs
+            .flat_map(|c| c.w.iter().chain(&c.b))
+            .chain(self.head.w.iter().chain(&self.head.b))
+            .chain(self.up.iter().flat_map(|u| u.w.iter().chain(&u.b)));
+        for v in all {
+            if !(v.is_finite() && v.abs() <= MAX_WEIGHT) {
+                return Err(format!("a weight is {v} (not finite or over {MAX_WEIGHT}): the weights are corrupt"));
+            }
+        }
+        Ok(())
+    }
+
     /// The weights of `model`, repacked.
     pub fn from_model(model: &UNet) -> Result<Self, String> {
         let dc = |d: &crate::model::DoubleConv| (conv_of(&d.a), conv_of(&d.b));

@@ -6,6 +6,9 @@ use crate::{ModelInfo, NetError};
 use burn::prelude::*;
 use std::path::Path;
 
+/// A predicted displacement beyond this (mm) is no organ's: the model is corrupt.
+pub const MAX_DISPLACEMENT_MM: f32 = 1000.0;
+
 pub struct Predictor {
     pub info: ModelInfo,
     model: UNet,
@@ -41,6 +44,9 @@ impl Predictor {
         let mut model = info.config.init(&device);
         load_weights(&mut model, &dir.join(file))?;
         let mut p = Self::from_model(info, model, device);
+        if let Some(f) = &p.fast {
+            f.check_weights().map_err(|e| NetError::Invalid(format!("{}: {e}", dir.join(file).display())))?;
+        }
         p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir).map_err(NetError::Invalid)?;
         Ok(p)
     }
@@ -70,14 +76,23 @@ impl Predictor {
         if let (Some(f), false) = (&self.fast, self.use_burn) {
             f.forward(&self.input, shape, &mut self.output);
             self.output.iter_mut().for_each(|v| *v *= o);
-            return Ok(&self.output);
+        } else {
+            let x = Tensor::<5>::from_data(
+                TensorData::new(std::mem::take(&mut self.input), [1, c, shape[0], shape[1], shape[2]]),
+                &self.device,
+            );
+            let y = self.model.forward(x);
+            let data = y.into_data().try_to_vec::<f32>().map_err(|e| NetError::Invalid(format!("{e:?}")))?;
+            self.output.clear();
+            self.output.extend(data.iter().map(|v| v * o));
         }
-        let x =
-            Tensor::<5>::from_data(TensorData::new(std::mem::take(&mut self.input), [1, c, shape[0], shape[1], shape[2]]), &self.device);
-        let y = self.model.forward(x);
-        let data = y.into_data().try_to_vec::<f32>().map_err(|e| NetError::Invalid(format!("{e:?}")))?;
-        self.output.clear();
-        self.output.extend(data.iter().map(|v| v * o));
+        // Corrupt weights give NaN or absurd displacements: the frame stops here with a
+        // reason, never a "TRE 0.0" or an overflow further on.
+        if let Some(v) = self.output.iter().find(|v| !(v.is_finite() && v.abs() <= MAX_DISPLACEMENT_MM)) {
+            return Err(NetError::Invalid(format!(
+                "the model predicts a displacement of {v} mm (not finite or over {MAX_DISPLACEMENT_MM} mm): its weights or normalisation are corrupt"
+            )));
+        }
         Ok(&self.output)
     }
 }

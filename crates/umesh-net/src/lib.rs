@@ -69,7 +69,30 @@ impl ModelInfo {
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("model.json");
         let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
-        serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))
+        let info: Self =
+            serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))?;
+        info.validate().map_err(|e| NetError::Invalid(format!("{}: {e}", p.display())))?;
+        Ok(info)
+    }
+
+    /// The one check of a model description, wherever a model is loaded (`eval`, `register`,
+    /// the app's rehearsal, QA and AR view, `prepare`'s check): normalisation, grid size and
+    /// observation settings finite and within bounds.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = &self.normalization;
+        for (name, v) in [("input_scale_mm", n.input_scale_mm), ("output_scale_mm", n.output_scale_mm)] {
+            if !(v.is_finite() && (1e-6..=1e6).contains(&v)) {
+                return Err(format!("normalization {name} = {v}: must lie in [1e-6, 1e6] mm"));
+            }
+        }
+        let cells = self.padded_shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+        if self.padded_shape.contains(&0) || cells.is_none_or(|c| c > 1 << 26) {
+            return Err(format!("padded grid {:?}: empty or over 2^26 cells", self.padded_shape));
+        }
+        if let Some(o) = &self.settings.observation {
+            o.validate()?;
+        }
+        Ok(())
     }
     pub fn write(&self, dir: &Path) -> Result<(), NetError> {
         let p = dir.join("model.json");

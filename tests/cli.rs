@@ -425,6 +425,10 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
     let (ok, _, err) = umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);
     assert!(!ok && err.contains("--pose") && err.contains("tracked"), "{err}");
+    // A shorter recording written over this one replaces it whole: no frame of the old one left.
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--cloud-points", "50", "--out", r]);
+    assert!(ok, "{err}");
+    assert!(rec.join("points/00001.ply").is_file() && !rec.join("points/00002.ply").exists(), "a stale frame survived");
 }
 
 #[test]
@@ -735,18 +739,9 @@ fn the_live_path_without_masks_registers_every_frame() {
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
     let live = tmp("live-source");
-    let pose = rec.join("trajectory.log");
-    let (ok, out, err) = umesh(&[
-        "register",
-        "--source",
-        &addr,
-        "--initial-pose",
-        pose.to_str().unwrap(),
-        "--no-overlay",
-        "--json",
-        "--out",
-        live.to_str().unwrap(),
-    ]);
+    // No --initial-pose: the stream carries each frame's tracked pose, which --pose tracked keeps.
+    let (ok, out, err) =
+        umesh(&["register", "--source", &addr, "--pose", "tracked", "--no-overlay", "--json", "--out", live.to_str().unwrap()]);
     let _ = serve.wait();
     assert!(ok, "{err}");
     let r = json(&out);

@@ -33,7 +33,8 @@ pub struct Args {
     #[arg(long)]
     pub intrinsics: Option<PathBuf>,
     /// Initial camera pose (world_from_camera) as an Open3D .log file (default: the
-    /// recording's trajectory.log).
+    /// recording's trajectory.log; a live stream whose frames carry their pose needs none with
+    /// --pose tracked).
     #[arg(long)]
     pub initial_pose: Option<PathBuf>,
     /// Overlay PNGs and report.json go here.
@@ -125,13 +126,19 @@ pub fn run(a: Args) -> Result<()> {
         .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, &seg).map_err(anyhow::Error::msg)?;
     let (mut source, rec_pose, truth) = open_source(&a)?;
-    let pose = match &a.initial_pose {
-        Some(p) => *read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?,
-        None => rec_pose.context("no initial camera pose: give --initial-pose FILE.log (Open3D trajectory format)")?,
+    let pose_policy = PosePolicy::parse(&a.pose).map_err(|e| anyhow::anyhow!("--pose: {e}"))?;
+    let pose = match (&a.initial_pose, rec_pose) {
+        (Some(p), _) => Some(*read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?),
+        (None, Some(p)) => Some(p),
+        // A tracked live camera: every frame brings its pose in the stream header.
+        (None, None) if a.source.is_some() && pose_policy == PosePolicy::Tracked => None,
+        (None, None) => bail!(
+            "no initial camera pose: give --initial-pose FILE.log (Open3D trajectory format), or --pose tracked with a stream whose frames carry world_from_camera"
+        ),
     };
     let mut settings = RegisterSettings {
         iterations: a.iterations,
-        pose: PosePolicy::parse(&a.pose).map_err(|e| anyhow::anyhow!("--pose: {e}"))?,
+        pose: pose_policy,
         pose_bound_mm: a.pose_bound_mm,
         min_coverage: a.min_coverage,
         overlay: !a.no_overlay,
@@ -267,7 +274,7 @@ fn register_with(
     source: &mut dyn FrameSource,
     ctx: &RegistrationContext,
     model: &mut dyn umesh_core::register::pipeline::DisplacementModel,
-    pose: Matrix4<f64>,
+    pose: Option<Matrix4<f64>>,
     truth: Option<&GroundTruth>,
     settings: &RegisterSettings,
     overlay_dir: &Path,

@@ -318,6 +318,8 @@ pub struct Registrar<'c> {
     corrector: Option<SurfaceFit<'c>>,
     /// The last frame's predicted organ surface (the coverage gate's deformed reference).
     prev_organ: Option<crate::mesh::TriMesh>,
+    /// No initial pose was given: a frame must bring its own until one has been aligned.
+    needs_frame_pose: bool,
 }
 
 impl<'c> Registrar<'c> {
@@ -336,7 +338,14 @@ impl<'c> Registrar<'c> {
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
             prev_organ: None,
+            needs_frame_pose: false,
         }
+    }
+
+    /// Without an initial pose: each frame's own pose (a stream's `world_from_camera`) is used;
+    /// a frame without one, before any was aligned, is skipped with that reason.
+    pub fn require_frame_pose(&mut self) {
+        self.needs_frame_pose = true;
     }
 
     /// Forget the pose refinement and the previous prediction (a new sequence).
@@ -375,6 +384,9 @@ impl<'c> Registrar<'c> {
         let points_ms = ms(t0);
         let t1 = Instant::now();
         let mut icp = None;
+        if self.needs_frame_pose && !self.posed && frame.world_from_camera.is_none() {
+            return Err(format!("frame {}: no camera pose (the source gives none and no initial pose was given)", frame.index));
+        }
         // The frame's tracked pose, with the refinement of the last alignment.
         if let Some(t) = frame.world_from_camera {
             self.world_from_camera = self.correction.map_or(t, |c| c * t);
@@ -724,14 +736,18 @@ pub fn run_register(
     source: &mut dyn FrameSource,
     ctx: &RegistrationContext,
     model: &mut dyn DisplacementModel,
-    initial_world_from_camera: Matrix4<f64>,
+    initial_world_from_camera: impl Into<Option<Matrix4<f64>>>,
     truth: Option<&GroundTruth>,
     settings: &RegisterSettings,
     on_frame: &mut dyn FnMut(&FrameOutput) -> Result<(), String>,
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<RegisterReport, crate::rgbd::RgbdError> {
-    let mut reg = Registrar::new(ctx, settings.clone(), initial_world_from_camera);
+    let initial = initial_world_from_camera.into();
+    let mut reg = Registrar::new(ctx, settings.clone(), initial.unwrap_or_else(Matrix4::identity));
+    if initial.is_none() {
+        reg.require_frame_pose();
+    }
     let mut frames = Vec::new();
     let mut log = Vec::new();
     let mut skipped = 0;

@@ -596,7 +596,7 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     // Other settings in the same folder: refused, the folder left as it was.
     let before = std::fs::read(out.join("patient.json")).unwrap();
     let (ok, _, stderr) = umesh(&["prepare", "--samples", "12", "--epochs", "1", "--out", out.to_str().unwrap()]);
-    assert!(!ok && stderr.contains("other settings"), "{stderr}");
+    assert!(!ok && stderr.contains("other settings") && stderr.contains("samples: 10 -> 12"), "{stderr}");
     assert_eq!(before, std::fs::read(out.join("patient.json")).unwrap());
     // The patient folder drives registration.
     let reg = tmp("patient-reg");

@@ -240,6 +240,33 @@ pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> R
     Ok(*stored == now)
 }
 
+/// The settings that differ, as `path: stored -> now` (at most 6), for a refusal that names them.
+pub fn settings_differences(stored: &PrepareSettings, now: &PrepareSettings) -> Vec<String> {
+    fn walk(path: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
+        match (a, b) {
+            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                for k in keys {
+                    let null = serde_json::Value::Null;
+                    walk(
+                        &format!("{path}{}{k}", if path.is_empty() { "" } else { "." }),
+                        x.get(k).unwrap_or(&null),
+                        y.get(k).unwrap_or(&null),
+                        out,
+                    );
+                }
+            }
+            _ if a != b => out.push(format!("{path}: {a} -> {b}")),
+            _ => {}
+        }
+    }
+    let (Ok(a), Ok(b)) = (serde_json::to_value(stored), serde_json::to_value(now)) else { return Vec::new() };
+    let mut out = Vec::new();
+    walk("", &a, &b, &mut out);
+    out.truncate(6);
+    out
+}
+
 /// Run (or resume) the whole job for `seg` into `out`. `inputs` are the files the
 /// segmentation was read from (hashed and stored); nothing is written before every input
 /// and setting has been checked.
@@ -300,8 +327,9 @@ pub fn run_prepare(
         }
         if !same_as_stored(&old.settings, settings)? {
             return Err(NetError::Invalid(format!(
-                "{}: holds a patient prepared with other settings (same segmentation); choose an empty folder or the same options",
-                out.display()
+                "{}: holds a patient prepared with other settings (same segmentation): {}; choose an empty folder or the same options",
+                out.display(),
+                settings_differences(&old.settings, settings).join(", ")
             )));
         }
         patient.stages = old.stages;

@@ -563,6 +563,23 @@ fn short_prepare(seg: Option<&str>, out: &std::path::Path, extra: &[&str]) -> se
     v
 }
 
+/// `register --patient` on the patient's own check recording.
+fn register_patient_check(patient: &std::path::Path, name: &str) -> (bool, String, String) {
+    let rec = patient.join("check/recording");
+    let reg = tmp(name);
+    umesh(&[
+        "register",
+        "--patient",
+        patient.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--no-overlay",
+        "--json",
+        "--out",
+        reg.to_str().unwrap(),
+    ])
+}
+
 #[test]
 fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     let out = tmp("patient");
@@ -599,19 +616,7 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     assert!(!ok && stderr.contains("other settings") && stderr.contains("samples: 10 -> 12"), "{stderr}");
     assert_eq!(before, std::fs::read(out.join("patient.json")).unwrap());
     // The patient folder drives registration.
-    let reg = tmp("patient-reg");
-    let rec = out.join("check/recording");
-    let (ok, stdout, stderr) = umesh(&[
-        "register",
-        "--patient",
-        out.to_str().unwrap(),
-        "--recording",
-        rec.to_str().unwrap(),
-        "--no-overlay",
-        "--json",
-        "--out",
-        reg.to_str().unwrap(),
-    ]);
+    let (ok, stdout, stderr) = register_patient_check(&out, "patient-reg");
     assert!(ok, "{stderr}");
     assert!(json(&stdout)["frames"].as_u64().unwrap() >= 2);
 }
@@ -642,19 +647,7 @@ fn a_patient_prepared_from_a_mesh_registers_with_its_own_model() {
     let _ = std::fs::remove_dir_all(&out);
     let v = short_prepare(Some(mesh.to_str().unwrap()), &out, &[]);
     assert!(v["accepted"].as_u64().unwrap() >= 8, "{v}");
-    let reg = tmp("mesh-patient-reg");
-    let rec = out.join("check/recording");
-    let (ok, stdout, stderr) = umesh(&[
-        "register",
-        "--patient",
-        out.to_str().unwrap(),
-        "--recording",
-        rec.to_str().unwrap(),
-        "--no-overlay",
-        "--json",
-        "--out",
-        reg.to_str().unwrap(),
-    ]);
+    let (ok, stdout, stderr) = register_patient_check(&out, "mesh-patient-reg");
     assert!(ok, "the patient's own model refused: {stderr}");
     assert!(json(&stdout)["frames"].as_u64().unwrap() >= 2);
 }

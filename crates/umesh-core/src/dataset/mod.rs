@@ -1256,46 +1256,18 @@ pub fn run_merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, DatasetE
     }
     // Everything is written into a staging folder beside the target, which replaces it only at
     // the end: a merge that fails leaves the target as it was.
-    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "dataset".into());
-    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).map_err(|source| DatasetError::Io { path: parent.into(), source })?;
-    let stage = parent.join(format!(".{name}.merge-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&stage);
-    let staged = merge_into(&m0, &sources, first, &stage, same);
-    let merged = match staged {
-        Ok(m) => m,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&stage);
-            return Err(e);
-        }
-    };
+    let staged = crate::StagedDir::new(out).map_err(|source| DatasetError::Io { path: out.into(), source })?;
+    let merged = merge_into(&m0, &sources, first, staged.path(), same)?;
     if out.exists() {
         // Other files of the target (a job record, notes) move along.
         for e in std::fs::read_dir(out).map_err(|source| DatasetError::Io { path: out.into(), source })?.flatten() {
-            let dst = stage.join(e.file_name());
+            let dst = staged.path().join(e.file_name());
             if e.path().is_file() && !dst.exists() && std::fs::copy(e.path(), &dst).is_err() {
-                let _ = std::fs::remove_dir_all(&stage);
                 return Err(invalid(&e.path(), "could not be carried over into the merged dataset"));
             }
         }
-        let old = parent.join(format!(".{name}.old-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&old);
-        std::fs::rename(out, &old).map_err(|source| {
-            let _ = std::fs::remove_dir_all(&stage);
-            DatasetError::Io { path: out.into(), source }
-        })?;
-        if let Err(source) = std::fs::rename(&stage, out) {
-            let _ = std::fs::rename(&old, out);
-            let _ = std::fs::remove_dir_all(&stage);
-            return Err(DatasetError::Io { path: out.into(), source });
-        }
-        let _ = std::fs::remove_dir_all(&old);
-    } else {
-        std::fs::rename(&stage, out).map_err(|source| {
-            let _ = std::fs::remove_dir_all(&stage);
-            DatasetError::Io { path: out.into(), source }
-        })?;
     }
+    staged.commit().map_err(|source| DatasetError::Io { path: out.into(), source })?;
     Ok(MergeReport {
         out: out.into(),
         shards: merged.shards.len(),

@@ -12,8 +12,8 @@ pub struct IcpSettings {
     pub max_correspondence_mm: f64,
     /// Stop when the update moves points less than this (mm).
     pub tolerance_mm: f64,
-    /// Share of the correspondences used in each step: those that fit the surface best
-    /// (1: all, Huber-weighted; below 1: trimmed, so that a deformed part does not pull).
+    /// Share of the points that steers the fit: those that fit the surface best at the initial
+    /// pose (1: all, Huber-weighted; below 1: trimmed, so that a deformed part does not pull).
     #[serde(default = "one")]
     pub trim: f64,
     /// The fit may move the cloud by at most this much RMS from the initial pose (mm): a
@@ -33,7 +33,7 @@ impl Default for IcpSettings {
 }
 
 impl IcpSettings {
-    /// The refinement of a tracked pose: the best-fitting half of the correspondences, within
+    /// The refinement of a tracked pose: the best-fitting half of the points, within
     /// 10 mm, moving the cloud by at most `bound_mm` RMS.
     pub fn tracked(bound_mm: f64) -> Self {
         Self { max_correspondence_mm: 10.0, trim: 0.5, max_motion_mm: Some(bound_mm), ..Self::default() }
@@ -142,18 +142,17 @@ pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: 
             let c = q.cross(&n);
             pairs.push((r, Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z)));
         }
-        let matched = pairs.len();
-        let (mut count, mut sq) = (0usize, 0.0);
+        let count = pairs.len();
+        let mut sq = 0.0;
         for (r, a) in &pairs {
             // Huber weight: noisy or deformed parts do not pull the rigid fit.
             let w = if r.abs() <= 2.0 { 1.0 } else { 2.0 / r.abs() };
             ata += w * a * a.transpose();
             atb += -w * r * a;
-            count += 1;
             sq += r * r;
         }
         report.iterations = it + 1;
-        report.fitness = matched_share.unwrap_or(matched as f64 / source.len() as f64);
+        report.fitness = matched_share.unwrap_or(count as f64 / source.len() as f64);
         report.rms_mm = if count > 0 { (sq / count as f64).sqrt() } else { f64::INFINITY };
         if count < 6 {
             break;

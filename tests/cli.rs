@@ -653,6 +653,23 @@ fn a_patient_prepared_from_a_mesh_registers_with_its_own_model() {
 }
 
 #[test]
+fn a_check_recording_that_cannot_converge_ends_the_job_with_the_model_and_a_warning() {
+    // 50 times the dataset's target (then 30 and 18): no load of the check converges. The
+    // model is trained before; the job ends with it, and the JSON and report say why the check
+    // is missing.
+    let out = tmp("check-fails");
+    let _ = std::fs::remove_dir_all(&out);
+    let v = short_prepare(None, &out, &["--check-load-scale", "50"]);
+    let w = v["check"]["warning"].as_str().unwrap_or_default();
+    assert!(w.contains("could not be made") && w.contains("load scale 50.00"), "{v}");
+    assert!(out.join("model/model.safetensors").is_file());
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("The check did not run"), "the report does not say the check is missing");
+    let (ok, _, err) = umesh(&["prepare", "--check-load-scale", "0", "--out", tmp("check-bad").to_str().unwrap()]);
+    assert!(!ok && err.contains("--check-load-scale"), "{err}");
+}
+
+#[test]
 fn gui_refuses_a_folder_that_is_no_patient_before_opening_a_window() {
     let dir = tmp("not-a-patient");
     std::fs::create_dir_all(&dir).unwrap();

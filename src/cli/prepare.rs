@@ -37,6 +37,10 @@ pub struct Args {
     /// Frames of the synthetic registration-check recording.
     #[arg(long, default_value_t = 20)]
     pub check_frames: usize,
+    /// Load of the check recording, relative to the dataset's target displacement (lowered to
+    /// what the dataset reached, and again when it does not converge).
+    #[arg(long, default_value_t = umesh_core::rgbd::synth::SynthSettings::default().load_scale)]
+    pub check_load_scale: f64,
     /// The scan the segmentation was made from (NIfTI): checked first, copied into the
     /// folder as `ct.nii.gz` when the job ends, shown under the model by the app.
     #[arg(long, value_name = "FILE")]
@@ -66,6 +70,12 @@ pub fn run(a: Args) -> Result<()> {
     settings.train.observation = super::train::parse_input(&a.network_input)?;
     anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
     settings.check.frames = a.check_frames;
+    anyhow::ensure!(
+        a.check_load_scale.is_finite() && a.check_load_scale > 0.0 && a.check_load_scale <= 100.0,
+        "--check-load-scale {}: above 0 and at most 100",
+        a.check_load_scale
+    );
+    settings.check.load_scale = a.check_load_scale;
     if !a.json {
         eprintln!("fixed region: {}", fixed.description);
     }
@@ -89,6 +99,9 @@ pub fn run(a: Args) -> Result<()> {
         let dst = umesh_net::patient::ct_path(&a.out);
         let bytes = std::fs::read(ct).with_context(|| format!("--ct {}", ct.display()))?;
         umesh_core::write_atomic(&dst, &bytes).with_context(|| format!("{}", dst.display()))?;
+    }
+    if let Some(w) = &r.check.warning {
+        eprintln!("warning: {w} (the model is trained and usable; the check's figures are missing)");
     }
     if a.json {
         super::print_json(&serde_json::json!({

@@ -390,6 +390,9 @@ figcaption{{font-size:12px;color:#555}}pre{{background:#f5f5f5;padding:.5em;over
             }
         );
     }
+    if let Some(w) = &check.warning {
+        let _ = write!(h, "<p class=\"warn\"><b>The check did not run:</b> {}. The model is trained and usable.</p>", esc(w));
+    }
     let c = &check.summary;
     let _ = write!(
         h,

@@ -591,7 +591,9 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
             e.tre_mean_mm, e.tre_max_mm, e.marker_displacement_mean_mm
         ));
     }
-    if let Some(c) = &fig.check {
+    if let Some(w) = fig.check.as_ref().and_then(|c| c.warning.as_ref()) {
+        ui.colored_label(egui::Color32::from_rgb(230, 160, 40), format!("registration check did not run: {w}"));
+    } else if let Some(c) = &fig.check {
         let o = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into());
         ui.label(format!(
             "registration check, last frame: TRE {} mm, rigid only {}, marker motion {} ({} frames, {:.0} ms median)",

@@ -342,12 +342,18 @@ fn start(item: &mut WorkItem) {
             WorkKind::Prepare { seg, inputs, settings } => {
                 let r = run_prepare(&seg, &inputs, &out, &settings, Some(&check), &sink, &cancel).map_err(|e| e.to_string())?;
                 Ok(format!(
-                    "{} / {} samples accepted, validation TRE {:.2} mm; check TRE {} mm (rigid {}); report.html written",
+                    "{} / {} samples accepted, validation TRE {:.2} mm; {}; report.html written",
                     r.dataset.accepted,
                     r.dataset.samples,
                     r.eval.tre_mean_mm,
-                    r.check.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
-                    r.check.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
+                    match &r.check.warning {
+                        Some(w) => format!("warning: {w}"),
+                        None => format!(
+                            "check TRE {} mm (rigid {})",
+                            r.check.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
+                            r.check.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
+                        ),
+                    },
                 ))
             }
             WorkKind::Train { dataset, settings, resume } => {

@@ -136,6 +136,9 @@ pub fn frame_confidence(
 /// covers the area it spans, not 500 discs of 5 mm), at most COVERAGE_RADIUS_MAX_MM.
 pub const COVERAGE_RADIUS_MM: f64 = 5.0;
 pub const COVERAGE_RADIUS_MAX_MM: f64 = 20.0;
+/// The coverage gate takes each point to the rest surface from at most this far beyond the
+/// coverage radius: three times the default datasets' 10 mm mean displacement.
+pub const DEFORMATION_ALLOWANCE_MM: f64 = 30.0;
 
 /// The coverage radius of a cloud (see COVERAGE_RADIUS_MM): from the nearest-neighbour
 /// spacing of at most 500 of its points.

@@ -78,6 +78,8 @@ pub struct RegistrationContext {
     /// Visible node -> neighbouring visible nodes (6-connected), to fill unobserved nodes.
     node_neighbours: Vec<Vec<usize>>,
     pub(crate) icp_target: IcpTarget,
+    /// The rest surface's vertices in cells as large as the coverage gate's search.
+    gate_grid: nn::PointGrid,
 }
 
 fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, String> {
@@ -158,6 +160,8 @@ impl RegistrationContext {
             .collect();
         let spacing = surface.area_mm2().sqrt() / (surface.positions.len().max(1) as f64).sqrt();
         let icp_target = IcpTarget::new(surface.positions.clone(), surface_normals.clone(), spacing);
+        let gate_grid =
+            nn::PointGrid::new(surface.positions.clone(), confidence::COVERAGE_RADIUS_MAX_MM + confidence::DEFORMATION_ALLOWANCE_MM);
         Ok(Self {
             grid,
             surface,
@@ -170,6 +174,7 @@ impl RegistrationContext {
             structures,
             node_neighbours,
             icp_target,
+            gate_grid,
         })
     }
 
@@ -177,6 +182,20 @@ impl RegistrationContext {
     /// surface vertices, at most about 2000 of them, each counted once.
     pub fn surface_coverage(&self, points_world_mm: &[Vector3<f64>], radius_mm: f64) -> f64 {
         confidence::surface_coverage(&self.surface, points_world_mm, radius_mm)
+    }
+
+    /// The coverage gate before a frame is registered: the share of the organ's surface the
+    /// points cover once each is taken to its nearest rest-surface point within the coverage
+    /// radius plus `DEFORMATION_ALLOWANCE_MM` (a deformed or pushed organ's points lie off the
+    /// rest surface; a cloud off the organ covers nothing). At most 500 of the points.
+    pub fn gate_coverage(&self, points_world_mm: &[Vector3<f64>]) -> f64 {
+        let step = points_world_mm.len().div_ceil(500).max(1);
+        let sub: Vec<Vector3<f64>> = points_world_mm.iter().step_by(step).copied().collect();
+        let radius = confidence::coverage_radius_mm(&sub);
+        let reach = radius + confidence::DEFORMATION_ALLOWANCE_MM;
+        let on_surface: Vec<Vector3<f64>> =
+            sub.iter().filter_map(|p| self.gate_grid.nearest(p, reach).map(|(j, _)| self.gate_grid.points[j])).collect();
+        self.surface_coverage(&on_surface, radius)
     }
 
     pub fn padded_shape(&self) -> [usize; 3] {

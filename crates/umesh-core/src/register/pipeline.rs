@@ -150,7 +150,7 @@ pub struct RegisterSettings {
     pub overlay: bool,
     pub overlay_alpha: f32,
     /// Frames whose organ points cover less of the surface than this are not registered
-    /// (`confidence::frame_coverage`, on the rest and the last predicted surface).
+    /// (`RegistrationContext::gate_coverage`).
     #[serde(default = "default_min_coverage")]
     pub min_coverage: f64,
     /// The physics correction after each network prediction (`correction`).
@@ -316,8 +316,6 @@ pub struct Registrar<'c> {
     rings: super::confidence::VertexRings,
     /// The physics correction's FE model, built on the first frame that needs it.
     corrector: Option<SurfaceFit<'c>>,
-    /// The last frame's predicted organ surface (the coverage gate's deformed reference).
-    prev_organ: Option<crate::mesh::TriMesh>,
     /// No initial pose was given: a frame must bring its own until one has been aligned.
     needs_frame_pose: bool,
 }
@@ -337,7 +335,6 @@ impl<'c> Registrar<'c> {
             observer: None,
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
-            prev_organ: None,
             needs_frame_pose: false,
         }
     }
@@ -354,7 +351,6 @@ impl<'c> Registrar<'c> {
         self.posed = false;
         self.correction = None;
         self.prev_field.iter_mut().for_each(|v| *v = 0.0);
-        self.prev_organ = None;
     }
 
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
@@ -420,15 +416,9 @@ impl<'c> Registrar<'c> {
         let observation = model.observation();
         let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
         // Too little of the organ seen (a cloud off the organ, a camera looking away): no
-        // deformation can be inferred from it. Measured on the rest organ and on the last
-        // prediction, so that a deformed organ (an instrument pushing) is not refused.
-        let radius = super::confidence::coverage_radius_mm(&world);
-        let mut coverage = self.ctx.surface_coverage(&world, radius);
-        if let Some(prev) = &self.prev_organ
-            && coverage < self.settings.min_coverage
-        {
-            coverage = coverage.max(super::confidence::surface_coverage(prev, &world, radius));
-        }
+        // deformation can be inferred from it. Each point is taken to the rest surface first,
+        // so that a deformed or pushed organ (a first frame already deformed) is not refused.
+        let coverage = self.ctx.gate_coverage(&world);
         if coverage < self.settings.min_coverage {
             return Err(format!(
                 "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
@@ -489,7 +479,7 @@ impl<'c> Registrar<'c> {
         let t = Instant::now();
         let organ = self.ctx.deformed_surface(&self.field);
         // The coverage of the frame, on the organ as predicted.
-        let coverage = super::confidence::surface_coverage(&organ, &world, radius);
+        let coverage = super::confidence::frame_coverage(&organ, &world);
         let surface_ms_deform = ms(t);
         let reference = model.confidence_reference();
         // The confidence figures and the overlay both read the prediction only: side by side on
@@ -533,7 +523,6 @@ impl<'c> Registrar<'c> {
                 disp = Some(mean(&d));
             }
         }
-        self.prev_organ = Some(organ);
         let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, correction_ms, total_ms: ms(t0) };
         Ok(FrameOutput {
             report: FrameReport {

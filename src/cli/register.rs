@@ -65,8 +65,8 @@ pub struct Args {
     /// With --pose tracked: the refinement moves the cloud by at most this much (RMS, mm).
     #[arg(long, default_value_t = RegisterSettings::default().pose_bound_mm)]
     pub pose_bound_mm: f64,
-    /// Frames whose organ points cover less than this share of the organ's surface (rest or
-    /// last predicted) are not registered.
+    /// Frames whose organ points cover less than this share of the organ's surface (each point
+    /// taken to the rest surface from up to 30 mm off it) are not registered.
     #[arg(long, default_value_t = RegisterSettings::default().min_coverage)]
     pub min_coverage: f64,
     /// Depth range of the organ when the recording has no masks (mm).

@@ -92,7 +92,8 @@ impl DisplacementModel for FeDisplacementModel<'_> {
 pub enum PosePolicy {
     /// Keep the tracked pose; on the first frame a trimmed ICP (the best-fitting half of the
     /// cloud) refines it by at most `pose_bound_mm`, and later frames carry that refinement.
-    /// For a tracked camera, and for sequences that start deformed.
+    /// For a tracked camera with a network that reproduces the organ's motion, and for
+    /// sequences that start deformed where the first-frame ICP slides.
     Tracked,
     /// Full ICP on the first frame from the tracked or initial pose; later frames carry it
     /// (the organ deforms after the first frame).

@@ -209,6 +209,11 @@ fn grid_build_is_cancellable_and_rejects_bad_settings() {
     }
     let tiny = GridSettings { cell_size_mm: 0.001, ..Default::default() };
     assert!(matches!(grid::build(-r, r, inside, &tiny, &Progress::none(), &Cancel::new()), Err(grid::GridError::TooLarge { .. })));
+    // 0.5 mm cells: 1.7 M box cells pass the box limit, and with 4 subdivisions (32^3 inside
+    // tests each) would classify for hours: refused before any work, naming the options.
+    let fine = GridSettings { cell_size_mm: 0.5, subdivisions: 4, ..Default::default() };
+    let e = grid::build(-r, r, inside, &fine, &Progress::none(), &Cancel::new()).unwrap_err();
+    assert!(matches!(e, grid::GridError::TooMuchWork { .. }) && e.to_string().contains("--subdivisions"), "{e}");
     let empty = Mask { dims: [4, 4, 4], data: vec![false; 64], world_from_voxel: Matrix4::identity() };
     assert!(matches!(
         ImmersedGrid::from_mask(&empty, &GridSettings::default(), &Progress::none(), &Cancel::new()),

@@ -529,8 +529,20 @@ fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on()
     }
     let e = reg.process(&tiny, &mut fe, None, None, None).unwrap_err();
     assert!(e.contains("under 5 %"), "{e}");
+    // A cloud of 200 000 points (the good frame's organ points, repeated with 0.1 mm jitter):
+    // thinned to MAX_FRAME_POINTS evenly, and the report says so.
+    let keep = umesh_core::rgbd::segment::segment_frame(&good, &Default::default()).unwrap();
+    let organ = good.organ_points(&keep, 1);
+    let mut rng = umesh_core::phantom::SplitMix64(3);
+    let mut dense = good.clone();
+    dense.points =
+        Some((0..200_000).map(|i| organ[i % organ.len()] + Vector3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 0.1).collect());
+    let thinned = reg.process(&dense, &mut fe, None, None, None).unwrap();
+    assert_eq!(thinned.report.observed_points, umesh_core::register::pipeline::MAX_FRAME_POINTS);
+    assert_eq!(thinned.report.points_thinned_from, Some(200_000));
     // And the next sound frame registers as before (coverage of the good frame stated).
     let again = reg.process(&good, &mut fe, None, None, None).unwrap();
+    assert_eq!(again.report.points_thinned_from, None);
     assert!(first.report.surface_coverage > 0.1, "{:?}", first.report);
     assert!(again.report.measured_vertices > 0, "{:?}", again.report);
 }

@@ -159,6 +159,10 @@ pub struct RegisterSettings {
     pub correction: CorrectionSettings,
 }
 
+/// A frame's organ points beyond this are thinned evenly (a 640 x 480 frame gives at most
+/// 19 200 at the default stride).
+pub const MAX_FRAME_POINTS: usize = 50_000;
+
 fn default_min_coverage() -> f64 {
     0.05
 }
@@ -271,6 +275,9 @@ pub struct FrameReport {
     pub frame: usize,
     pub timestamp_s: f64,
     pub observed_points: usize,
+    /// The frame gave this many organ points, thinned to `observed_points` (MAX_FRAME_POINTS).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub points_thinned_from: Option<usize>,
     /// Share of the predicted organ surface the organ points cover (`confidence::frame_coverage`).
     pub surface_coverage: f64,
     /// Visible surface vertices whose displacement was measured.
@@ -373,8 +380,14 @@ impl<'c> Registrar<'c> {
                 *d = 0.0;
             }
         }
-        // A cloud from the camera is used whole; a depth image every `point_stride` pixels.
-        let points = frame.organ_points(&keep, self.settings.point_stride);
+        // A cloud from the camera is used whole; a depth image every `point_stride` pixels; and
+        // at most MAX_FRAME_POINTS of either, evenly, so that the largest accepted frame (16
+        // Mpixel) registers in bounded time.
+        let mut points = frame.organ_points(&keep, self.settings.point_stride);
+        let thinned_from = (points.len() > MAX_FRAME_POINTS).then_some(points.len());
+        if let Some(n) = thinned_from {
+            points = (0..MAX_FRAME_POINTS).map(|i| points[i * n / MAX_FRAME_POINTS]).collect();
+        }
         if points.is_empty() {
             return Err(format!("frame {}: no organ point in the depth image (the previous overlay stays)", frame.index));
         }
@@ -530,6 +543,7 @@ impl<'c> Registrar<'c> {
                 frame: frame.index,
                 timestamp_s: frame.timestamp_s,
                 observed_points: points.len(),
+                points_thinned_from: thinned_from,
                 surface_coverage: coverage,
                 measured_vertices: measured,
                 icp,

@@ -482,6 +482,13 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
         let (ok, out, err) = register(&d);
         assert!(!ok && out.is_empty() && err.contains("model.json"), "{key}: {err}");
     }
+    // A confidence range no organ reaches (it would silence every warning): refused, named.
+    let d = copy("corrupt-model-confidence");
+    let mut c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("confidence.json")).unwrap()).unwrap();
+    c["residual_p95_mm"] = serde_json::json!(1e308);
+    std::fs::write(d.join("confidence.json"), c.to_string()).unwrap();
+    let (ok, out, err) = register(&d);
+    assert!(!ok && out.is_empty() && err.contains("confidence.json") && err.contains("residual_p95_mm"), "{err}");
     // NaN weights (a run of bytes overwritten in the middle of the weights file; through the
     // ReLU they gave finite, wrong predictions and a TRE) and huge finite ones: refused on
     // loading, naming the weights file, no TRE reported.
@@ -495,6 +502,25 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
         assert!(!ok && out.is_empty(), "{key}: {out}");
         assert!(err.contains("corrupt") && err.contains("model.safetensors"), "{key}: {err}");
     }
+}
+
+#[test]
+fn surface_of_a_one_voxel_organ_is_refused_with_a_reason_not_written_empty() {
+    let p = tmp("one-voxel.nii.gz");
+    let mut data = vec![0.0f32; 512];
+    data[4 + 8 * (4 + 8 * 4)] = 1.0;
+    let vol = umesh_core::volume::Volume {
+        dims: [8, 8, 8],
+        data,
+        world_from_voxel: nalgebra::Matrix4::identity(),
+        label_names: Default::default(),
+    };
+    umesh_core::nifti_io::write_volume(&p, &vol, umesh_core::nifti_io::WriteType::U8).unwrap();
+    let out = tmp("one-voxel-surfaces");
+    let _ = std::fs::remove_dir_all(&out);
+    let (ok, _, err) = umesh(&["surface", p.to_str().unwrap(), "--organ-label", "1", "--out", out.to_str().unwrap()]);
+    assert!(!ok && err.contains("one-voxel.nii.gz") && err.contains("1 voxel"), "{err}");
+    assert!(!out.join("organ.obj").exists());
 }
 
 #[test]

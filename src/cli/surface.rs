@@ -44,6 +44,12 @@ pub fn run(a: Args) -> Result<()> {
         let mask = seg.volume.mask(&labels);
         anyhow::ensure!(mask.count() > 0, "{}: labels {labels:?} have no voxel", seg.source.display());
         let mesh = extract_surface(&mask, &settings);
+        anyhow::ensure!(
+            !mesh.triangles.is_empty(),
+            "{}: labels {labels:?} hold {} voxel(s), too few for a surface at this smoothing; nothing written",
+            seg.source.display(),
+            mask.count()
+        );
         let file = a.out.join(format!("{}.{}", name.replace([' ', '/'], "_"), a.format));
         write_mesh(&file, &mesh)?;
         let t = mesh.topology();

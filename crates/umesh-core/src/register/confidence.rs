@@ -47,6 +47,18 @@ impl ConfidenceReference {
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
             return Err(format!("{}: the confidence range holds negative or non-finite values", path.display()));
         }
+        // Limits no organ reaches would silence every warning (1e308 was accepted).
+        let mm = [
+            ("residual_p95_mm", r.residual_p95_mm),
+            ("residual_mean_mm", r.residual_mean_mm),
+            ("displacement_max_mm", r.displacement_max_mm),
+        ];
+        if let Some((name, v)) = mm.iter().find(|(_, v)| *v > 1000.0) {
+            return Err(format!("{}: {name} = {v} mm, over 1000 mm: not a confidence range", path.display()));
+        }
+        if r.coverage_min > 1.0 {
+            return Err(format!("{}: coverage_min = {} is a share, at most 1", path.display(), r.coverage_min));
+        }
         Ok(Some(r))
     }
 }

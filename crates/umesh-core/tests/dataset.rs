@@ -506,6 +506,21 @@ fn a_shard_copied_in_from_another_seed_is_recomputed_not_adopted() {
     let rec = m.shards.iter().find(|s| s.file == shard_file_name(1)).unwrap();
     assert_eq!(rec.hash, umesh_core::dataset::fnv_hex(&own));
     Dataset::open(&a).unwrap();
+    // A grid.npz from another dataset (another cell size) is refused wherever it is read,
+    // naming the file; a truncated one too.
+    let mut coarse = config.clone();
+    coarse.grid.cell_size_mm = 16.0;
+    coarse.samples = 2;
+    let c = tmp("foreign-grid");
+    run_generate(&seg, &c, &coarse, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let own_grid = file_bytes(&a, "grid.npz");
+    for bytes in [file_bytes(&c, "grid.npz"), own_grid[..own_grid.len() / 2].to_vec()] {
+        std::fs::write(a.join("grid.npz"), &bytes).unwrap();
+        let e = umesh_core::dataset::run_stats(&a).unwrap_err().to_string();
+        assert!(e.contains("grid.npz") && e.contains("does not belong to this dataset"), "{e}");
+    }
+    std::fs::write(a.join("grid.npz"), &own_grid).unwrap();
+    umesh_core::dataset::run_stats(&a).unwrap();
 }
 
 #[test]

@@ -50,12 +50,12 @@ impl SampleSet {
     pub fn load_inputs(dir: &std::path::Path, observation: Option<&ObservationSettings>) -> Result<Self, DatasetError> {
         let ds = Dataset::open(dir)?;
         let flagged: std::collections::BTreeSet<usize> = ds.manifest.samples.iter().filter(|s| s.flagged).map(|s| s.index).collect();
-        let grid = ImmersedGrid::from_npz(&Npz::read(&dir.join("grid.npz"))?)?;
+        let npz = umesh_core::dataset::read_grid_npz(dir, &ds.manifest)?;
+        let grid = ImmersedGrid::from_npz(&npz)?;
         let shape = ds.manifest.padded_shape;
         let n = 3 * shape[0] * shape[1] * shape[2];
         let mut observer = match observation {
             Some(o) => {
-                let npz = Npz::read(&dir.join("grid.npz"))?;
                 let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
                 Some(
                     Observer::new(&grid, &surface, o.clone())
@@ -160,7 +160,7 @@ impl ViewRefresher {
     /// For the dataset in `dir` (its manifest's camera and view settings).
     pub fn new(dir: &std::path::Path, observation: &ObservationSettings) -> Result<Self, DatasetError> {
         let manifest = umesh_core::dataset::Manifest::read(dir)?;
-        let npz = Npz::read(&dir.join("grid.npz"))?;
+        let npz = umesh_core::dataset::read_grid_npz(dir, &manifest)?;
         let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
         let camera = manifest.config.visibility.camera.clone().unwrap_or_else(|| umesh_core::visible::Camera::anterior(&surface));
         Ok(Self { surface, camera, view: manifest.config.view.clone(), observation: observation.clone(), seed: manifest.config.seed })

@@ -90,9 +90,9 @@ pub fn calibrate_confidence(
             predictor.info.padded_shape
         )));
     }
-    let npz = umesh_core::npz::Npz::read(&dataset.join("grid.npz")).map_err(|e| NetError::Invalid(e.to_string()))?;
-    let surface = crate::data::rest_surface(&npz).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.join("grid.npz").display())))?;
     let ds = Dataset::open(dataset)?;
+    let npz = umesh_core::dataset::read_grid_npz(dataset, &ds.manifest)?;
+    let surface = crate::data::rest_surface(&npz).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.join("grid.npz").display())))?;
     let (train, val) = set.split();
     let val_index: std::collections::BTreeMap<usize, usize> = val.iter().map(|&k| (set.indices[k], k)).collect();
     let mut r = ConfidenceReference { residual_p95_mm: 0.0, residual_mean_mm: 0.0, coverage_min: 1.0, displacement_max_mm: 0.0, views: 0 };

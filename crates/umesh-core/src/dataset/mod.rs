@@ -1163,9 +1163,25 @@ pub struct Dataset {
     pub manifest: Manifest,
 }
 
+/// A dataset's `grid.npz`, checked against its manifest's grid hash: another dataset's grid, or
+/// a damaged one, is refused wherever the grid is read (a foreign one made `train` panic on a
+/// tensor shape and passed `stats`).
+pub fn read_grid_npz(dir: &Path, manifest: &Manifest) -> Result<Npz, DatasetError> {
+    let path = dir.join("grid.npz");
+    let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
+    if fnv_hex(&bytes) != manifest.grid_hash {
+        return Err(invalid(
+            &path,
+            "does not belong to this dataset (its hash differs from the manifest's grid hash): another dataset's grid, or a damaged one",
+        ));
+    }
+    Ok(Npz::from_bytes(&path, &bytes)?)
+}
+
 impl Dataset {
     pub fn open(dir: &Path) -> Result<Self, DatasetError> {
         let manifest = Manifest::read(dir)?;
+        read_grid_npz(dir, &manifest)?;
         for s in &manifest.shards {
             let path = dir.join(&s.file);
             let bytes = std::fs::read(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;

@@ -641,6 +641,42 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     let (ok, _, stderr) = umesh(&["prepare", "--samples", "12", "--epochs", "1", "--out", out.to_str().unwrap()]);
     assert!(!ok && stderr.contains("other settings") && stderr.contains("samples: 10 -> 12"), "{stderr}");
     assert_eq!(before, std::fs::read(out.join("patient.json")).unwrap());
+    // The same voxels under other label names: another patient, refused naming the names.
+    let mut renamed: serde_json::Value = serde_json::from_slice(&before).unwrap();
+    renamed["structures"] = serde_json::json!(["renamed"]);
+    std::fs::write(out.join("patient.json"), renamed.to_string()).unwrap();
+    let (ok, _, stderr) =
+        umesh(&["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--out", out.to_str().unwrap()]);
+    assert!(!ok && stderr.contains("label names differ") && stderr.contains("renamed"), "{stderr}");
+    std::fs::write(out.join("patient.json"), &before).unwrap();
+    // A finished patient keeps its scan: the same job with one scan stores it, with another
+    // one it is refused and the stored scan stays.
+    let ct1 = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/phantom.nii.gz");
+    let vol = umesh_core::nifti_io::read_volume(&ct1, &umesh_core::nifti_io::ReadOptions { max_voxels: 1 << 30 }).unwrap();
+    let ct2 = tmp("other-scan.nii.gz");
+    umesh_core::nifti_io::write_volume(&ct2, &vol, umesh_core::nifti_io::WriteType::F32).unwrap();
+    let with_ct = |ct: &PathBuf| {
+        umesh(&[
+            "prepare",
+            "--samples",
+            "10",
+            "--shard-size",
+            "5",
+            "--epochs",
+            "1",
+            "--check-frames",
+            "3",
+            "--ct",
+            ct.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let (ok, _, stderr) = with_ct(&ct1);
+    assert!(ok, "{stderr}");
+    let (ok, _, stderr) = with_ct(&ct2);
+    assert!(!ok && stderr.contains("another scan"), "{stderr}");
+    assert_eq!(std::fs::read(out.join("ct.nii.gz")).unwrap(), std::fs::read(&ct1).unwrap());
     // The patient folder drives registration.
     let (ok, stdout, stderr) = register_patient_check(&out, "patient-reg");
     assert!(ok, "{stderr}");

@@ -58,6 +58,18 @@ pub fn run(a: Args) -> Result<()> {
     let seg = a.input.load()?;
     if let Some(ct) = &a.ct {
         umesh_core::slices::read_scan(ct, seg.organ_mask().world_bounds()).context("--ct")?;
+        // A finished patient keeps its scan: another one is refused, not copied over it.
+        let stored = umesh_net::patient::ct_path(&a.out);
+        if stored.is_file() {
+            let same = std::fs::read(&stored).with_context(|| format!("{}", stored.display()))?
+                == std::fs::read(ct).with_context(|| format!("--ct {}", ct.display()))?;
+            anyhow::ensure!(
+                same,
+                "{}: the patient already holds another scan than --ct {}; choose an empty folder",
+                stored.display(),
+                ct.display()
+            );
+        }
     }
     let (dataset, fixed) = a.config.config(&seg, a.grid.settings(), a.samples, a.seed, a.shard_size)?;
     let mut settings = PrepareSettings::paper(dataset, fixed.description.clone());

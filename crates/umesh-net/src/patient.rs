@@ -343,6 +343,18 @@ pub fn run_prepare(
                 old.segmentation_hash
             )));
         }
+        // The same voxels under other names are another patient's segmentation: its structures
+        // would be drawn under the wrong names, or dropped by `register --patient`.
+        if (&old.organ_labels, &old.structures) != (&patient.organ_labels, &patient.structures) {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient whose label names differ (organ {:?}, structures {:?}; now organ {:?}, structures {:?}); choose an empty folder",
+                out.display(),
+                old.organ_labels,
+                old.structures,
+                patient.organ_labels,
+                patient.structures
+            )));
+        }
         if !same_as_stored(&old.settings, settings)? {
             return Err(NetError::Invalid(format!(
                 "{}: holds a patient prepared with other settings (same segmentation): {}; choose an empty folder or the same options",

@@ -751,6 +751,9 @@ fn prepare_refuses_bad_input_before_writing_anything() {
         (vec!["--camera-from", "0,5000,0", "--camera-to", "0,9000,0"], "of the organ surface"),
         (vec!["--target-displacement-mm", "nan"], "target displacement"),
         (vec!["--samples", "3"], "at least 10"),
+        // The phantom's vena cava as the organ; cells larger than the organ.
+        (vec!["--organ-label", "2"], "named as vessels or structures"),
+        (vec!["--cell-size-mm", "500"], "use a smaller --cell-size-mm"),
     ];
     for (extra, needle) in cases {
         let out = tmp(&format!("bad-patient-{}", needle.len()));

@@ -38,6 +38,11 @@ impl Default for GridSettings {
 pub enum GridError {
     #[error("the organ mask is empty (no voxel has the organ label)")]
     EmptyMask,
+    #[error(
+        "no cell of {cell_size_mm} mm holds a sample inside the organ (its box is {:.0} x {:.0} x {:.0} mm): use a smaller --cell-size-mm",
+        extent_mm[0], extent_mm[1], extent_mm[2]
+    )]
+    CellsTooLarge { cell_size_mm: f64, extent_mm: [f64; 3] },
     #[error("invalid grid settings: {0}")]
     Settings(String),
     #[error("the grid would have {cells} cells in its bounding box, more than the limit of {limit}; use a larger --cell-size-mm")]
@@ -492,7 +497,8 @@ pub fn build(
         quadrature.extend(qps.into_iter().map(|(xi, weight_mm3)| QuadPoint { cell, xi, weight_mm3 }));
     }
     if occupied.is_empty() {
-        return Err(GridError::EmptyMask);
+        // The organ is there, but no cell's samples fall inside it: cells larger than the organ.
+        return Err(GridError::CellsTooLarge { cell_size_mm: h, extent_mm: [extent.x, extent.y, extent.z] });
     }
     Ok(assemble_grid(origin, h, cell_dims, occupied, quadrature, settings.pooling_steps))
 }

@@ -58,6 +58,23 @@ impl Segmentation {
         if self.organ_labels.is_empty() {
             return Err(SegmentationError::Invalid { path: self.source.clone(), reason: "no organ label chosen".into() });
         }
+        // An organ made only of labels named as vessels or tumours (`--organ-label 63`, the vena
+        // cava) would run a whole job on the wrong tissue: said before any stage runs.
+        let named: Vec<(i64, String)> = self.organ_labels.iter().map(|&l| (l, self.label_name(l))).collect();
+        if named.iter().all(|(_, n)| matches!(name_role(n), Some(Role::Anchor | Role::Structure))) {
+            let organ: Vec<String> = counts
+                .keys()
+                .filter(|&&l| name_role(&self.label_name(l)) == Some(Role::Organ))
+                .map(|l| format!("{l} ({})", self.label_name(*l)))
+                .collect();
+            return Err(SegmentationError::Invalid {
+                path: self.source.clone(),
+                reason: format!(
+                    "the organ labels {named:?} are named as vessels or structures, not an organ: choose the organ with --organ-label{}",
+                    if organ.is_empty() { String::new() } else { format!(" (here: {})", organ.join(", ")) }
+                ),
+            });
+        }
         // Structures may lie inside the organ (the phantom's tumours are organ labels too), but
         // an organ made only of structure labels would draw the whole organ as a structure.
         if self.organ_labels.iter().all(|l| self.structure_labels.contains(l)) {

@@ -450,6 +450,8 @@ pub fn run_prepare(
             check.load_scale *= reach;
         }
         let mut failures = Vec::new();
+        // A failure recorded by an interrupted earlier run is not this run's.
+        let _ = std::fs::remove_file(&synth_failed_path);
         for _ in 0..3 {
             let _ = std::fs::remove_dir_all(&rec_dir);
             match run_rgbd_synth(seg, &settings.dataset, &check, &rec_dir, p, cancel) {

@@ -524,6 +524,55 @@ fn surface_of_a_one_voxel_organ_is_refused_with_a_reason_not_written_empty() {
 }
 
 #[test]
+fn output_folders_are_replaced_whole_and_a_folder_umesh_did_not_write_is_never_emptied() {
+    let ph = tmp("replace-ph.nii.gz");
+    let (ok, _, err) = umesh(&["phantom", "--spacing-mm", "4", "--out", ph.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let ph = ph.to_str().unwrap();
+    // surface: a second run leaves no file of the first (stale.obj) and carries the marker.
+    let surf = tmp("replace-surf");
+    let _ = std::fs::remove_dir_all(&surf);
+    let (ok, _, err) = umesh(&["surface", ph, "--out", surf.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    std::fs::write(surf.join("stale.obj"), "from an earlier run").unwrap();
+    let (ok, _, err) = umesh(&["surface", ph, "--out", surf.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(surf.join("organ.obj").exists() && !surf.join("stale.obj").exists());
+    assert!(surf.join(umesh_core::OUTPUT_MARKER).exists());
+    // A run that fails half-way (label 99 after the organ) leaves the last folder byte for byte.
+    let before = std::fs::read(surf.join("organ.obj")).unwrap();
+    std::fs::write(surf.join("organ.obj"), b"last run's mesh").unwrap();
+    let (ok, _, err) = umesh(&["surface", ph, "--label", "1,99", "--out", surf.to_str().unwrap()]);
+    assert!(!ok && err.contains("99"), "{err}");
+    assert_eq!(std::fs::read(surf.join("organ.obj")).unwrap(), b"last run's mesh");
+    assert!(!before.is_empty());
+    let parent = surf.parent().unwrap();
+    let leftovers: Vec<_> =
+        std::fs::read_dir(parent).unwrap().flatten().filter(|e| e.file_name().to_string_lossy().starts_with(".replace-surf.")).collect();
+    assert!(leftovers.is_empty(), "staging folders left: {leftovers:?}");
+    // simulate into a folder of the user's own files: refused before any work, files intact.
+    let mine = tmp("replace-mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "mine").unwrap();
+    let (ok, _, err) = umesh(&["simulate", "--out", mine.to_str().unwrap()]);
+    assert!(!ok && err.contains("replace-mine") && err.contains("did not write"), "{err}");
+    assert_eq!(std::fs::read_to_string(mine.join("notes.txt")).unwrap(), "mine");
+    let (ok, _, err) = umesh(&["surface", ph, "--out", mine.to_str().unwrap()]);
+    assert!(!ok && err.contains("did not write"), "{err}");
+    // simulate into its own earlier output: replaced, the stale file gone.
+    let sim = tmp("replace-sim");
+    let _ = std::fs::remove_dir_all(&sim);
+    std::fs::create_dir_all(&sim).unwrap();
+    std::fs::write(sim.join("displacement.npz"), "an earlier run").unwrap();
+    std::fs::write(sim.join("tumour_9_deformed.obj"), "an earlier run").unwrap();
+    let forces = tmp("replace-forces.json");
+    std::fs::write(&forces, r#"[{"point_mm": [30, 60, 10], "force_n": [0, -0.05, 0]}]"#).unwrap();
+    let (ok, _, err) = umesh(&["simulate", "--forces", forces.to_str().unwrap(), "--out", sim.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(sim.join("result.vtu").exists() && !sim.join("tumour_9_deformed.obj").exists());
+}
+
+#[test]
 fn confidence_warns_on_a_deformation_far_beyond_the_datasets_scale() {
     // Three times the default load: about 30 mm of marker motion against the dataset's 10 mm
     // (measured: last-frame TRE 14.7 mm, the points 10.2 mm from the predicted surface at the

@@ -1,7 +1,7 @@
 //! The main job on the bundled data: phantom -> grid -> surfaces -> one SVK simulation.
 
 use super::bench::fe_scenario;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_core::grid::grid_vtu;
 use umesh_core::loads;
@@ -68,7 +68,7 @@ pub fn run(a: Args) -> Result<()> {
     let u = &sol.displacement_mm;
     let mut vtu = grid_vtu(&sc.grid);
     vtu.point_data.push(VtkData::Vectors("displacement_mm".into(), u.clone()));
-    vtu.write(&a.out.join("result.vtu"))?;
+    vtu.write(&a.out.join("result.vtu")).with_context(|| format!("writing {}", a.out.join("result.vtu").display()))?;
     write_mesh(&a.out.join("organ_deformed.obj"), &loads::deform_mesh(&sc.grid, &organ, u))?;
     for &l in &sc.seg.structure_labels {
         let m = extract_surface(&sc.seg.volume.mask(&[l]), &SurfaceSettings::default());

@@ -97,7 +97,7 @@ impl InputArgs {
                 "--organ-label/--structure-label apply to a multi-label file, not to separate masks"
             );
             let (seg, notes) = segmentation::assemble_masks(&files, &options)?;
-            for r in &notes.resampled {
+            for r in notes.resampled.iter().chain(&notes.carved) {
                 eprintln!("note: {r}");
             }
             return Ok(seg);

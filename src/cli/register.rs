@@ -150,7 +150,7 @@ pub fn run(a: Args) -> Result<()> {
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
     // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
-    let staged = umesh_core::StagedDir::new(&a.out).with_context(|| format!("creating a staging folder beside {}", a.out.display()))?;
+    let staged = umesh_core::StagedDir::new(&a.out, &["report.json"]).with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
     let report = register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
     let fe_report = if a.compare_fe {
@@ -184,7 +184,8 @@ pub fn run(a: Args) -> Result<()> {
     }
     let full =
         serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
-    umesh_core::write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())?;
+    umesh_core::write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())
+        .with_context(|| format!("writing {}", a.out.join("report.json").display()))?;
     for l in &report.log {
         eprintln!("{l}");
     }

@@ -162,7 +162,8 @@ fn synth(a: SynthArgs) -> Result<()> {
     };
     let (pb, progress) = super::progress_bar("synthetic recording");
     // Written beside --out and swapped in whole: no frame of an earlier recording survives.
-    let staged = umesh_core::StagedDir::new(&a.out).with_context(|| format!("creating a staging folder beside {}", a.out.display()))?;
+    let staged =
+        umesh_core::StagedDir::new(&a.out, &["synth.json", "ground_truth.json"]).with_context(|| format!("--out {}", a.out.display()))?;
     let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::cancel());
     pb.finish_and_clear();
     let mut r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;

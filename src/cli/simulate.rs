@@ -145,8 +145,11 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation) -> Vec<FixedRegion> {
 pub fn run(a: Args) -> Result<()> {
     let cancel = super::cancel();
     let method = a.fe.method()?;
+    // Outputs go to a staging folder swapped in whole at the end (a failure leaves the last
+    // run's folder as it was); made first, so a folder umesh did not write is refused before any work.
+    let staged = umesh_core::StagedDir::new(&a.out, &["displacement.npz"]).with_context(|| format!("--out {}", a.out.display()))?;
     if let Some(p) = &a.problem {
-        return run_problem(&a, p, method);
+        return run_problem(&a, p, method, staged);
     }
     let material = a.fe.material()?;
     let seg = a.input.load()?;
@@ -176,10 +179,10 @@ pub fn run(a: Args) -> Result<()> {
     let sol = solve_bc(&grid, &bc, &settings, &progress, &cancel);
     pb.finish_and_clear();
     let sol = sol?;
-    // Outputs.
+    let dir = staged.path();
     let u = &sol.displacement_mm;
     write_npz(
-        &a.out.join("displacement.npz"),
+        &dir.join("displacement.npz"),
         &[
             ("nodes", Array::f64(vec![u.len(), 3], grid.node_positions().iter().flat_map(|p| [p.x, p.y, p.z]).collect())),
             ("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
@@ -191,14 +194,16 @@ pub fn run(a: Args) -> Result<()> {
     vtu.point_data.push(VtkData::Vectors("displacement_mm".into(), u.clone()));
     vtu.point_data.push(VtkData::Vectors("force_n".into(), bc.forces_n.clone()));
     vtu.point_data.push(VtkData::Scalars("fixed".into(), bc.fixed.iter().map(|&f| f as u8 as f64).collect()));
-    vtu.write(&a.out.join("result.vtu"))?;
-    umesh_core::mesh_io::write_mesh(&a.out.join("organ_deformed.obj"), &loads::deform_mesh(&grid, &organ, u))?;
+    vtu.write(&dir.join("result.vtu")).with_context(|| format!("writing result.vtu for {}", a.out.display()))?;
+    umesh_core::mesh_io::write_mesh(&dir.join("organ_deformed.obj"), &loads::deform_mesh(&grid, &organ, u))?;
     for &l in &seg.structure_labels {
         let m = extract_surface(&seg.volume.mask(&[l]), &SurfaceSettings::default());
         let name = seg.label_name(l).replace([' ', '/'], "_");
-        umesh_core::mesh_io::write_mesh(&a.out.join(format!("{name}_deformed.obj")), &loads::deform_mesh(&grid, &m, u))?;
+        umesh_core::mesh_io::write_mesh(&dir.join(format!("{name}_deformed.obj")), &loads::deform_mesh(&grid, &m, u))?;
     }
-    umesh_core::write_atomic(&a.out.join("history.json"), serde_json::to_string_pretty(&sol.history)?.as_bytes())?;
+    umesh_core::write_atomic(&dir.join("history.json"), serde_json::to_string_pretty(&sol.history)?.as_bytes())
+        .with_context(|| format!("writing history.json for {}", a.out.display()))?;
+    staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     report(&a.out, a.json, &sol, grid.node_count(), grid.cells.len(), bc.fixed_count());
     Ok(())
 }
@@ -236,7 +241,7 @@ fn report(out: &Path, json: bool, sol: &umesh_core::fem::Solution, nodes: usize,
     );
 }
 
-fn run_problem(a: &Args, path: &Path, method: SolveMethod) -> Result<()> {
+fn run_problem(a: &Args, path: &Path, method: SolveMethod, staged: umesh_core::StagedDir) -> Result<()> {
     let p = read_problem(path)?;
     // The file's stabilisation, not the command line's: the file is the whole problem.
     let solver = umesh_core::fem::solver::SolverSettings { stabilization: p.stabilization, ..a.fe.solver() };
@@ -248,9 +253,10 @@ fn run_problem(a: &Args, path: &Path, method: SolveMethod) -> Result<()> {
     // Displacements in the file's node order.
     let u: Vec<Vector3<f64>> = p.node_map.iter().map(|&g| sol.displacement_mm[g]).collect();
     write_npz(
-        &a.out.join("displacement.npz"),
+        &staged.path().join("displacement.npz"),
         &[("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect()))],
     )?;
+    staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     report(&a.out, a.json, &sol, p.grid.node_count(), p.grid.cells.len(), p.bc.fixed_count());
     Ok(())
 }

@@ -1,5 +1,5 @@
 use super::input::InputArgs;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_core::mesh_io::write_mesh;
 use umesh_core::surface::{SurfaceSettings, extract_surface};
@@ -40,6 +40,10 @@ pub fn run(a: Args) -> Result<()> {
     }
     let settings = SurfaceSettings { step: a.step.max(1), ..Default::default() };
     let mut out = Vec::new();
+    // Every surface first, then the folder replaced whole: a label that fails leaves the last
+    // run's folder as it was, and no mesh of an earlier run survives beside the new ones.
+    let staged = umesh_core::StagedDir::new(&a.out, &["organ.obj", "organ.ply", "organ.stl"])
+        .with_context(|| format!("--out {}", a.out.display()))?;
     for (name, labels) in jobs {
         let mask = seg.volume.mask(&labels);
         anyhow::ensure!(mask.count() > 0, "{}: labels {labels:?} have no voxel", seg.source.display());
@@ -50,8 +54,9 @@ pub fn run(a: Args) -> Result<()> {
             seg.source.display(),
             mask.count()
         );
-        let file = a.out.join(format!("{}.{}", name.replace([' ', '/'], "_"), a.format));
-        write_mesh(&file, &mesh)?;
+        let file_name = format!("{}.{}", name.replace([' ', '/'], "_"), a.format);
+        let file = a.out.join(&file_name);
+        write_mesh(&staged.path().join(&file_name), &mesh)?;
         let t = mesh.topology();
         out.push(serde_json::json!({"name": name, "labels": labels, "file": file, "vertices": mesh.positions.len(),
             "triangles": mesh.triangles.len(), "area_mm2": mesh.area_mm2(), "volume_mm3": mesh.signed_volume_mm3(), "watertight": t.is_watertight()}));
@@ -66,6 +71,7 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
+    staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     if a.json {
         super::print_json(&serde_json::json!({"surfaces": out}));
     }

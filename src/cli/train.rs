@@ -164,7 +164,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         v["confidence"] = serde_json::to_value(&c)?;
     }
     if let Some(p) = &a.report {
-        umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes())?;
+        umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes()).with_context(|| format!("--report {}", p.display()))?;
     }
     if a.json {
         super::print_json(&v);

@@ -36,17 +36,62 @@ pub struct StagedDir {
     staging: std::path::PathBuf,
     target: std::path::PathBuf,
     committed: bool,
+    keep_on_failure: bool,
 }
 
+fn check_replaceable(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<()> {
+    if !target.exists() {
+        return Ok(());
+    }
+    if !target.is_dir() {
+        return Err(std::io::Error::other(format!("{} exists and is not a folder", target.display())));
+    }
+    let mut entries = std::fs::read_dir(target)?;
+    if entries.next().is_none() || std::iter::once(OUTPUT_MARKER).chain(recognised.iter().copied()).any(|f| target.join(f).exists()) {
+        return Ok(());
+    }
+    Err(std::io::Error::other(format!(
+        "{} holds files umesh did not write; it would be replaced whole: choose another output folder or empty it",
+        target.display()
+    )))
+}
+
+/// The file a committed [`StagedDir`] carries, so a later run knows the folder is its own.
+pub const OUTPUT_MARKER: &str = ".umesh-output";
+
 impl StagedDir {
-    pub fn new(target: &std::path::Path) -> std::io::Result<Self> {
+    /// Stage a replacement for `target`. An existing, non-empty target is replaced only when
+    /// umesh wrote it (it holds [`OUTPUT_MARKER`] or one of `recognised`, the files the command
+    /// writes): `--out ~/Documents` must never empty a user's folder.
+    pub fn new(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<Self> {
+        check_replaceable(target, recognised)?;
         let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
         let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
         std::fs::create_dir_all(parent)?;
         let staging = parent.join(format!(".{name}.staging-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&staging);
         std::fs::create_dir_all(&staging)?;
-        Ok(Self { staging, target: target.to_path_buf(), committed: false })
+        Ok(Self { staging, target: target.to_path_buf(), committed: false, keep_on_failure: false })
+    }
+
+    /// Like [`StagedDir::new`], but the staging folder has a fixed name and survives a failure
+    /// or a cancel, so long work (training) can resume in it; `resume` reuses one left by an
+    /// earlier run, otherwise it starts empty.
+    pub fn resumable(target: &std::path::Path, recognised: &[&str], resume: bool) -> std::io::Result<Self> {
+        check_replaceable(target, recognised)?;
+        let staging = Self::pending_path(target);
+        if !resume {
+            let _ = std::fs::remove_dir_all(&staging);
+        }
+        std::fs::create_dir_all(&staging)?;
+        Ok(Self { staging, target: target.to_path_buf(), committed: false, keep_on_failure: true })
+    }
+
+    /// Where [`StagedDir::resumable`] stages `target`.
+    pub fn pending_path(target: &std::path::Path) -> std::path::PathBuf {
+        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+        let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+        parent.join(format!(".{name}.pending"))
     }
 
     /// Where the command writes.
@@ -56,6 +101,7 @@ impl StagedDir {
 
     /// Swap the staging folder in for the target (the old target removed after the swap).
     pub fn commit(mut self) -> std::io::Result<()> {
+        std::fs::write(self.staging.join(OUTPUT_MARKER), b"written by umesh; replaced whole by the next run\n")?;
         let old = self.staging.with_file_name(format!(
             ".{}.old-{}",
             self.target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
@@ -79,7 +125,7 @@ impl StagedDir {
 
 impl Drop for StagedDir {
     fn drop(&mut self) {
-        if !self.committed {
+        if !self.committed && !self.keep_on_failure {
             let _ = std::fs::remove_dir_all(&self.staging);
         }
     }

@@ -251,6 +251,9 @@ pub struct AssemblyNotes {
     pub resampled: Vec<String>,
     /// Files in a folder that were not used (not a known organ, vein or structure name).
     pub ignored: Vec<String>,
+    /// Anchor veins drawn mostly inside the organ mask (some livers are segmented with the
+    /// intrahepatic vena cava): their voxels were taken from the organ so the organ can be held there.
+    pub carved: Vec<String>,
 }
 
 /// The mask files of a folder of per-structure NIfTI masks (TotalSegmentator's default
@@ -361,13 +364,23 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
             }
         }
         let enclosed = f.role == Role::Structure && border_organ * 2 > border;
-        let mut written = 0usize;
+        // An anchor vein lying mostly inside the organ mask would otherwise keep only a few
+        // voxels (or none) and the organ would silently lose its attachment: it takes its
+        // voxels from the organ instead, and the notes say so.
+        let inside = hits.iter().zip(&volume.data).filter(|&(&h, &v)| h && v == 1.0).count();
+        let carve = f.role == Role::Anchor && inside * 2 > count;
+        if carve {
+            notes.carved.push(format!(
+                "{}: {inside} of its {count} voxels lie inside {}; they are the vein's, not the organ's",
+                f.path.display(),
+                organ_file.path.display()
+            ));
+        }
         for (idx, &h) in hits.iter().enumerate() {
             // Only an enclosed structure takes voxels from the organ (and becomes part of it);
-            // an anchor vein or an extrahepatic structure never carves the organ.
-            if h && (enclosed || volume.data[idx] != 1.0) {
+            // an anchor vein outside the organ or an extrahepatic structure never carves it.
+            if h && (enclosed || carve || volume.data[idx] != 1.0) {
                 volume.data[idx] = label as f32;
-                written += 1;
             }
         }
         if count == 0 {
@@ -386,7 +399,6 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
                 organ_labels.push(label);
             }
         }
-        let _ = written;
     }
     let seg = Segmentation { source: organ_file.path.clone(), volume, organ_labels, structure_labels };
     seg.validate()?;

@@ -335,6 +335,42 @@ fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file
 }
 
 #[test]
+fn a_vena_cava_drawn_inside_the_liver_mask_still_holds_the_organ() {
+    use umesh_core::nifti_io::{ReadOptions, WriteType, write_volume};
+    use umesh_core::segmentation::{MaskFile, Role, assemble_masks};
+    let seg = phantom();
+    let dir = tmp("ivc-inside");
+    std::fs::create_dir_all(&dir).unwrap();
+    // The liver mask drawn with the vena cava in it (the vena cava's voxels are liver too).
+    let ivc_label = umesh_core::phantom::VENA_CAVA;
+    let mut liver = seg.volume.clone();
+    liver.label_names.clear();
+    for x in &mut liver.data {
+        let l = x.round() as i64;
+        *x = (seg.organ_labels.contains(&l) || l == ivc_label) as u8 as f32;
+    }
+    write_volume(&dir.join("liver.nii.gz"), &liver, WriteType::U8).unwrap();
+    let mut ivc = seg.volume.clone();
+    ivc.label_names.clear();
+    for x in &mut ivc.data {
+        *x = (x.round() as i64 == ivc_label) as u8 as f32;
+    }
+    let ivc_voxels = ivc.data.iter().filter(|v| **v != 0.0).count();
+    write_volume(&dir.join("inferior_vena_cava.nii.gz"), &ivc, WriteType::U8).unwrap();
+    let f = |name: &str, role| MaskFile { name: name.into(), path: dir.join(format!("{name}.nii.gz")), role };
+    let (s, notes) = assemble_masks(&[f("liver", Role::Organ), f("inferior_vena_cava", Role::Anchor)], &ReadOptions::default()).unwrap();
+    // Was: the vein kept no voxel and the organ fell back to the posterior fifth, silently.
+    let a = umesh_core::loads::default_fixed(&s, None, 6.0);
+    assert!(a.description.contains("inferior_vena_cava"), "{}", a.description);
+    assert_eq!(notes.carved.len(), 1, "{notes:?}");
+    assert!(notes.carved[0].contains("inferior_vena_cava.nii.gz"), "{notes:?}");
+    // Every vein voxel is the vein's; the organ is the phantom's organ exactly.
+    let vein = s.volume.label_names.iter().find(|(_, n)| n.as_str() == "inferior_vena_cava").map(|x| *x.0).unwrap();
+    assert_eq!(s.volume.mask(&[vein]).count(), ivc_voxels);
+    assert_eq!(s.organ_mask().count(), seg.organ_mask().count());
+}
+
+#[test]
 fn masks_on_other_lattices_are_resampled_and_disjoint_ones_refused() {
     use umesh_core::nifti_io::{ReadOptions, WriteType, write_volume};
     use umesh_core::segmentation::{MaskFile, Role, assemble_masks};

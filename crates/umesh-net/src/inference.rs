@@ -39,6 +39,13 @@ impl Predictor {
     /// Load `model.json` and one checkpoint of the folder: `model.safetensors` (the best
     /// validation epoch) or `last.safetensors` (the latest epoch).
     pub fn load_checkpoint(dir: &Path, file: &str) -> Result<Self, NetError> {
+        // A checkpoint is a file of the model folder, never a path out of it (a session names it).
+        if Path::new(file).file_name().and_then(|n| n.to_str()) != Some(file) || !file.ends_with(".safetensors") {
+            return Err(NetError::Invalid(format!(
+                "checkpoint {file:?}: expected the name of a .safetensors file in {} (model.safetensors or last.safetensors)",
+                dir.display()
+            )));
+        }
         let info = ModelInfo::read(dir)?;
         let device = Device::flex();
         let mut model = info.config.init(&device);

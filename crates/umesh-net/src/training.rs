@@ -120,6 +120,18 @@ pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
     model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
 }
 
+/// Copy the files (not folders) of `from` into `to`: a resumed model continues in its staging copy.
+fn copy_files(from: &Path, to: &Path) -> Result<(), NetError> {
+    let entries = std::fs::read_dir(from).map_err(|e| NetError::Io(format!("{}: {e}", from.display())))?;
+    for e in entries.flatten() {
+        if e.file_type().is_ok_and(|t| t.is_file()) {
+            let dst = to.join(e.file_name());
+            std::fs::copy(e.path(), &dst).map_err(|err| NetError::Io(format!("{} -> {}: {err}", e.path().display(), dst.display())))?;
+        }
+    }
+    Ok(())
+}
+
 /// Validation loss and per-sample mean TRE over `ids`.
 pub(crate) fn validate(
     model: &UNet,
@@ -171,7 +183,18 @@ pub fn run_train(
     let cfg = &settings.network();
     cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
         .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
-    std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    // Training runs in a staging folder beside `out`, kept on failure or cancel (so `resume`
+    // continues there) and swapped in whole at the end: a failed or cancelled run never leaves
+    // `out` half-overwritten, and no file of an earlier model survives in the new one.
+    let final_out = out;
+    let pending = umesh_core::StagedDir::pending_path(final_out);
+    let continue_pending = resume && pending.join("last.safetensors").exists();
+    let staged = umesh_core::StagedDir::resumable(final_out, &["model.json", "metrics.jsonl"], continue_pending)
+        .map_err(|e| NetError::Io(format!("{}: {e}", final_out.display())))?;
+    let out = staged.path();
+    if resume && !continue_pending && final_out.join("last.safetensors").exists() {
+        copy_files(final_out, out)?;
+    }
     let device = Device::flex();
     device.seed(settings.seed);
     let ad = device.clone().autodiff();
@@ -316,5 +339,6 @@ pub fn run_train(
         let r = crate::eval::calibrate_confidence(out, dataset, progress)?;
         crate::eval::write_confidence(out, &r)?;
     }
-    Ok(TrainReport { out: out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
+    staged.commit().map_err(|e| NetError::Io(format!("replacing {}: {e}", final_out.display())))?;
+    Ok(TrainReport { out: final_out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
 }

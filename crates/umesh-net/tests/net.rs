@@ -258,6 +258,28 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     assert!((r2.epochs[0].train_loss - r.epochs[0].train_loss).abs() < 1e-12);
     assert_eq!(r2.epochs[2].epoch, 3);
     assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
+    // A new training that fails (an --init-from that is not a model) or is cancelled leaves the
+    // model folder byte for byte; a finished one leaves no file of the earlier model.
+    let weights = std::fs::read(out.join("model.safetensors")).unwrap();
+    let bad = TrainSettings { init_from: Some(tmp("not-a-model")), ..more.clone() };
+    assert!(run_train(&ds, &out, &bad, false, &Default::default(), &|_| {}, &Default::default()).is_err());
+    let cancel = umesh_core::Cancel::new();
+    cancel.cancel();
+    let e = run_train(&ds, &out, &more, false, &Default::default(), &|_| {}, &cancel).unwrap_err();
+    assert!(matches!(e, umesh_net::NetError::Cancelled), "{e}");
+    assert_eq!(std::fs::read(out.join("model.safetensors")).unwrap(), weights);
+    assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
+    std::fs::write(out.join("stale.txt"), "from the earlier model").unwrap();
+    let r3 = run_train(&ds, &out, &more, false, &Default::default(), &|_| {}, &Default::default()).unwrap();
+    assert_eq!(r3.epochs.len(), 3);
+    assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
+    assert!(!out.join("stale.txt").exists() && !umesh_core::StagedDir::pending_path(&out).exists());
+    // A checkpoint named by a session is a file of the model folder, never a path out of it.
+    for name in ["../../../../etc/passwd", "/etc/passwd", "model.json"] {
+        let e = umesh_net::inference::Predictor::load_checkpoint(&out, name).err().expect(name).to_string();
+        assert!(e.contains("checkpoint") && e.contains(".safetensors"), "{e}");
+    }
+    assert!(umesh_net::inference::Predictor::load_checkpoint(&out, "last.safetensors").is_ok());
 }
 
 #[test]

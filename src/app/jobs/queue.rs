@@ -413,9 +413,11 @@ pub fn run_queue(mut q: ResMut<WorkQueue>, mut messages: ResMut<UiMessages>) {
     }
 }
 
-/// Training metrics of a model folder (`metrics.jsonl`), for the dashboard.
+/// Training metrics of a model folder (`metrics.jsonl`), for the dashboard; a training still
+/// running (or cancelled) into that folder writes them in its staging folder beside it.
 pub fn read_metrics(dir: &Path) -> Result<Vec<EpochMetrics>, String> {
-    let path = dir.join("metrics.jsonl");
+    let pending = umesh_core::StagedDir::pending_path(dir).join("metrics.jsonl");
+    let path = if pending.exists() { pending } else { dir.join("metrics.jsonl") };
     let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
     text.lines()
         .filter(|l| !l.trim().is_empty())

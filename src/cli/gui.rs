@@ -56,8 +56,45 @@ pub fn run(a: Args) -> Result<()> {
         (None, Some(s)) => crate::app::StartWith::Session(s),
         (None, None) => a.patient.map(crate::app::StartWith::Patient).unwrap_or_default(),
     };
+    restart_on_vulkan_if_gl_cannot_present();
     match crate::app::run_gui(start) {
         bevy::app::AppExit::Success => Ok(()),
         bevy::app::AppExit::Error(code) => bail!("the app exited with code {code}"),
     }
+}
+
+/// Set when the app was restarted on Vulkan, so it never loops.
+const GL_FALLBACK_ENV: &str = "UMESH_GL_FELL_BACK";
+
+/// GL through Mesa's EGL under some X servers (Xvfb) offers no present mode for a window, and
+/// bevy then stops with an internal `unreachable` ("Fallback system failed to choose present
+/// mode"). That one failure is said plainly and the app restarts on Vulkan; GL still serves
+/// the headless `umesh screenshot`.
+fn restart_on_vulkan_if_gl_cannot_present() {
+    let gl = std::env::var("WGPU_BACKEND").is_ok_and(|b| matches!(b.to_ascii_lowercase().as_str(), "gl" | "gles" | "opengl"));
+    if !gl || std::env::var_os(GL_FALLBACK_ENV).is_some() {
+        return;
+    }
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let payload = info.payload();
+        let msg = payload.downcast_ref::<String>().map(String::as_str).or_else(|| payload.downcast_ref::<&str>().copied()).unwrap_or("");
+        if !msg.contains("failed to choose present mode") {
+            return default(info);
+        }
+        eprintln!(
+            "umesh gui: the GL backend (WGPU_BACKEND=gl) offers no present mode for this window; restarting on Vulkan (WGPU_BACKEND=vulkan)"
+        );
+        #[cfg(unix)]
+        if let Ok(exe) = std::env::current_exe() {
+            use std::os::unix::process::CommandExt;
+            let e = std::process::Command::new(exe)
+                .args(std::env::args_os().skip(1))
+                .env("WGPU_BACKEND", "vulkan")
+                .env(GL_FALLBACK_ENV, "1")
+                .exec();
+            eprintln!("umesh gui: could not restart on Vulkan: {e}");
+        }
+        std::process::exit(1);
+    }));
 }

@@ -134,6 +134,13 @@ pub struct ConfigArgs {
     pub young_pa: f64,
     #[arg(long, default_value_t = MaterialParams::default().poisson)]
     pub poisson: f64,
+    /// Draw each sample's Poisson's ratio uniformly in MIN,MAX (for example 0.45,0.49)
+    /// instead of --poisson for all; recorded per sample in the manifest.
+    #[arg(long, value_delimiter = ',', value_name = "MIN,MAX")]
+    pub poisson_range: Vec<f64>,
+    /// The share of samples solved with a Neo-Hookean material (the others SVK).
+    #[arg(long, default_value_t = 0.0)]
+    pub neo_hookean_fraction: f64,
     /// Fix the nodes within --fix-distance-mm of this label. Default: the inferior vena cava
     /// or hepatic veins when the segmentation names them (TotalSegmentator's 63 next to its
     /// liver 5), else the posterior fifth of the organ.
@@ -197,6 +204,8 @@ impl ConfigArgs {
         opt("visible-fraction", self.visible_fraction != d.visible_fraction, self.visible_fraction.to_string());
         opt("young-pa", self.young_pa != d.young_pa, self.young_pa.to_string());
         opt("poisson", self.poisson != d.poisson, self.poisson.to_string());
+        opt("poisson-range", !self.poisson_range.is_empty(), list(&self.poisson_range));
+        opt("neo-hookean-fraction", self.neo_hookean_fraction != d.neo_hookean_fraction, self.neo_hookean_fraction.to_string());
         opt("fix-label", self.fix_label.is_some(), self.fix_label.map(|l| l.to_string()).unwrap_or_default());
         opt("fix-distance-mm", self.fix_distance_mm != d.fix_distance_mm, self.fix_distance_mm.to_string());
         opt("fix-box", !self.fix_box.is_empty(), list(&self.fix_box));
@@ -312,6 +321,20 @@ impl ConfigArgs {
         anyhow::ensure!(self.max_newton_iterations >= 1, "--max-newton-iterations must be at least 1");
         c.solver.max_total_iterations = Some(self.max_newton_iterations);
         c.material.validate().map_err(|e| anyhow::anyhow!("--young-pa/--poisson: {e}"))?;
+        if !self.poisson_range.is_empty() || self.neo_hookean_fraction != 0.0 {
+            let (lo, hi) = match self.poisson_range.as_slice() {
+                [lo, hi] => (*lo, *hi),
+                [] => (self.poisson, self.poisson),
+                v => anyhow::bail!("--poisson-range takes two values MIN,MAX, got {}", v.len()),
+            };
+            let v = umesh_core::fem::material::MaterialVariation {
+                poisson_min: lo,
+                poisson_max: hi,
+                neo_hookean_fraction: self.neo_hookean_fraction,
+            };
+            v.validate().map_err(|e| anyhow::anyhow!("--poisson-range/--neo-hookean-fraction: {e}"))?;
+            c.material_variation = Some(v);
+        }
         Ok((c, fixed))
     }
 }
@@ -366,6 +389,11 @@ pub fn run(a: Args) -> Result<()> {
             if !st.families.is_empty() {
                 let f: Vec<String> = st.families.iter().map(|(f, n, a)| format!("{} {a}/{n}", f.name())).collect();
                 println!("  load families (accepted/samples): {}", f.join(", "));
+            }
+            if !st.materials.is_empty() {
+                let f: Vec<String> =
+                    st.materials.iter().map(|(k, n, a, lo, hi)| format!("{} {a}/{n} (Poisson {lo:.3}-{hi:.3})", k.name())).collect();
+                println!("  materials (accepted/samples): {}", f.join(", "));
             }
             if st.below_target > 0 {
                 println!("  accepted below their target (the converged state nearest an unreachable target): {}", st.below_target);

@@ -651,3 +651,50 @@ fn a_mixture_dataset_records_each_samples_family_and_pressing_only_configs_keep_
     assert!(m2.samples.iter().all(|s| s.family.is_none()));
     assert!(!std::fs::read_to_string(d2.join("manifest.json")).unwrap().contains("families"));
 }
+
+#[test]
+fn a_sample_is_solved_with_the_material_drawn_for_it_and_the_manifest_records_it() {
+    use umesh_core::dataset::{DatasetContext, run_stats};
+    use umesh_core::fem::material::MaterialVariation;
+    use umesh_core::fem::solver::FeSolver;
+    use umesh_core::fem::{MaterialKind, MaterialParams};
+    let seg = phantom();
+    let svk = small_config(4);
+    // Every sample drawn Neo-Hookean at Poisson 0.45: the same physics as a dataset of that material.
+    let mut varied = small_config(4);
+    varied.material_variation = Some(MaterialVariation { poisson_min: 0.45, poisson_max: 0.45, neo_hookean_fraction: 1.0 });
+    let mut nh = small_config(4);
+    nh.material = MaterialParams { kind: MaterialKind::NeoHookean, poisson: 0.45, ..Default::default() };
+    // A configuration without variation serialises as before (its hash unchanged).
+    assert!(!serde_json::to_string(&svk).unwrap().contains("material_variation"));
+    let ctx = DatasetContext::prepare(&seg, &varied, &Cancel::new()).unwrap();
+    let solver_for = |c: &DatasetConfig| FeSolver::new(&ctx.grid, c.material, &ctx.fixed, c.solver.clone()).unwrap();
+    // One solver made for the dataset's SVK at 0.49 and reused across materials, as a worker
+    // thread does: each sample's material and rest factor must follow it, both ways.
+    let mut reused = solver_for(&varied);
+    let solve = |solver: &mut FeSolver, c: &DatasetConfig, k: usize| {
+        let r = ctx.solve_sample(solver, c, k, 1.0, 0.8, &Cancel::new());
+        r.solution.expect("converged").displacement_mm
+    };
+    for (c, k) in [(&varied, 0usize), (&svk, 1), (&varied, 1), (&svk, 0)] {
+        let reference = if c.material_variation.is_some() { solve(&mut solver_for(&nh), &nh, k) } else { solve(&mut solver_for(c), c, k) };
+        let u = solve(&mut reused, c, k);
+        let scale = reference.iter().map(|v| v.norm()).fold(0.0, f64::max);
+        let diff = u.iter().zip(&reference).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        // Tolerance: the Newton tolerance, relative to the largest displacement.
+        assert!(scale > 1.0 && diff < 1e-6 * scale, "sample {k}: {diff} mm apart of {scale} mm");
+    }
+    // The drawn material differs from the dataset's: Neo-Hookean at 0.45 does not move as SVK at 0.49.
+    let (a, b) = (solve(&mut solver_for(&nh), &nh, 0), solve(&mut solver_for(&svk), &svk, 0));
+    assert!(a.iter().zip(&b).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max) > 1e-3);
+    // Recorded per sample, counted by `stats`.
+    let dir = tmp("materials");
+    run_generate(&seg, &dir, &varied, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let ds = Dataset::open(&dir).unwrap();
+    assert!(ds.manifest.samples.iter().all(|s| s.material == Some(nh.material)), "{:?}", ds.manifest.samples);
+    let st = run_stats(&dir).unwrap();
+    assert_eq!(st.materials.len(), 1);
+    let (kind, n, accepted, lo, hi) = st.materials[0];
+    assert_eq!((kind, n, lo, hi), (MaterialKind::NeoHookean, 4, 0.45, 0.45));
+    assert_eq!(accepted, st.accepted);
+}

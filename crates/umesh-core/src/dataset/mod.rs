@@ -56,6 +56,10 @@ pub struct DatasetConfig {
     /// before it get the defaults).
     #[serde(default)]
     pub view: crate::observation::ViewSettings,
+    /// The material drawn per sample around `material` (absent: every sample is `material`;
+    /// configurations made before read so, their hash unchanged).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material_variation: Option<crate::fem::material::MaterialVariation>,
 }
 
 impl DatasetConfig {
@@ -81,6 +85,7 @@ impl DatasetConfig {
             fixed,
             surface_step: 2,
             view: Default::default(),
+            material_variation: None,
         }
     }
     pub fn shard_count(&self) -> usize {
@@ -266,6 +271,9 @@ impl DatasetContext {
             return Err(invalid(&seg_path, "samples and shard size must be positive"));
         }
         config.material.validate().map_err(|r| invalid(&seg_path, r))?;
+        if let Some(v) = &config.material_variation {
+            v.validate().map_err(|r| invalid(&seg_path, r))?;
+        }
         config.forces.validate().map_err(|r| invalid(&seg_path, r))?;
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
@@ -369,6 +377,12 @@ impl DatasetContext {
         (forces, config.forces.sample_target_mm(&mut rng) * family.target_factor())
     }
 
+    /// The material of sample `index`: the configuration's, or one drawn from
+    /// `material_variation` with the sample's own random stream (a function of (seed, index)).
+    pub fn sample_material(&self, config: &DatasetConfig, index: usize) -> MaterialParams {
+        sample_material(config, index)
+    }
+
     /// The load family of sample `index` (`ForceSettings::family_of`).
     pub fn sample_family(&self, config: &DatasetConfig, index: usize) -> LoadFamily {
         config.forces.family_of(config.seed, index)
@@ -457,6 +471,10 @@ impl DatasetContext {
         first_lambda: f64,
         cancel: &Cancel,
     ) -> SolvedLoad {
+        if let Err(e) = solver.set_material(self.sample_material(config, index)) {
+            let (forces, target_mm) = self.sample_forces(config, index);
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e.to_string())) };
+        }
         let (forces, target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
             Ok(x) => x,
             Err(e) => {
@@ -640,6 +658,9 @@ pub struct SampleRecord {
     /// The sample's load family (datasets of more than one family).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub family: Option<LoadFamily>,
+    /// The sample's material (datasets that draw one per sample).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material: Option<MaterialParams>,
     pub newton_iterations: usize,
     /// Wall time of the solve (absent for shards adopted from an interrupted run).
     pub solve_ms: Option<f64>,
@@ -709,6 +730,22 @@ impl Manifest {
 
 /// A sample's family as the manifest records it: None for pressing-only datasets (as before
 /// families existed).
+/// See `DatasetContext::sample_material`.
+pub fn sample_material(config: &DatasetConfig, index: usize) -> MaterialParams {
+    match &config.material_variation {
+        None => config.material,
+        Some(v) => {
+            let mut rng = SplitMix64(config.seed ^ 0x3A7E_41A1_0000_0001 ^ (index as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9));
+            let (a, b) = (rng.next_f64(), rng.next_f64());
+            v.draw(config.material, a, b)
+        }
+    }
+}
+
+fn recorded_material(config: &DatasetConfig, index: usize) -> Option<MaterialParams> {
+    config.material_variation.is_some().then(|| sample_material(config, index))
+}
+
 fn recorded_family(config: &DatasetConfig, index: usize) -> Option<LoadFamily> {
     config.forces.mixes_families().then(|| config.forces.family_of(config.seed, index))
 }
@@ -824,6 +861,7 @@ pub fn read_shard_records(
             mean_displacement_mm: mean[k],
             target_displacement_mm: target.as_ref().map(|t| t[k]),
             family: recorded_family(config, range.start + k),
+            material: recorded_material(config, range.start + k),
             newton_iterations: it[k] as usize,
             solve_ms: None,
             shard: file.clone(),
@@ -1146,6 +1184,7 @@ fn write_shard(
             mean_displacement_mm: mean,
             target_displacement_mm: Some(r.target_mm),
             family: recorded_family(config, r.index),
+            material: recorded_material(config, r.index),
             newton_iterations: r.newton_iterations,
             solve_ms: Some(r.solve_ms),
             shard: file.clone(),
@@ -1381,6 +1420,10 @@ pub struct DatasetStats {
     /// Per load family (datasets of more than one): (family, samples, accepted).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub families: Vec<(LoadFamily, usize, usize)>,
+    /// Per material kind (datasets that draw one per sample): (kind, samples, accepted,
+    /// smallest and largest Poisson's ratio drawn).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub materials: Vec<(crate::fem::MaterialKind, usize, usize, f64, f64)>,
     pub newton_iterations: Option<Distribution>,
     pub solve_ms: Option<Distribution>,
     /// (index, why) of samples far from the rest.
@@ -1421,8 +1464,23 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
         }
     }
     families.sort_by_key(|e| LoadFamily::ALL.iter().position(|f| *f == e.0));
+    let mut materials: Vec<(crate::fem::MaterialKind, usize, usize, f64, f64)> = Vec::new();
+    for s in &m.samples {
+        let Some(mat) = s.material else { continue };
+        match materials.iter_mut().find(|e| e.0 == mat.kind) {
+            Some(e) => {
+                e.1 += 1;
+                e.2 += s.accepted as usize;
+                e.3 = e.3.min(mat.poisson);
+                e.4 = e.4.max(mat.poisson);
+            }
+            None => materials.push((mat.kind, 1, s.accepted as usize, mat.poisson, mat.poisson)),
+        }
+    }
+    materials.sort_by_key(|e| e.0.name());
     Ok(DatasetStats {
         families,
+        materials,
         samples: m.samples.len(),
         accepted: acc.len(),
         rejected,

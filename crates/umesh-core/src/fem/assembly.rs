@@ -92,6 +92,16 @@ impl std::fmt::Debug for Assembler<'_> {
 }
 
 impl<'g> Assembler<'g> {
+    /// Another small-strain material (a dataset draws one per sample): the stabilising
+    /// stiffness follows it, the co-rotational cell stiffnesses are rebuilt on next use.
+    pub fn set_linear_material(&mut self, linear_material: Material) {
+        if (linear_material.lambda, linear_material.mu) != (self.linear_material.lambda, self.linear_material.mu) {
+            self.k_stab = linear_cube_stiffness(self.grid.cell_size_mm, linear_material.lambda, linear_material.mu);
+            self.k_lin.clear();
+            self.linear_material = linear_material;
+        }
+    }
+
     /// `constrained_dofs[3 n + c]` marks component c of node n as fixed or prescribed.
     /// `stabilization` is the relative stiffness of the fictitious (outside) part of boundary
     /// cells, as in the finite cell method; it removes spurious zero-energy modes of cells

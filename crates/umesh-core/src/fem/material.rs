@@ -73,6 +73,46 @@ impl MaterialParams {
     }
 }
 
+/// The material drawn per sample of a dataset: Poisson's ratio uniform in
+/// [`poisson_min`, `poisson_max`], Neo-Hookean with probability `neo_hookean_fraction` (else the
+/// dataset's own kind); Young's modulus stays the dataset's (the network predicts displacement
+/// from observed displacement, in which a common stiffness factor cancels).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MaterialVariation {
+    pub poisson_min: f64,
+    pub poisson_max: f64,
+    pub neo_hookean_fraction: f64,
+}
+
+impl Default for MaterialVariation {
+    /// The range: nearly incompressible parenchyma, half of the samples Neo-Hookean.
+    fn default() -> Self {
+        Self { poisson_min: 0.45, poisson_max: 0.49, neo_hookean_fraction: 0.5 }
+    }
+}
+
+impl MaterialVariation {
+    pub fn validate(&self) -> Result<(), String> {
+        let ok = |v: f64| v.is_finite() && v > -1.0 && v < 0.5;
+        if !(ok(self.poisson_min) && ok(self.poisson_max) && self.poisson_min <= self.poisson_max) {
+            return Err(format!(
+                "the Poisson's ratio range {}-{} must be ordered and lie in (-1, 0.5)",
+                self.poisson_min, self.poisson_max
+            ));
+        }
+        if !(self.neo_hookean_fraction.is_finite() && (0.0..=1.0).contains(&self.neo_hookean_fraction)) {
+            return Err(format!("the Neo-Hookean fraction {} must lie in [0, 1]", self.neo_hookean_fraction));
+        }
+        Ok(())
+    }
+
+    /// One draw around `base` from two uniform numbers in [0, 1).
+    pub fn draw(&self, base: MaterialParams, u_poisson: f64, u_kind: f64) -> MaterialParams {
+        let kind = if u_kind < self.neo_hookean_fraction { MaterialKind::NeoHookean } else { base.kind };
+        MaterialParams { kind, poisson: self.poisson_min + u_poisson * (self.poisson_max - self.poisson_min), ..base }
+    }
+}
+
 /// A hyperelastic material: energy density psi(F), second Piola-Kirchhoff stress S, first
 /// Piola-Kirchhoff stress P = F S and the tangent dP/dF. Lame parameters are in N/mm^2.
 pub trait HyperelasticMaterial: Send + Sync {

@@ -429,6 +429,19 @@ impl<'g> FeSolver<'g> {
         Ok(Self { grid, material, settings, asm, fact, constrained_nodes: constrained.to_vec(), overshoot_mm: None })
     }
 
+    /// Another material between solves (a dataset draws one per sample). The rest factor is
+    /// dropped when the small-strain stiffness changes (Young's modulus or Poisson's ratio).
+    pub fn set_material(&mut self, material: MaterialParams) -> Result<(), FemError> {
+        material.validate().map_err(FemError::InvalidInput)?;
+        if (material.young_pa, material.poisson) != (self.material.young_pa, self.material.poisson) {
+            self.fact.rest_values = None;
+            self.fact.current = None;
+            self.asm.set_linear_material(MaterialParams { kind: MaterialKind::Linear, ..material }.material());
+        }
+        self.material = material;
+        Ok(())
+    }
+
     pub fn free_dofs(&self) -> usize {
         self.asm.dofs.n_free
     }

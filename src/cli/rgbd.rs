@@ -76,6 +76,10 @@ pub struct SynthArgs {
     /// instead of a depth image (0: depth images).
     #[arg(long, default_value_t = 0)]
     pub cloud_points: usize,
+    /// Move the truth's attachment by x,y,z (mm) from the one the model assumes (for example
+    /// 0,15,0: 1.5 cm anterior), a test off the training distribution; rounded to whole cells.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, value_name = "X,Y,Z")]
+    pub attachment_shift_mm: Vec<f64>,
     /// The truth's material (svk, neo-hookean, linear; default: the dataset's), a test off the
     /// training distribution.
     #[arg(long)]
@@ -144,6 +148,11 @@ fn synth(a: SynthArgs) -> Result<()> {
         loads,
         first_load: a.first_load,
         cloud_points: a.cloud_points,
+        attachment_shift_mm: match a.attachment_shift_mm.as_slice() {
+            [] => None,
+            [x, y, z] if [x, y, z].iter().all(|v| v.is_finite() && v.abs() <= 200.0) => Some([*x, *y, *z]),
+            v => anyhow::bail!("--attachment-shift-mm {v:?}: three finite values x,y,z within 200 mm"),
+        },
         camera_motion_mm: a.camera_motion_mm,
         camera_motion_deg: a.camera_motion_deg,
         instruments: a.instruments,
@@ -181,6 +190,12 @@ fn synth(a: SynthArgs) -> Result<()> {
             r.max_marker_displacement_mm,
             r.solve_ms_total / 1e3
         );
+        if let Some(s) = r.attachment_shift_mm {
+            println!(
+                "attachment moved by {:.1},{:.1},{:.1} mm: {} nodes held (the model assumes {})",
+                s[0], s[1], s[2], r.fixed_nodes, r.dataset_fixed_nodes
+            );
+        }
     }
     Ok(())
 }

@@ -776,3 +776,45 @@ fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_
     let r = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.mean_marker_displacement_mm > 3.0, "{r:?}");
 }
+
+#[test]
+fn a_truth_held_elsewhere_moves_its_attachment_on_the_lattice_and_a_shift_off_the_organ_is_refused() {
+    use umesh_core::rgbd::synth::shifted_fixed;
+    let seg = phantom();
+    let mut config = small_config(&seg);
+    config.forces = umesh_core::loads::ForceSettings::default();
+    let ctx = umesh_core::dataset::DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
+    let h = ctx.grid.cell_size_mm;
+    let held = |f: &[bool]| f.iter().filter(|&&x| x).count();
+    // Whole cells: every node of the shifted set is a fixed node moved by exactly the shift.
+    let (moved, applied) = shifted_fixed(&ctx.grid, &ctx.fixed, [0.0, 1.4 * h, 0.0]);
+    assert_eq!(applied, [0.0, h, 0.0]);
+    for n in (0..moved.len()).filter(|&n| moved[n]) {
+        let p = ctx.grid.node_position(n) - nalgebra::Vector3::new(0.0, h, 0.0);
+        let m = (0..moved.len()).find(|&m| (ctx.grid.node_position(m) - p).norm() < 1e-6 * h).expect("a node one cell behind");
+        assert!(ctx.fixed[m]);
+    }
+    assert!(held(&moved) > 0 && held(&moved) <= held(&ctx.fixed));
+    assert_ne!(moved, ctx.fixed);
+    // A recording held 1.5 cm anterior of where the model holds it: calibrated there, reported.
+    let d = tmp("shifted");
+    let s = SynthSettings {
+        frames: 2,
+        width: 160,
+        height: 120,
+        focal_px: 131.25,
+        attachment_shift_mm: Some([0.0, 15.0, 0.0]),
+        ..Default::default()
+    };
+    let r = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
+    let a = r.attachment_shift_mm.unwrap();
+    assert!((a[1] - 15.0).abs() <= 0.5 * h && a[0] == 0.0 && a[2] == 0.0, "{a:?}");
+    assert!(r.fixed_nodes > 0 && r.dataset_fixed_nodes == held(&ctx.fixed), "{r:?}");
+    // Calibrated with the moved attachment: the recording still moves by the dataset's scale
+    // (the last frame's mean marker displacement within a factor 2 of the 10 mm target x 1.3).
+    assert!(r.mean_marker_displacement_mm > 6.5 && r.mean_marker_displacement_mm < 26.0, "{r:?}");
+    // Moved off the organ: refused, naming the shift.
+    let far = SynthSettings { attachment_shift_mm: Some([0.0, 0.0, 400.0]), ..s.clone() };
+    let e = run_rgbd_synth(&seg, &config, &far, &tmp("far-shift"), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    assert!(e.contains("attachment shift") && e.contains("holds 0"), "{e}");
+}

@@ -61,6 +61,11 @@ pub struct SynthSettings {
     /// with the colour image) instead of a depth image; 0: depth images.
     #[serde(default)]
     pub cloud_points: usize,
+    /// The truth's attachment moved by this vector (world mm) from the one the dataset (and so
+    /// the model) assumes: a test off the training distribution. Applied on the grid's lattice
+    /// (each component rounded to whole cells; the report gives the shift applied).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub attachment_shift_mm: Option<[f64; 3]>,
 }
 
 fn pressing() -> LoadFamily {
@@ -90,6 +95,7 @@ impl Default for SynthSettings {
             loads: LoadFamily::Pressing,
             first_load: 0.0,
             cloud_points: 0,
+            attachment_shift_mm: None,
         }
     }
 }
@@ -105,6 +111,32 @@ pub struct SynthReport {
     /// The load scale the recording was made at (`SynthSettings::load_scale`).
     #[serde(default)]
     pub load_scale: f64,
+    /// The truth's attachment shift as applied on the lattice (mm), and how many nodes it holds
+    /// against the dataset's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub attachment_shift_mm: Option<[f64; 3]>,
+    #[serde(default)]
+    pub fixed_nodes: usize,
+    #[serde(default)]
+    pub dataset_fixed_nodes: usize,
+}
+
+/// The fixed nodes `fixed` moved by `shift_mm`, rounded to whole cells of the grid's lattice:
+/// node n is fixed when the node one rounded shift behind it was. Returns the flags and the
+/// shift applied.
+pub fn shifted_fixed(grid: &crate::grid::ImmersedGrid, fixed: &[bool], shift_mm: [f64; 3]) -> (Vec<bool>, [f64; 3]) {
+    let h = grid.cell_size_mm;
+    let cells: [i64; 3] = std::array::from_fn(|a| (shift_mm[a] / h).round() as i64);
+    let index: std::collections::HashMap<[i64; 3], usize> =
+        grid.node_ijk.iter().enumerate().map(|(n, ijk)| ([ijk[0] as i64, ijk[1] as i64, ijk[2] as i64], n)).collect();
+    let moved = (0..grid.node_count())
+        .map(|n| {
+            let ijk = grid.node_ijk[n];
+            let from = [ijk[0] as i64 - cells[0], ijk[1] as i64 - cells[1], ijk[2] as i64 - cells[2]];
+            index.get(&from).is_some_and(|&m| fixed[m])
+        })
+        .collect();
+    (moved, std::array::from_fn(|a| cells[a] as f64 * h))
 }
 
 /// world_from_camera (OpenCV axes: x right, y down, z forward) of a look-at camera.
@@ -298,7 +330,25 @@ pub fn run_rgbd_synth(
         m.validate().map_err(|e| bad(format!("truth material: {e}")))?;
     }
     progress.report(0, settings.frames as u64, "preparing the grid");
-    let ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
+    let mut ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
+    // The organ held elsewhere than the model assumes: the load is calibrated and the truth
+    // solved with the moved attachment.
+    let dataset_fixed_nodes = ctx.fixed.iter().filter(|&&f| f).count();
+    let shift_applied = match settings.attachment_shift_mm {
+        Some(shift) => {
+            let (f, applied) = shifted_fixed(&ctx.grid, &ctx.fixed, shift);
+            let held = f.iter().filter(|&&x| x).count();
+            // Fewer than a tenth of the nodes the dataset holds: the attachment left the organ.
+            if held * 10 < dataset_fixed_nodes {
+                return Err(bad(format!(
+                    "attachment shift {shift:?} mm: the shifted attachment holds {held} of the organ's nodes (the dataset's holds {dataset_fixed_nodes}); a smaller shift"
+                )));
+            }
+            ctx.fixed = f;
+            Some(applied)
+        }
+        None => None,
+    };
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
     let index = 10_000_000 + settings.seed as usize;
@@ -344,6 +394,7 @@ pub fn run_rgbd_synth(
     let truth_solver = SolverSettings { max_total_iterations: None, max_halvings: 8, reject_indefinite: false, ..config.solver.clone() };
     let material = settings.material.unwrap_or(config.material);
     let mut solver = FeSolver::new(grid, material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
+    let fixed_count = fixed.iter().filter(|&&f| f).count();
     let mut rng = SplitMix64(settings.seed);
     let row_major = |m: &Matrix4<f64>| -> [f64; 16] { m.transpose().as_slice().try_into().unwrap_or([0.0; 16]) };
     // Camera motion and instruments from their own stream, so that a recording without them
@@ -450,6 +501,9 @@ pub fn run_rgbd_synth(
         mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
         solve_ms_total: solve_ms,
         load_scale: settings.load_scale,
+        attachment_shift_mm: shift_applied,
+        fixed_nodes: fixed_count,
+        dataset_fixed_nodes,
     })
 }
 

@@ -190,6 +190,9 @@ fn synth(a: SynthArgs) -> Result<()> {
             r.max_marker_displacement_mm,
             r.solve_ms_total / 1e3
         );
+        if r.load_reached < 1.0 {
+            println!("the truth took {:.0} % of the final load and no more (the later frames hold that state)", 100.0 * r.load_reached);
+        }
         if let Some(s) = r.attachment_shift_mm {
             println!(
                 "attachment moved by {:.1},{:.1},{:.1} mm: {} nodes held (the model assumes {})",

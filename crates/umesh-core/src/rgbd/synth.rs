@@ -115,11 +115,27 @@ pub struct SynthReport {
     /// against the dataset's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub attachment_shift_mm: Option<[f64; 3]>,
+    /// The share of the final load the truth reached: below 1 when the material could not
+    /// take the whole load (the frames from the first that failed hold the largest load that
+    /// converged; the markers are that state's).
+    #[serde(default = "one")]
+    pub load_reached: f64,
+    /// The load scale asked for; `load_scale` is the one made (0.7 or 0.5 of it when the
+    /// organ could not take the whole load).
+    #[serde(default)]
+    pub load_scale_asked: f64,
     #[serde(default)]
     pub fixed_nodes: usize,
     #[serde(default)]
     pub dataset_fixed_nodes: usize,
 }
+
+fn one() -> f64 {
+    1.0
+}
+
+/// Bisections of a frame's load when the truth does not converge at it (1/64 of the step).
+const LOAD_BISECTIONS: usize = 6;
 
 /// The fixed nodes `fixed` moved by `shift_mm`, rounded to whole cells of the grid's lattice:
 /// node n is fixed when the node one rounded shift behind it was. Returns the flags and the
@@ -352,34 +368,48 @@ pub fn run_rgbd_synth(
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
     let index = 10_000_000 + settings.seed as usize;
-    let forces = if settings.loads != LoadFamily::Pressing {
-        // Another family: its own draw from the seed, calibrated and solved as a sample's.
-        let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
-        let pts = crate::visible::sample_points(
-            &ctx.surface,
-            &ctx.visible.visible,
-            crate::loads::family_points(settings.loads, &config.forces),
-            &mut rng,
-        );
-        let mut f = crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
-        let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-        let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-        let target = config.forces.target_displacement_mm * settings.load_scale * settings.loads.target_factor();
-        ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
-        let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
-        r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
-        r.forces
-    } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
-        let mut f = ctx.sample_forces(config, index).0;
-        let _ = crate::loads::scale_forces(&mut f, 1.0, settings.load_scale);
-        f
-    } else {
-        let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-        let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-        let r = ctx.solve_sample(&mut s0, config, index, settings.load_scale, 0.5, cancel);
-        r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
-        r.forces
+    let solve_load = |load_scale: f64| -> Result<Vec<crate::loads::PointForce>, RgbdError> {
+        Ok(if settings.loads != LoadFamily::Pressing {
+            // Another family: its own draw from the seed, calibrated and solved as a sample's.
+            let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
+            let pts = crate::visible::sample_points(
+                &ctx.surface,
+                &ctx.visible.visible,
+                crate::loads::family_points(settings.loads, &config.forces),
+                &mut rng,
+            );
+            let mut f = crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
+            let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
+            let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+            let target = config.forces.target_displacement_mm * load_scale * settings.loads.target_factor();
+            ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
+            let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
+            r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+            r.forces
+        } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+            let mut f = ctx.sample_forces(config, index).0;
+            let _ = crate::loads::scale_forces(&mut f, 1.0, load_scale);
+            f
+        } else {
+            let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
+            let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+            let r = ctx.solve_sample(&mut s0, config, index, load_scale, 0.5, cancel);
+            r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
+            r.forces
+        })
     };
+    // A load the organ cannot take (SVK collapsing under it) is made smaller rather than
+    // refused: a test recording at the largest of these scales that converges, reported.
+    let mut load_scale = settings.load_scale;
+    let mut forces = solve_load(load_scale);
+    for factor in [0.7, 0.5] {
+        if forces.is_ok() || cancel.is_cancelled() {
+            break;
+        }
+        load_scale = settings.load_scale * factor;
+        forces = solve_load(load_scale);
+    }
+    let forces = forces?;
     let pose = camera_pose(&ctx.visible.camera);
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
@@ -427,25 +457,54 @@ pub fn run_rgbd_synth(
     };
     let mut solve_ms = 0.0;
     let mut disp = Vec::new();
+    // The share of the final load the truth reached (below 1 when it could not converge).
+    let mut load_cap = 1.0f64;
+    let mut last_ramp = 0.0f64;
     for f in 0..settings.frames {
         if cancel.is_cancelled() {
             return Err(RgbdError::Cancelled);
         }
         progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
         let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
-        let ramp = settings.first_load + (1.0 - settings.first_load) * t;
-        let mut bc = full.clone();
-        for v in &mut bc.forces_n {
-            *v *= ramp;
-        }
+        let ramp = (settings.first_load + (1.0 - settings.first_load) * t).min(load_cap);
+        let scaled = |r: f64| {
+            let mut bc = full.clone();
+            for v in &mut bc.forces_n {
+                *v *= r;
+            }
+            bc
+        };
         let u: Vec<Vector3<f64>> = if ramp == 0.0 {
             vec![Vector3::zeros(); grid.node_count()]
         } else {
             let t = std::time::Instant::now();
-            let sol = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(|e| bad(format!("frame {f}: {e}")))?;
+            let sol = match solver.solve(&scaled(ramp), SolveMethod::Newton, &Progress::none(), cancel) {
+                Ok(sol) => sol,
+                // The truth cannot reach this frame's load (SVK collapsing under it): the
+                // largest load between the last converged frame's and this one that converges
+                // (bisected), kept for the frames after; the report says how far it got.
+                Err(e) if !cancel.is_cancelled() => {
+                    let (mut lo, mut hi, mut best) = (last_ramp, ramp, None);
+                    for _ in 0..LOAD_BISECTIONS {
+                        let mid = 0.5 * (lo + hi);
+                        match solver.solve(&scaled(mid), SolveMethod::Newton, &Progress::none(), cancel) {
+                            Ok(sol) => {
+                                lo = mid;
+                                best = Some(sol);
+                            }
+                            Err(_) => hi = mid,
+                        }
+                    }
+                    let Some(sol) = best else { return Err(bad(format!("frame {f}: {e}"))) };
+                    load_cap = lo;
+                    sol
+                }
+                Err(e) => return Err(bad(format!("frame {f}: {e}"))),
+            };
             solve_ms += t.elapsed().as_secs_f64() * 1e3;
             sol.displacement_mm
         };
+        last_ramp = ramp.min(load_cap);
         let surface = deform_mesh(grid, &rest_surface, &u);
         let shafts: Vec<Shaft> = sweeps
             .iter()
@@ -500,8 +559,10 @@ pub fn run_rgbd_synth(
         max_marker_displacement_mm: disp.iter().copied().fold(0.0, f64::max),
         mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
         solve_ms_total: solve_ms,
-        load_scale: settings.load_scale,
+        load_scale,
         attachment_shift_mm: shift_applied,
+        load_reached: load_cap,
+        load_scale_asked: settings.load_scale,
         fixed_nodes: fixed_count,
         dataset_fixed_nodes,
     })

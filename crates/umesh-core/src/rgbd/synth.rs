@@ -134,8 +134,10 @@ fn one() -> f64 {
     1.0
 }
 
-/// Bisections of a frame's load when the truth does not converge at it (1/64 of the step).
-const LOAD_BISECTIONS: usize = 6;
+/// Bisections of a frame's load when the truth does not converge at it (1/16 of the step),
+/// each a solve of at most `BISECTION_ITERATIONS` Newton iterations.
+const LOAD_BISECTIONS: usize = 4;
+const BISECTION_ITERATIONS: usize = 60;
 
 /// The fixed nodes `fixed` moved by `shift_mm`, rounded to whole cells of the grid's lattice:
 /// node n is fixed when the node one rounded shift behind it was. Returns the flags and the
@@ -485,6 +487,9 @@ pub fn run_rgbd_synth(
                 // (bisected), kept for the frames after; the report says how far it got.
                 Err(e) if !cancel.is_cancelled() => {
                     let (mut lo, mut hi, mut best) = (last_ramp, ramp, None);
+                    // Each probe bounded, so a collapsing truth costs a few solves, not hours.
+                    let unbounded = solver.settings.max_total_iterations;
+                    solver.settings.max_total_iterations = Some(BISECTION_ITERATIONS);
                     for _ in 0..LOAD_BISECTIONS {
                         let mid = 0.5 * (lo + hi);
                         match solver.solve(&scaled(mid), SolveMethod::Newton, &Progress::none(), cancel) {
@@ -495,6 +500,7 @@ pub fn run_rgbd_synth(
                             Err(_) => hi = mid,
                         }
                     }
+                    solver.settings.max_total_iterations = unbounded;
                     let Some(sol) = best else { return Err(bad(format!("frame {f}: {e}"))) };
                     load_cap = lo;
                     sol

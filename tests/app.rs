@@ -270,6 +270,8 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     assert_eq!(item.metrics.lock().unwrap().len(), 2, "the dashboard saw both epochs");
     let metrics = umesh::app::jobs::queue::read_metrics(&model_dir).unwrap();
     assert_eq!(metrics.len(), 2);
+    // The job's record, written before the training ran, travels with the model folder.
+    assert!(model_dir.join("umesh-job.json").is_file());
     let info = umesh_net::ModelInfo::read(&model_dir).unwrap();
     let used: Vec<usize> = info.train_indices.iter().chain(&info.val_indices).copied().collect();
     assert!(!used.contains(&flagged_index), "training skipped the flagged sample");

@@ -120,6 +120,9 @@ pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
     model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
 }
 
+/// The settings of the app's job that made a folder (written there before the job runs).
+pub const JOB_FILE: &str = "umesh-job.json";
+
 /// Copy the files (not folders) of `from` into `to`: a resumed model continues in its staging copy.
 fn copy_files(from: &Path, to: &Path) -> Result<(), NetError> {
     let entries = std::fs::read_dir(from).map_err(|e| NetError::Io(format!("{}: {e}", from.display())))?;
@@ -189,11 +192,16 @@ pub fn run_train(
     let final_out = out;
     let pending = umesh_core::StagedDir::pending_path(final_out);
     let continue_pending = resume && pending.join("last.safetensors").exists();
-    let staged = umesh_core::StagedDir::resumable(final_out, &["model.json", "metrics.jsonl"], continue_pending)
+    let staged = umesh_core::StagedDir::resumable(final_out, &["model.json", "metrics.jsonl", JOB_FILE], continue_pending)
         .map_err(|e| NetError::Io(format!("{}: {e}", final_out.display())))?;
     let out = staged.path();
     if resume && !continue_pending && final_out.join("last.safetensors").exists() {
         copy_files(final_out, out)?;
+    }
+    // The app records a job's settings in the folder before it runs: they travel with the model.
+    let job = final_out.join(JOB_FILE);
+    if job.is_file() {
+        std::fs::copy(&job, out.join(JOB_FILE)).map_err(|e| NetError::Io(format!("{}: {e}", job.display())))?;
     }
     let device = Device::flex();
     device.seed(settings.seed);

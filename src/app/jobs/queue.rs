@@ -312,7 +312,7 @@ fn start(item: &mut WorkItem) {
         // A patient folder records its own settings (patient.json) and refuses foreign files.
         if !matches!(kind, WorkKind::Prepare { .. }) {
             std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
-            let job_file = out.join("umesh-job.json");
+            let job_file = out.join(umesh_net::training::JOB_FILE);
             umesh_core::write_atomic(&job_file, serde_json::to_string_pretty(&record).unwrap_or_default().as_bytes())
                 .map_err(|e| format!("{}: {e}", job_file.display()))?;
         }

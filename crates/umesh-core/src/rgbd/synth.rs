@@ -426,7 +426,7 @@ pub fn run_rgbd_synth(
     let grid = &reg.grid;
     // The truth is solved with a larger budget than the dataset's (a frame must not be
     // dropped), but a bounded one: a truth collapsing under its load (a softer material than
-    // the loads were calibrated on) took over 7 minutes a frame; it now falls to the bisection.
+    // the loads were calibrated on) ran over 6 minutes a frame; it now falls to the bisection.
     let truth_solver =
         SolverSettings { max_total_iterations: Some(TRUTH_ITERATIONS), max_halvings: 8, reject_indefinite: false, ..config.solver.clone() };
     let material = settings.material.unwrap_or(config.material);

@@ -39,6 +39,13 @@ pub struct StagedDir {
     keep_on_failure: bool,
 }
 
+/// A hidden folder beside `target` named after it: `.NAME.TAG`.
+fn beside(target: &std::path::Path, tag: &str) -> std::path::PathBuf {
+    let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    parent.join(format!(".{name}.{tag}"))
+}
+
 fn check_replaceable(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<()> {
     if !target.exists() {
         return Ok(());
@@ -65,10 +72,7 @@ impl StagedDir {
     /// writes): `--out ~/Documents` must never empty a user's folder.
     pub fn new(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<Self> {
         check_replaceable(target, recognised)?;
-        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-        let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-        std::fs::create_dir_all(parent)?;
-        let staging = parent.join(format!(".{name}.staging-{}", std::process::id()));
+        let staging = beside(target, &format!("staging-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&staging);
         std::fs::create_dir_all(&staging)?;
         Ok(Self { staging, target: target.to_path_buf(), committed: false, keep_on_failure: false })
@@ -89,9 +93,7 @@ impl StagedDir {
 
     /// Where [`StagedDir::resumable`] stages `target`.
     pub fn pending_path(target: &std::path::Path) -> std::path::PathBuf {
-        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-        let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-        parent.join(format!(".{name}.pending"))
+        beside(target, "pending")
     }
 
     /// Where the command writes.
@@ -102,11 +104,7 @@ impl StagedDir {
     /// Swap the staging folder in for the target (the old target removed after the swap).
     pub fn commit(mut self) -> std::io::Result<()> {
         std::fs::write(self.staging.join(OUTPUT_MARKER), b"written by umesh; replaced whole by the next run\n")?;
-        let old = self.staging.with_file_name(format!(
-            ".{}.old-{}",
-            self.target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
-            std::process::id()
-        ));
+        let old = beside(&self.target, &format!("old-{}", std::process::id()));
         if self.target.exists() {
             let _ = std::fs::remove_dir_all(&old);
             std::fs::rename(&self.target, &old)?;

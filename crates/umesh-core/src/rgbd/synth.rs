@@ -467,6 +467,7 @@ pub fn run_rgbd_synth(
     // The share of the final load the truth reached (below 1 when it could not converge).
     let mut load_cap = 1.0f64;
     let mut last_ramp = 0.0f64;
+    let mut held: Option<Vec<Vector3<f64>>> = None;
     for f in 0..settings.frames {
         if cancel.is_cancelled() {
             return Err(RgbdError::Cancelled);
@@ -483,6 +484,9 @@ pub fn run_rgbd_synth(
         };
         let u: Vec<Vector3<f64>> = if ramp == 0.0 {
             vec![Vector3::zeros(); grid.node_count()]
+        } else if let Some(u) = held.as_ref().filter(|_| ramp >= load_cap) {
+            // Capped at the largest load that converged: that state, not solved again.
+            u.clone()
         } else {
             let t = std::time::Instant::now();
             let sol = match solver.solve(&scaled(ramp), SolveMethod::Newton, &Progress::none(), cancel) {
@@ -508,6 +512,7 @@ pub fn run_rgbd_synth(
                     solver.settings.max_total_iterations = unbounded;
                     let Some(sol) = best else { return Err(bad(format!("frame {f}: {e}"))) };
                     load_cap = lo;
+                    held = Some(sol.displacement_mm.clone());
                     sol
                 }
                 Err(e) => return Err(bad(format!("frame {f}: {e}"))),

@@ -371,7 +371,7 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
     let organ = phantom();
     let rec = tmp_dir("ar-rec");
     let out = tmp_dir("ar-out");
-    let job = umesh::app::model::compute::synth_job(organ.clone(), ActiveModel::default().dir, rec.clone(), 3);
+    let job = umesh::app::ar::panel::synth_job(organ.clone(), ActiveModel::default().dir, rec.clone(), 3);
     assert!(job(&Default::default(), &Default::default()).is_ok(), "the synthetic recording is written");
     assert!(rec.join("trajectory.log").is_file());
     let s = ArSession::start(ArSource::Recording(rec.clone()), organ.seg.clone(), ActiveModel::default(), None);
@@ -404,7 +404,7 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
 
 /// Update until the camera preview is computed (or refused).
 fn wait_for_preview(app: &mut App, limit: Duration) {
-    use umesh::app::model::setup::ObservationSetup;
+    use umesh::app::setup::ObservationSetup;
     let t = Instant::now();
     let start = app.world().resource::<ObservationSetup>().generation;
     loop {
@@ -419,7 +419,7 @@ fn wait_for_preview(app: &mut App, limit: Duration) {
 
 #[test]
 fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_refused() {
-    use umesh::app::model::setup::{CameraChoice, ObservationSetup};
+    use umesh::app::setup::{CameraChoice, ObservationSetup};
     let mut app = app();
     let organ = phantom();
     app.world_mut().resource_mut::<Organ>().set(organ.clone());
@@ -460,7 +460,7 @@ fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_
 fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region() {
     use umesh::app::jobs::panel::{DatasetForm, PatientForm};
     use umesh::app::jobs::queue::{WorkKind, WorkQueue, WorkStatus};
-    use umesh::app::model::setup::{CameraChoice, ObservationSetup};
+    use umesh::app::setup::{CameraChoice, ObservationSetup};
     let mut app = app();
     let organ = phantom();
     app.world_mut().resource_mut::<Organ>().set(organ.clone());

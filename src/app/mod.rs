@@ -7,6 +7,7 @@ pub mod ar;
 pub mod jobs;
 pub mod model;
 pub mod qa;
+pub mod setup;
 pub mod shell;
 pub mod state;
 
@@ -26,7 +27,7 @@ impl Plugin for CorePlugins {
             jobs::queue::WorkflowPlugin,
             qa::QaPlugin,
             ar::ArPlugin,
-            model::setup::SetupPlugin,
+            setup::SetupPlugin,
             model::session::SessionPlugin,
         ))
         // The session's state: held here so that headless tests can save and reopen one.
@@ -53,7 +54,7 @@ impl Plugin for ViewPlugins {
                 model::probes::ProbeInputPlugin,
                 shell::view3d::View3dPlugin,
                 qa::scene::QaViewPlugin,
-                model::setup::SetupViewPlugin,
+                setup::SetupViewPlugin,
             ))
             .init_resource::<shell::ui::UiState>()
             .init_resource::<jobs::panel::JobsUi>()
@@ -165,7 +166,7 @@ fn request_redraws(
     qa: Res<qa::Qa>,
     ar: Res<ar::Ar>,
     jobs: Res<shell::tasks::Jobs>,
-    setup: Res<model::setup::ObservationSetup>,
+    setup: Res<setup::ObservationSetup>,
     mut last: Local<[u64; 8]>,
     mut redraw: MessageWriter<bevy::window::RequestRedraw>,
 ) {

@@ -300,7 +300,7 @@ pub struct ActiveModel {
 
 impl Default for ActiveModel {
     fn default() -> Self {
-        Self { dir: crate::cli::input::bundled_model(), checkpoint: "model.safetensors".into() }
+        Self { dir: umesh_workflow::input::bundled_model(), checkpoint: "model.safetensors".into() }
     }
 }
 
@@ -335,4 +335,12 @@ pub fn short_path(p: &std::path::Path) -> String {
 
 /// The patient folder opened (File > Open patient, `umesh gui PATIENT/`) and its figures.
 #[derive(Resource, Default)]
-pub struct OpenPatient(pub Option<umesh_net::patient::PatientFigures>);
+pub struct OpenPatient(pub Option<umesh_workflow::patient::PatientFigures>);
+
+/// The sample truth the QA view shows, for the views that outline it (the scan's slices): its
+/// surface and the QA view's generation it belongs to.
+#[derive(Resource, Default)]
+pub struct QaTruth {
+    pub generation: u64,
+    pub surface: Option<Arc<TriMesh>>,
+}

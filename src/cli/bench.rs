@@ -65,7 +65,7 @@ pub fn run(a: Args) -> Result<()> {
         w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui)"),
     };
     if a.json {
-        super::print_json(&value);
+        super::output::print_json(&value);
     } else if let serde_json::Value::Object(m) = &value {
         for (k, v) in m {
             println!("{k:28} {v}");
@@ -240,7 +240,7 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
 /// uncalibrated scale of earlier versions (F = E L D / N, D = 3 mm).
 fn bench_dataset(samples: usize) -> Result<serde_json::Value> {
     let seg = bundled_phantom(PHANTOM_BYTES)?;
-    let fixed = super::dataset::default_fixed(&seg, None, 6.0);
+    let fixed = umesh_core::loads::default_fixed(&seg, None, 6.0).region;
     let mut config = umesh_core::dataset::DatasetConfig::paper(fixed);
     config.samples = samples.max(2);
     config.shard_size = config.samples;

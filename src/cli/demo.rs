@@ -51,7 +51,7 @@ pub fn run(a: Args) -> Result<()> {
     let organ = extract_surface(&sc.seg.organ_mask(), &SurfaceSettings::default());
     write_mesh(&a.out.join("organ.obj"), &organ)?;
     let bc = boundary_conditions(&sc.grid, Some(&sc.seg.volume), &sc.settings)?;
-    let (pb, progress) = super::progress_bar("SVK solve");
+    let (pb, progress) = super::output::progress_bar("SVK solve");
     let sol = solve_bc(&sc.grid, &bc, &sc.settings, &progress, &Cancel::new());
     pb.finish_and_clear();
     let sol = sol?;
@@ -78,7 +78,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     say(format!("wrote grid.npz, result.vtu (open in ParaView) and rest/deformed surfaces (OBJ) to {}", a.out.display()));
     if a.json {
-        super::print_json(&serde_json::json!({
+        super::output::print_json(&serde_json::json!({
             "cells": s.cells, "nodes": s.nodes, "boundary_cells": s.boundary_cells, "padded_shape": s.padded_shape,
             "grid_volume_mm3": s.grid_volume_mm3, "forces": sc.settings.forces.len(), "fixed_nodes": bc.fixed_count(),
             "converged": true, "newton_iterations": sol.iterations, "solve_ms": sol.timings.total_ms,

@@ -1,4 +1,4 @@
-use super::input::InputArgs;
+use super::input::{InputArgs, LoadInput};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_core::grid::{GridSettings, grid_vtu, run_grid};
@@ -43,8 +43,8 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let seg = a.input.load()?;
-    let (pb, progress) = super::progress_bar("building grid");
-    let out = run_grid(&seg, &a.grid.settings(), &progress, &super::cancel())
+    let (pb, progress) = super::output::progress_bar("building grid");
+    let out = run_grid(&seg, &a.grid.settings(), &progress, &super::output::cancel())
         .with_context(|| format!("building the grid of {}", seg.source.display()))?;
     pb.finish_and_clear();
     let s = &out.stats;
@@ -55,7 +55,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let err = (s.grid_volume_mm3 - out.segmentation_volume_mm3) / out.segmentation_volume_mm3;
     if a.json {
-        super::print_json(&serde_json::json!({
+        super::output::print_json(&serde_json::json!({
             "source": seg.source, "cells": s.cells, "nodes": s.nodes, "inside_cells": s.inside_cells,
             "boundary_cells": s.boundary_cells, "quadrature_points": s.quadrature_points,
             "cell_size_mm": s.cell_size_mm, "grid_volume_mm3": s.grid_volume_mm3,

@@ -25,19 +25,19 @@ pub fn has_display() -> bool {
 pub fn run(a: Args) -> Result<()> {
     // Checked before a window opens, so that a wrong folder is one clear error.
     if let Some(dir) = &a.patient {
-        umesh_net::patient::Patient::read(dir)?;
+        umesh_workflow::patient::Patient::read(dir)?;
     }
     let open = match a.ct.as_deref() {
         Some([ct, seg]) => {
             // Both read now: a wrong file is one clear error, not a message in a window.
-            let input = crate::cli::input::InputArgs {
+            let input = umesh_workflow::input::InputSpec {
                 seg: Some(seg.clone()),
                 mesh_scale_mm: 1.0,
                 mesh_voxel_mm: 1.0,
                 max_voxels: umesh_core::nifti_io::DEFAULT_MAX_VOXELS,
                 ..Default::default()
             };
-            let s = input.load()?;
+            let s = crate::cli::input::LoadInput::load(&input)?;
             umesh_core::slices::read_scan(ct, s.organ_mask().world_bounds()).context("--ct")?;
             Some(crate::app::state::OpenRequest { path: Some(seg.clone()), ct: Some(ct.clone()), ..Default::default() })
         }

@@ -1,151 +1,22 @@
-//! Loading the organ geometry: a NIfTI segmentation, closed meshes, or the bundled phantom.
+//! The organ input on the command line: the workflow's `InputSpec` (a clap argument group), with
+//! its notes printed.
 
-use anyhow::{Context, Result};
-use std::path::PathBuf;
-use umesh_core::nifti_io::ReadOptions;
-use umesh_core::segmentation::{self, Segmentation};
+use anyhow::Result;
+use umesh_core::segmentation::Segmentation;
+pub use umesh_workflow::input::{InputSpec as InputArgs, PHANTOM_BYTES, bundled_model, model_dataset_config};
 
-pub const PHANTOM_BYTES: &[u8] = include_bytes!("../../assets/phantom.nii.gz");
-
-#[derive(clap::Args, Debug, Clone, Default)]
-pub struct InputArgs {
-    /// Segmentation: a multi-label NIfTI (.nii/.nii.gz/.hdr), a folder of per-structure masks
-    /// (TotalSegmentator's output: liver.nii.gz, inferior_vena_cava.nii.gz, ...), the organ's
-    /// mask with --structure files, or a closed organ mesh (.obj/.ply/.stl); the bundled
-    /// phantom when omitted.
-    pub seg: Option<PathBuf>,
-    /// More masks, NAME=FILE (repeat): vena cava / hepatic veins anchor the organ, other names
-    /// are structures drawn in the overlay. SEG is then the organ's mask.
-    #[arg(long = "structure", value_name = "NAME=FILE")]
-    pub structure_files: Vec<String>,
-    /// Organ label(s) (repeat or comma-separate); default: the label named "liver", else 1
-    /// (phantom: liver with its contents).
-    #[arg(long = "organ-label", value_delimiter = ',')]
-    pub organ_labels: Vec<i64>,
-    /// Internal-structure labels (tumours, vessels).
-    #[arg(long = "structure-label", value_delimiter = ',')]
-    pub structure_labels: Vec<i64>,
-    /// Internal-structure meshes, with a mesh organ.
-    #[arg(long = "structure-mesh")]
-    pub structure_meshes: Vec<PathBuf>,
-    /// Millimetres per unit of mesh files.
-    #[arg(long, default_value_t = 1.0)]
-    pub mesh_scale_mm: f64,
-    /// Voxel size used to voxelise meshes (mm).
-    #[arg(long, default_value_t = 1.0)]
-    pub mesh_voxel_mm: f64,
-    /// Refuse volumes with more voxels than this (checked before allocating).
-    #[arg(long, default_value_t = umesh_core::nifti_io::DEFAULT_MAX_VOXELS)]
-    pub max_voxels: u64,
+/// Reading the organ with its notes (masks resampled or carved, files not used) on stderr.
+pub trait LoadInput {
+    fn load(&self) -> Result<Segmentation>;
 }
 
-impl InputArgs {
-    pub fn load(&self) -> Result<Segmentation> {
-        let Some(path) = &self.seg else {
-            let mut seg = segmentation::bundled_phantom(PHANTOM_BYTES)?;
-            if !self.organ_labels.is_empty() {
-                seg.organ_labels = self.organ_labels.clone();
-            }
-            if !self.structure_labels.is_empty() {
-                seg.structure_labels = self.structure_labels.clone();
-            }
-            seg.validate()?;
-            return Ok(seg);
-        };
-        if !(self.mesh_voxel_mm >= 0.05 && self.mesh_voxel_mm <= 50.0) {
-            anyhow::bail!("--mesh-voxel-mm {}: must lie in [0.05, 50]", self.mesh_voxel_mm);
+impl LoadInput for InputArgs {
+    fn load(&self) -> Result<Segmentation> {
+        let mut notes = Vec::new();
+        let seg = self.load_with_notes(&mut notes)?;
+        for n in notes {
+            eprintln!("note: {n}");
         }
-        if !(self.mesh_scale_mm > 0.0 && self.mesh_scale_mm.is_finite()) {
-            anyhow::bail!("--mesh-scale-mm {}: must be positive and finite", self.mesh_scale_mm);
-        }
-        let options = ReadOptions { max_voxels: self.max_voxels };
-        let files = if path.is_dir() {
-            let (files, ignored) = segmentation::mask_folder(path)?;
-            if !ignored.is_empty() {
-                eprintln!(
-                    "{}: {} files not used (not liver, vena cava, hepatic veins, portal vein, vessels or tumours)",
-                    path.display(),
-                    ignored.len()
-                );
-            }
-            Some(files)
-        } else if !self.structure_files.is_empty() {
-            let mut files = vec![segmentation::MaskFile {
-                name: path
-                    .file_name()
-                    .map(|n| n.to_string_lossy().trim_end_matches(".gz").trim_end_matches(".nii").to_string())
-                    .unwrap_or_default(),
-                path: path.clone(),
-                role: segmentation::Role::Organ,
-            }];
-            for s in &self.structure_files {
-                let (name, file) = s.split_once('=').with_context(|| format!("--structure {s:?}: expected NAME=FILE"))?;
-                anyhow::ensure!(!name.trim().is_empty(), "--structure {s:?}: the name is empty");
-                let role = match segmentation::name_role(name) {
-                    Some(segmentation::Role::Anchor) => segmentation::Role::Anchor,
-                    _ => segmentation::Role::Structure,
-                };
-                files.push(segmentation::MaskFile { name: name.trim().to_string(), path: PathBuf::from(file), role });
-            }
-            Some(files)
-        } else {
-            None
-        };
-        if let Some(files) = files {
-            anyhow::ensure!(
-                self.organ_labels.is_empty() && self.structure_labels.is_empty(),
-                "--organ-label/--structure-label apply to a multi-label file, not to separate masks"
-            );
-            let (seg, notes) = segmentation::assemble_masks(&files, &options)?;
-            for r in notes.resampled.iter().chain(&notes.carved) {
-                eprintln!("note: {r}");
-            }
-            return Ok(seg);
-        }
-        if segmentation::is_mesh_path(path) {
-            return Ok(segmentation::load_meshes(path, &self.structure_meshes, self.mesh_voxel_mm, self.mesh_scale_mm)?);
-        }
-        Ok(segmentation::load_nifti_labels(path, &self.organ_labels, &self.structure_labels, &options)?)
+        Ok(seg)
     }
-}
-
-impl InputArgs {
-    /// The files the segmentation is read from (hashed into a patient folder).
-    pub fn files(&self) -> Result<Vec<PathBuf>> {
-        let Some(path) = &self.seg else { return Ok(Vec::new()) };
-        let mut files = Vec::new();
-        if path.is_dir() {
-            files.extend(segmentation::mask_folder(path)?.0.into_iter().map(|f| f.path));
-        } else {
-            files.push(path.clone());
-            let s = path.to_string_lossy();
-            if let Some(stem) = s.strip_suffix(".hdr") {
-                files.push(PathBuf::from(format!("{stem}.img")));
-            }
-        }
-        for s in &self.structure_files {
-            if let Some((_, f)) = s.split_once('=') {
-                files.push(PathBuf::from(f));
-            }
-        }
-        files.extend(self.structure_meshes.iter().cloned());
-        Ok(files)
-    }
-}
-
-/// The bundled model folder: `assets/model` under the working directory, else beside the
-/// sources this binary was built from.
-pub fn bundled_model() -> PathBuf {
-    let local = PathBuf::from("assets/model");
-    if local.join("model.json").is_file() {
-        return local;
-    }
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/model")
-}
-
-/// The dataset configuration of a model (its grid, loads and camera), or the paper's
-/// default for `seg` when the model predates that record.
-pub fn model_dataset_config(info: Option<&umesh_net::ModelInfo>, seg: &Segmentation) -> umesh_core::dataset::DatasetConfig {
-    info.and_then(|i| i.dataset_config.clone())
-        .unwrap_or_else(|| umesh_core::dataset::DatasetConfig::paper(super::dataset::default_fixed(seg, None, 6.0)))
 }

@@ -1,13 +1,13 @@
 //! `umesh prepare`: from a segmentation to a trained, checked model in a patient folder
 //! (grid, dataset, training, evaluation, registration check, report), resumable.
 
-use super::dataset::ConfigArgs;
 use super::grid::GridArgs;
-use super::input::InputArgs;
+use super::input::{InputArgs, LoadInput};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_net::UNetConfig;
-use umesh_net::patient::{PrepareSettings, run_prepare};
+use umesh_workflow::options::DatasetOptions;
+use umesh_workflow::patient::{PrepareSettings, run_prepare};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -16,7 +16,7 @@ pub struct Args {
     #[command(flatten)]
     pub grid: GridArgs,
     #[command(flatten)]
-    pub config: ConfigArgs,
+    pub config: DatasetOptions,
     /// Training samples (the paper: 1000).
     #[arg(long, default_value_t = 1000)]
     pub samples: usize,
@@ -39,7 +39,7 @@ pub struct Args {
     pub check_frames: usize,
     /// Load of the check recording, relative to the dataset's target displacement (lowered to
     /// what the dataset reached, and again when it does not converge).
-    #[arg(long, default_value_t = umesh_core::rgbd::synth::SynthSettings::default().load_scale)]
+    #[arg(long, default_value_t = umesh_core::synth::SynthSettings::default().load_scale)]
     pub check_load_scale: f64,
     /// The scan the segmentation was made from (NIfTI): checked first, copied into the
     /// folder as `ct.nii.gz` when the job ends, shown under the model by the app.
@@ -59,7 +59,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(ct) = &a.ct {
         umesh_core::slices::read_scan(ct, seg.organ_mask().world_bounds()).context("--ct")?;
         // A finished patient keeps its scan: another one is refused, not copied over it.
-        let stored = umesh_net::patient::ct_path(&a.out);
+        let stored = umesh_workflow::patient::ct_path(&a.out);
         if stored.is_file() {
             let same = std::fs::read(&stored).with_context(|| format!("{}", stored.display()))?
                 == std::fs::read(ct).with_context(|| format!("--ct {}", ct.display()))?;
@@ -91,7 +91,7 @@ pub fn run(a: Args) -> Result<()> {
     if !a.json {
         eprintln!("fixed region: {}", fixed.description);
     }
-    let (pb, progress) = super::progress_bar("preparing");
+    let (pb, progress) = super::output::progress_bar("preparing");
     pb.set_style(
         indicatif::ProgressStyle::with_template("{spinner} [{bar:30}] {percent:>3}% ({elapsed}, eta {eta}) {msg}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
@@ -104,11 +104,11 @@ pub fn run(a: Args) -> Result<()> {
             pb.suspend(|| super::dataset::print_preflight(p, a.preflight.force));
         },
     };
-    let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, Some(&check), &progress, &super::cancel());
+    let r = run_prepare(&seg, &a.input.files()?, &a.out, &settings, Some(&check), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let r = r.with_context(|| format!("preparing the patient {}", a.out.display()))?;
     if let Some(ct) = &a.ct {
-        let dst = umesh_net::patient::ct_path(&a.out);
+        let dst = umesh_workflow::patient::ct_path(&a.out);
         let bytes = std::fs::read(ct).with_context(|| format!("--ct {}", ct.display()))?;
         umesh_core::write_atomic(&dst, &bytes).with_context(|| format!("{}", dst.display()))?;
     }
@@ -116,7 +116,7 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w} (the model is trained and usable; the check's figures are missing)");
     }
     if a.json {
-        super::print_json(&serde_json::json!({
+        super::output::print_json(&serde_json::json!({
             "out": r.out, "seconds": r.seconds,
             "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
             "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,

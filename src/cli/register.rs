@@ -1,7 +1,7 @@
 //! `umesh register`: RGB-D frames -> rigid ICP -> surface displacement -> network (and,
 //! when asked, the co-rotational FE) -> deformed internal structures overlaid on the frames.
 
-use super::input::{InputArgs, bundled_model, model_dataset_config};
+use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config};
 use anyhow::{Context, Result, bail};
 use nalgebra::Matrix4;
 use std::path::{Path, PathBuf};
@@ -107,20 +107,20 @@ pub fn run(a: Args) -> Result<()> {
     }
     let (model_dir, seg) = match &a.patient {
         Some(p) => {
-            let patient = umesh_net::patient::Patient::read(p)?;
+            let patient = umesh_workflow::patient::Patient::read(p)?;
             anyhow::ensure!(
-                patient.done(umesh_net::patient::Stage::Train),
+                patient.done(umesh_workflow::patient::Stage::Train),
                 "{}: the patient's model is not trained yet (run `umesh prepare` again to finish the job)",
                 p.display()
             );
-            (umesh_net::patient::model_dir(p), patient.segmentation(p)?)
+            (umesh_workflow::patient::model_dir(p), patient.segmentation(p)?)
         }
         None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
     };
     let mut net =
         umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
     let config = model_dataset_config(Some(&net.info), &seg);
-    let dctx = DatasetContext::prepare(&seg, &config, &super::cancel())?;
+    let dctx = DatasetContext::prepare(&seg, &config, &super::output::cancel())?;
     net.info
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
@@ -194,7 +194,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     if a.json {
-        super::print_json(&v);
+        super::output::print_json(&v);
     } else {
         println!(
             "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10}  confidence",
@@ -281,7 +281,7 @@ fn register_with(
     overlay_dir: &Path,
     message: &str,
 ) -> Result<RegisterReport> {
-    let (pb, progress) = super::progress_bar(message);
+    let (pb, progress) = super::output::progress_bar(message);
     let mut write = |o: &umesh_core::register::pipeline::FrameOutput| -> Result<(), String> {
         if let Some(img) = &o.overlay {
             let p = overlay_dir.join(format!("{:05}.png", o.report.frame));
@@ -290,7 +290,7 @@ fn register_with(
         }
         Ok(())
     };
-    let r = run_register(source, ctx, model, pose, truth, settings, &mut write, &progress, &super::cancel());
+    let r = run_register(source, ctx, model, pose, truth, settings, &mut write, &progress, &super::output::cancel());
     pb.finish_and_clear();
     Ok(r?)
 }

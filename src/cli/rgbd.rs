@@ -1,13 +1,13 @@
 //! `umesh rgbd synth` (synthetic recordings with ground truth) and `umesh rgbd serve`
 //! (stream a recording over the TCP frame protocol, as a camera bridge would).
 
-use super::input::{InputArgs, bundled_model, model_dataset_config};
+use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::stream::{FrameSource, Poll, RecordingSource, write_frame};
-use umesh_core::rgbd::synth::{SynthSettings, run_rgbd_synth};
+use umesh_core::synth::{SynthSettings, run_rgbd_synth};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -169,17 +169,17 @@ fn synth(a: SynthArgs) -> Result<()> {
         seed: a.seed,
         ..Default::default()
     };
-    let (pb, progress) = super::progress_bar("synthetic recording");
+    let (pb, progress) = super::output::progress_bar("synthetic recording");
     // Written beside --out and swapped in whole: no frame of an earlier recording survives.
     let staged =
         umesh_core::StagedDir::new(&a.out, &["synth.json", "ground_truth.json"]).with_context(|| format!("--out {}", a.out.display()))?;
-    let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::cancel());
+    let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let mut r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;
     staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     r.out = a.out.clone();
     if a.json {
-        super::print_json(&serde_json::to_value(&r)?);
+        super::output::print_json(&serde_json::to_value(&r)?);
     } else {
         println!(
             "{} frames in {} ({} markers; mean marker displacement at the last frame {:.2} mm, max {:.2} mm; FE {:.1} s)",

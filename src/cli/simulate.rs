@@ -1,5 +1,5 @@
 use super::grid::GridArgs;
-use super::input::InputArgs;
+use super::input::{InputArgs, LoadInput};
 use anyhow::{Context, Result, bail};
 use nalgebra::Vector3;
 use std::path::{Path, PathBuf};
@@ -143,7 +143,7 @@ pub fn fixed_regions(a: &Args, seg: &Segmentation) -> Vec<FixedRegion> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let cancel = super::cancel();
+    let cancel = super::output::cancel();
     let method = a.fe.method()?;
     // Outputs go to a staging folder swapped in whole at the end (a failure leaves the last
     // run's folder as it was); made first, so a folder umesh did not write is refused before any work.
@@ -175,7 +175,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &a.export_problem {
         write_problem(p, &grid, &material, &bc, settings.solver.stabilization)?;
     }
-    let (pb, progress) = super::progress_bar("solving");
+    let (pb, progress) = super::output::progress_bar("solving");
     let sol = solve_bc(&grid, &bc, &settings, &progress, &cancel);
     pb.finish_and_clear();
     let sol = sol?;
@@ -210,7 +210,7 @@ pub fn run(a: Args) -> Result<()> {
 
 fn report(out: &Path, json: bool, sol: &umesh_core::fem::Solution, nodes: usize, cells: usize, fixed: usize) {
     if json {
-        super::print_json(&serde_json::json!({
+        super::output::print_json(&serde_json::json!({
             "converged": true, "newton_iterations": sol.iterations, "increments": sol.increments,
             "max_displacement_mm": sol.max_displacement_mm(), "mean_displacement_mm": sol.mean_displacement_mm(),
             "solve_ms": sol.timings.total_ms, "assembly_ms": sol.timings.assembly_ms,
@@ -246,8 +246,8 @@ fn run_problem(a: &Args, path: &Path, method: SolveMethod, staged: umesh_core::S
     // The file's stabilisation, not the command line's: the file is the whole problem.
     let solver = umesh_core::fem::solver::SolverSettings { stabilization: p.stabilization, ..a.fe.solver() };
     let settings = SimulationSettings { material: p.material, solver, method, fixed: vec![], forces: vec![] };
-    let (pb, progress) = super::progress_bar("solving");
-    let sol = solve_bc(&p.grid, &p.bc, &settings, &progress, &super::cancel());
+    let (pb, progress) = super::output::progress_bar("solving");
+    let sol = solve_bc(&p.grid, &p.bc, &settings, &progress, &super::output::cancel());
     pb.finish_and_clear();
     let sol = sol?;
     // Displacements in the file's node order.

@@ -1,4 +1,4 @@
-use super::input::InputArgs;
+use super::input::{InputArgs, LoadInput};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use umesh_core::mesh_io::write_mesh;
@@ -73,7 +73,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     staged.commit().with_context(|| format!("replacing {}", a.out.display()))?;
     if a.json {
-        super::print_json(&serde_json::json!({"surfaces": out}));
+        super::output::print_json(&serde_json::json!({"surfaces": out}));
     }
     Ok(())
 }

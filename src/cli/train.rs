@@ -2,8 +2,9 @@
 
 use anyhow::{Context, Result};
 use std::path::PathBuf;
+use umesh_net::TrainSettings;
 use umesh_net::UNetConfig;
-use umesh_net::training::{TrainSettings, run_train};
+use umesh_net::training::run_train;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -110,7 +111,7 @@ pub fn run(a: Args) -> Result<()> {
         init_from: a.init_from.clone(),
         ..Default::default()
     };
-    let (pb, progress) = super::progress_bar("training");
+    let (pb, progress) = super::output::progress_bar("training");
     let quiet = a.json;
     let pb2 = pb.clone();
     let on_epoch = move |m: &umesh_net::training::EpochMetrics| {
@@ -121,11 +122,11 @@ pub fn run(a: Args) -> Result<()> {
             ));
         }
     };
-    let report = run_train(&a.dataset, &a.out, &settings, a.resume, &progress, &on_epoch, &super::cancel());
+    let report = run_train(&a.dataset, &a.out, &settings, a.resume, &progress, &on_epoch, &super::output::cancel());
     pb.finish_and_clear();
     let report = report.with_context(|| format!("training on {}", a.dataset.display()))?;
     if a.json {
-        super::print_json(&serde_json::to_value(&report)?);
+        super::output::print_json(&serde_json::to_value(&report)?);
     } else {
         println!(
             "model in {} (best epoch {}; {} train / {} validation samples)",
@@ -145,7 +146,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         "tre_max_mm": r.tre_max_mm, "marker_displacement_mean_mm": r.marker_displacement_mean_mm,
     });
     if a.calibrate {
-        let (pb, progress) = super::progress_bar("confidence");
+        let (pb, progress) = super::output::progress_bar("confidence");
         let c = umesh_net::eval::calibrate_confidence(&a.model, &a.dataset, &progress);
         pb.finish_and_clear();
         let c = c.with_context(|| format!("calibrating the confidence of {}", a.model.display()))?;
@@ -167,7 +168,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes()).with_context(|| format!("--report {}", p.display()))?;
     }
     if a.json {
-        super::print_json(&v);
+        super::output::print_json(&v);
     } else {
         println!("validation samples        {}", r.samples);
         println!("TRE (mm)                  {:.2} +/- {:.2}, max {:.2}", r.tre_mean_mm, r.tre_std_mm, r.tre_max_mm);

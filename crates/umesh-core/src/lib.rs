@@ -21,6 +21,7 @@ pub mod segmentation;
 pub mod simulate;
 pub mod slices;
 pub mod surface;
+pub mod synth;
 pub mod visible;
 pub mod volume;
 pub mod vtk;

@@ -13,9 +13,9 @@ use umesh_core::register::icp::{IcpSettings, IcpTarget, icp_point_to_plane};
 use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
 use umesh_core::rgbd::stream::{FrameSource, Poll, RecordingSource, TcpSource, write_frame};
-use umesh_core::rgbd::synth::{SynthSettings, run_rgbd_synth};
 use umesh_core::rgbd::{DepthImage, Frame, Intrinsics, depth_to_points, transform_point};
 use umesh_core::segmentation::{Segmentation, bundled_phantom};
+use umesh_core::synth::{SynthSettings, run_rgbd_synth};
 use umesh_core::{Cancel, Progress};
 
 fn phantom() -> Segmentation {
@@ -779,7 +779,7 @@ fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_
 
 #[test]
 fn a_truth_held_elsewhere_moves_its_attachment_on_the_lattice_and_a_shift_off_the_organ_is_refused() {
-    use umesh_core::rgbd::synth::shifted_fixed;
+    use umesh_core::synth::shifted_fixed;
     let seg = phantom();
     let mut config = small_config(&seg);
     config.forces = umesh_core::loads::ForceSettings::default();

@@ -1,7 +1,7 @@
 //! Inference: surface displacement grid in, volume displacement grid out, batch of one.
 
+use crate::model::load_weights;
 use crate::model::{UNet, UNetConfig};
-use crate::training::load_weights;
 use crate::{ModelInfo, NetError};
 use burn::prelude::*;
 use std::path::Path;

@@ -3,10 +3,13 @@
 //! (2x2x2 transposed convolution, concatenation with the encoder features of the same level,
 //! two 3x3x3 convolutions), and a final 1x1x1 convolution to 3 channels.
 
+use crate::NetError;
 use burn::nn::PaddingConfig3d;
 use burn::nn::conv::{Conv3d, Conv3dConfig, ConvTranspose3d, ConvTranspose3dConfig};
 use burn::prelude::*;
+use burn::store::{ModuleSnapshot, SafetensorsStore};
 use burn::tensor::activation::relu;
+use std::path::Path;
 
 /// Architecture, saved beside the weights as JSON.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -116,4 +119,14 @@ impl UNet {
         }
         self.head.forward(x)
     }
+}
+
+pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
+    let mut store = SafetensorsStore::from_file(path).overwrite(true);
+    model.save_into(&mut store).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
+}
+
+pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
+    let mut store = SafetensorsStore::from_file(path);
+    model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
 }

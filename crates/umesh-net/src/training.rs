@@ -2,68 +2,16 @@
 //! safetensors checkpoints, resume, metrics as JSON lines.
 
 use crate::data::{Normalization, SampleSet};
-use crate::model::{UNet, UNetConfig};
-use crate::{ModelInfo, NetError, tre};
+use crate::info::{ModelInfo, TrainSettings};
+use crate::model::UNet;
+use crate::model::{load_weights, save_weights};
+use crate::{NetError, tre};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
-use burn::store::{ModuleSnapshot, SafetensorsStore};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use umesh_core::phantom::SplitMix64;
 use umesh_core::{Cancel, Progress};
-
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct TrainSettings {
-    pub model: UNetConfig,
-    pub epochs: usize,
-    pub batch_size: usize,
-    pub learning_rate: f64,
-    pub seed: u64,
-    /// Virtual markers per sample for the validation TRE.
-    pub markers: usize,
-    /// The network input: None, the exact displacement of the visible nodes (u_s, 3
-    /// channels); Some, the encoded simulated camera view of each sample (`observation`,
-    /// `observation::CHANNELS` channels), as registration encodes each frame.
-    #[serde(default)]
-    pub observation: Option<umesh_core::observation::ObservationSettings>,
-    /// With `observation`: from the second epoch on, every training sample gets a new
-    /// simulated camera view of its deformation each epoch (validation keeps the stored ones).
-    #[serde(default)]
-    pub fresh_views: bool,
-    /// With `fresh_views`: the fraction of training samples whose view each epoch is of the
-    /// undeformed organ, with a zero target (0 in models trained before it existed).
-    #[serde(default)]
-    pub rest_views: f64,
-    /// Start from this model folder's weights and normalisation (same network and grid)
-    /// instead of random weights: fine-tuning.
-    #[serde(default)]
-    pub init_from: Option<PathBuf>,
-}
-
-impl Default for TrainSettings {
-    fn default() -> Self {
-        Self {
-            model: UNetConfig::cpu(),
-            epochs: 30,
-            batch_size: 4,
-            learning_rate: 1e-3,
-            seed: 0,
-            markers: 10,
-            observation: Some(umesh_core::observation::ObservationSettings::default()),
-            fresh_views: true,
-            rest_views: 0.05,
-            init_from: None,
-        }
-    }
-}
-
-impl TrainSettings {
-    /// The network as trained: `model` with the input channels of the chosen input.
-    pub fn network(&self) -> UNetConfig {
-        let in_channels = if self.observation.is_some() { umesh_core::observation::CHANNELS } else { 3 };
-        UNetConfig { in_channels, ..self.model.clone() }
-    }
-}
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EpochMetrics {
@@ -108,16 +56,6 @@ fn target_batch(set: &SampleSet, ids: &[usize], rest: &[bool], scale: f32, devic
         }
     }
     Tensor::from_data(TensorData::new(data, [ids.len(), 3, x, y, z]), device)
-}
-
-pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
-    let mut store = SafetensorsStore::from_file(path).overwrite(true);
-    model.save_into(&mut store).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
-}
-
-pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
-    let mut store = SafetensorsStore::from_file(path);
-    model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
 }
 
 /// The settings of the app's job that made a folder (written there before the job runs).

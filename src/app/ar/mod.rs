@@ -149,7 +149,7 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     };
     let mut net =
         umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
-    let config = crate::cli::input::model_dataset_config(Some(&net.info), seg);
+    let config = umesh_workflow::input::model_dataset_config(Some(&net.info), seg);
     let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
     net.info
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())

@@ -2,10 +2,12 @@
 //! recording (left); latency, TRE and log (right); the overlay image (centre).
 
 use crate::app::ar::{Ar, ArCommand, ArSession, ArSource};
-use crate::app::state::{ActiveModel, Organ, UiMessages};
+use crate::app::shell::tasks::JobOutput;
+use crate::app::state::{ActiveModel, Organ, OrganData, UiMessages};
 use bevy_egui::egui;
 use std::path::PathBuf;
 use umesh_core::register::pipeline::PosePolicy;
+use umesh_core::{Cancel, Progress};
 
 /// Default recording folder of the synthetic sequence the AR view offers to generate.
 pub fn synthetic_recording_dir() -> PathBuf {
@@ -303,5 +305,26 @@ pub fn central(ui: &mut egui::Ui, ar: &mut Ar, texture: &mut Option<egui::Textur
         _ => {
             ui.centered_and_justified(|ui| ui.label(if ar.session.is_some() { "waiting for the first frame..." } else { "no source" }));
         }
+    }
+}
+
+/// A synthetic RGB-D recording of the organ deformed by the FE model (`umesh rgbd synth`).
+pub fn synth_job(
+    organ: OrganData,
+    model_dir: std::path::PathBuf,
+    out: std::path::PathBuf,
+    frames: usize,
+) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+    move |progress, cancel| {
+        let info = umesh_net::ModelInfo::read(&model_dir).ok();
+        let config = umesh_workflow::input::model_dataset_config(info.as_ref(), &organ.seg);
+        let settings = umesh_core::synth::SynthSettings { frames, ..Default::default() };
+        let r = umesh_core::synth::run_rgbd_synth(&organ.seg, &config, &settings, &out, progress, cancel)
+            .map_err(|e| format!("{}: {e}", out.display()))?;
+        let summary = format!("{} frames, markers move {:.1} mm by the last", r.frames, r.mean_marker_displacement_mm);
+        Ok(JobOutput::Apply(Box::new(move |world| {
+            world.resource_mut::<Ar>().source_text = out.display().to_string();
+            Ok(format!("synthetic recording in {}: {summary}; press Open recording", out.display()))
+        })))
     }
 }

@@ -2,10 +2,9 @@
 //! with progress, rate, ETA, log and cancel, and the training dashboard.
 
 use crate::app::jobs::queue::{WorkKind, WorkQueue, WorkStatus, read_metrics};
-use crate::app::model::setup::ObservationSetup;
+use crate::app::setup::ObservationSetup;
 use crate::app::state::{ActiveModel, Organ, UiMessages};
 use crate::app::state::{FixedChoice, OpenPatient};
-use crate::cli::dataset::ConfigArgs;
 use bevy::prelude::*;
 use bevy_egui::egui;
 use egui_plot::{Legend, Line, Plot, PlotPoints};
@@ -14,9 +13,11 @@ use umesh_core::dataset::DatasetConfig;
 use umesh_core::fem::MaterialParams;
 use umesh_core::loads::ForceSettings;
 use umesh_core::segmentation::Segmentation;
+use umesh_net::TrainSettings;
 use umesh_net::UNetConfig;
-use umesh_net::patient::{PatientFigures, PrepareSettings};
-use umesh_net::training::{EpochMetrics, TrainSettings};
+use umesh_net::training::EpochMetrics;
+use umesh_workflow::options::DatasetOptions;
+use umesh_workflow::patient::{PatientFigures, PrepareSettings};
 
 #[derive(Clone, Debug)]
 pub struct DatasetForm {
@@ -54,13 +55,13 @@ impl Default for DatasetForm {
 
 impl DatasetForm {
     /// The CLI options of these values with the model view's camera and fixed region.
-    pub fn config_args(&self, setup: &ObservationSetup, fixed: &FixedChoice) -> ConfigArgs {
-        let base = ConfigArgs {
+    pub fn config_args(&self, setup: &ObservationSetup, fixed: &FixedChoice) -> DatasetOptions {
+        let base = DatasetOptions {
             probes: self.probes,
             target_displacement_mm: self.target_displacement_mm,
             young_pa: self.young_pa,
             poisson: self.poisson,
-            ..ConfigArgs::default()
+            ..DatasetOptions::default()
         };
         setup.config_args(fixed, &base)
     }
@@ -368,7 +369,7 @@ pub fn queue_and_dashboard(
         && f.patient_shown != Some(item.id)
     {
         f.patient_shown = Some(item.id);
-        if let Ok(fig) = umesh_net::patient::read_figures(&item.out) {
+        if let Ok(fig) = umesh_workflow::patient::read_figures(&item.out) {
             patient.0 = Some(fig);
         }
     }
@@ -544,7 +545,7 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
         p.settings.fixed_description
     ));
     ui.horizontal_wrapped(|ui| {
-        for s in umesh_net::patient::Stage::ALL {
+        for s in umesh_workflow::patient::Stage::ALL {
             let r = p.stages.get(&s);
             let done = r.is_some_and(|r| r.done);
             let text = format!("{} {}", s.name(), r.map(|r| fmt_secs(r.seconds)).unwrap_or_else(|| "-".into()));
@@ -567,7 +568,7 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
     }
     // The report's binning: (bar centre, width, count).
     let hist = |values: &[f64], bins: usize| -> Vec<(f64, f64, f64)> {
-        let (lo, hi, counts) = umesh_net::report::histogram_bins(values, bins, None);
+        let (lo, hi, counts) = umesh_workflow::report::histogram_bins(values, bins, None);
         let w = (hi - lo) / counts.len() as f64;
         counts.into_iter().enumerate().map(|(i, c)| (lo + (i as f64 + 0.5) * w, w, c as f64)).collect()
     };
@@ -606,7 +607,7 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
     }
     ui.horizontal(|ui| {
         if !fig.metrics.is_empty() && ui.button("Learning curves").clicked() {
-            show_curves = Some(umesh_net::patient::model_dir(&fig.dir));
+            show_curves = Some(umesh_workflow::patient::model_dir(&fig.dir));
         }
         let report = fig.dir.join("report.html");
         if report.is_file() {

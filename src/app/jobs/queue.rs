@@ -12,8 +12,9 @@ use std::time::Instant;
 use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate_checked};
 use umesh_core::segmentation::Segmentation;
 use umesh_core::{Cancel, Progress};
-use umesh_net::patient::{PrepareSettings, run_prepare};
-use umesh_net::training::{EpochMetrics, TrainSettings, run_train};
+use umesh_net::TrainSettings;
+use umesh_net::training::{EpochMetrics, run_train};
+use umesh_workflow::patient::{PrepareSettings, run_prepare};
 
 pub enum WorkKind {
     Dataset {

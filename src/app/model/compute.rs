@@ -15,32 +15,11 @@ use umesh_core::simulate::{SimulationSettings, run_simulate};
 use umesh_core::surface::{SurfaceSettings, extract_surface};
 use umesh_core::{Cancel, Progress};
 
-/// A synthetic RGB-D recording of the organ deformed by the FE model (`umesh rgbd synth`).
-pub fn synth_job(
-    organ: OrganData,
-    model_dir: std::path::PathBuf,
-    out: std::path::PathBuf,
-    frames: usize,
-) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
-    move |progress, cancel| {
-        let info = umesh_net::ModelInfo::read(&model_dir).ok();
-        let config = crate::cli::input::model_dataset_config(info.as_ref(), &organ.seg);
-        let settings = umesh_core::rgbd::synth::SynthSettings { frames, ..Default::default() };
-        let r = umesh_core::rgbd::synth::run_rgbd_synth(&organ.seg, &config, &settings, &out, progress, cancel)
-            .map_err(|e| format!("{}: {e}", out.display()))?;
-        let summary = format!("{} frames, markers move {:.1} mm by the last", r.frames, r.mean_marker_displacement_mm);
-        Ok(JobOutput::Apply(Box::new(move |world| {
-            world.resource_mut::<crate::app::ar::Ar>().source_text = out.display().to_string();
-            Ok(format!("synthetic recording in {}: {summary}; press Open recording", out.display()))
-        })))
-    }
-}
-
 /// Load a segmentation (or the bundled phantom) and extract its surfaces.
 pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
     move |progress, cancel| {
         progress.report(0, 3, "reading");
-        let input = crate::cli::input::InputArgs {
+        let input = umesh_workflow::input::InputSpec {
             seg: req.path.clone(),
             organ_labels: req.organ_labels.clone(),
             structure_labels: req.structure_labels.clone(),
@@ -50,7 +29,11 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             mesh_voxel_mm: 1.0,
             max_voxels: umesh_core::nifti_io::DEFAULT_MAX_VOXELS,
         };
-        let seg = input.load().map_err(|e| format!("{e:#}"))?;
+        let mut notes = Vec::new();
+        let seg = input.load_with_notes(&mut notes).map_err(|e| e.to_string())?;
+        for n in notes {
+            eprintln!("note: {n}");
+        }
         if cancel.is_cancelled() {
             return Err("cancelled".into());
         }
@@ -98,13 +81,13 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
 pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
     move |progress, _| {
         progress.report(0, 2, "reading the patient");
-        let figures = umesh_net::patient::read_figures(&dir).map_err(|e| e.to_string())?;
+        let figures = umesh_workflow::patient::read_figures(&dir).map_err(|e| e.to_string())?;
         let seg = figures.patient.segmentation(&dir).map_err(|e| e.to_string())?;
         progress.report(1, 2, "organ surface");
         let mut organ = organ_data(seg, format!("patient {}", dir.display()))?;
         organ.opened = OrganSource::Patient { dir: std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone()) };
         // The scan, when the folder holds one (`umesh prepare --ct`).
-        let ct = umesh_net::patient::ct_path(&dir);
+        let ct = umesh_workflow::patient::ct_path(&dir);
         if ct.is_file() {
             organ.ct = Some(Arc::new(crate::app::model::ct::read_ct(&ct, organ.surface.bounds())?));
         }
@@ -113,16 +96,16 @@ pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Canc
 }
 
 /// A patient folder opened: its organ, grid settings, fixed region, camera and model.
-fn open_patient(world: &mut World, data: OrganData, figures: umesh_net::patient::PatientFigures) -> String {
+fn open_patient(world: &mut World, data: OrganData, figures: umesh_workflow::patient::PatientFigures) -> String {
     let dir = figures.dir.clone();
     let settings = figures.patient.settings.clone();
     crate::app::shell::tasks::set_organ(world, data);
     world.resource_mut::<GridState>().settings = settings.dataset.grid.clone();
     world.resource_mut::<Simulation>().fixed = FixedChoice::Region(settings.dataset.fixed.clone(), settings.fixed_description.clone());
-    world.resource_mut::<crate::app::model::setup::ObservationSetup>().adopt(&settings.dataset.visibility);
+    world.resource_mut::<crate::app::setup::ObservationSetup>().adopt(&settings.dataset.visibility);
     let model = if figures.has_model {
         *world.resource_mut::<ActiveModel>() =
-            ActiveModel { dir: umesh_net::patient::model_dir(&dir), checkpoint: "model.safetensors".into() };
+            ActiveModel { dir: umesh_workflow::patient::model_dir(&dir), checkpoint: "model.safetensors".into() };
         "its model is active"
     } else {
         "no trained model yet (run umesh prepare again to continue)"

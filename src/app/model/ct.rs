@@ -4,7 +4,7 @@
 //! outline drawn on it (core's `slices`).
 
 use crate::app::shell::convert::{bevy_dir_from_world, bevy_from_world};
-use crate::app::state::{CtImage, Mode, Organ, Simulation};
+use crate::app::state::{CtImage, Mode, Organ, QaTruth, Simulation};
 use bevy::asset::RenderAssetUsages;
 use bevy::mesh::{Indices, PrimitiveTopology};
 use bevy::prelude::*;
@@ -162,10 +162,10 @@ struct SliceKey {
 
 /// The deformed surface to outline: the shown simulation or rehearsal in the model view, the
 /// sample's FE truth in the QA view. With its identity, to rebuild only on change.
-fn deformed_surface<'a>(mode: Mode, sim: &'a Simulation, qa: &'a crate::app::qa::Qa) -> Option<((u8, u64), &'a umesh_core::mesh::TriMesh)> {
+fn deformed_surface<'a>(mode: Mode, sim: &'a Simulation, qa: &'a QaTruth) -> Option<((u8, u64), &'a umesh_core::mesh::TriMesh)> {
     match mode {
         Mode::Model => sim.result.as_ref().filter(|_| sim.show_deformed).map(|d| ((1, sim.generation), d.surface.as_ref())),
-        Mode::Qa => qa.sample.as_ref().map(|s| ((2, qa.generation), &s.truth_surface)),
+        Mode::Qa => qa.surface.as_deref().map(|s| ((2, qa.generation), s)),
         _ => None,
     }
 }
@@ -176,7 +176,7 @@ fn sync(
     mut view: ResMut<CtView>,
     organ: Res<Organ>,
     sim: Res<Simulation>,
-    qa: Res<crate::app::qa::Qa>,
+    qa: Res<QaTruth>,
     mode: Res<Mode>,
     mut shown: Local<[Option<(SliceKey, Entity)>; 3]>,
     mut meshes: ResMut<Assets<Mesh>>,

@@ -1,5 +1,5 @@
 //! The model view: the organ and its structures, the grid preview, force probes and
-//! rehearsal, the dataset's laparoscope and fixed region, the scan's slices, sessions, the
+//! rehearsal, the scan's slices, sessions, the
 //! background computations behind them, and its panels.
 
 pub mod compute;
@@ -9,4 +9,3 @@ pub mod panel;
 pub mod probes;
 pub mod scene;
 pub mod session;
-pub mod setup;

@@ -22,7 +22,7 @@ pub struct AppState<'w> {
     pub pending: ResMut<'w, PendingOpenRes>,
     pub probe_settings: ResMut<'w, ProbeSettings>,
     pub rehearsal: ResMut<'w, Rehearsal>,
-    pub setup: ResMut<'w, crate::app::model::setup::ObservationSetup>,
+    pub setup: ResMut<'w, crate::app::setup::ObservationSetup>,
     pub orbit: Res<'w, crate::app::shell::camera::OrbitCamera>,
     pub ct: ResMut<'w, crate::app::model::ct::CtView>,
 }
@@ -60,10 +60,10 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     }
     ui.separator();
     ui.heading("Laparoscope (dataset camera)");
-    crate::app::model::setup::camera_ui(ui, &mut st.setup, &st.orbit);
+    crate::app::setup::camera_ui(ui, &mut st.setup, &st.orbit);
     ui.separator();
     ui.heading("Simulation");
-    crate::app::model::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
+    crate::app::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
     ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
     let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
     if ui.add_enabled(can, egui::Button::new("Simulate (SVK) (S)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
@@ -77,7 +77,7 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     {
         st.jobs.spawn(
             "load model",
-            crate::app::model::probes::load_model_job(crate::cli::input::bundled_model(), "model.safetensors".into(), d.clone()),
+            crate::app::model::probes::load_model_job(umesh_workflow::input::bundled_model(), "model.safetensors".into(), d.clone()),
         );
     }
     let has_model = st.rehearsal.model.is_some();

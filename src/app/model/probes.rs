@@ -154,7 +154,7 @@ impl RehearsalModel {
     /// Load one checkpoint of a model folder (`model.safetensors`, `last.safetensors`).
     pub fn load_checkpoint(dir: &std::path::Path, file: &str, organ: &OrganData) -> Result<Self, String> {
         let predictor = umesh_net::inference::Predictor::load_checkpoint(dir, file).map_err(|e| format!("{}: {e}", dir.display()))?;
-        let config = crate::cli::input::model_dataset_config(Some(&predictor.info), &organ.seg);
+        let config = umesh_workflow::input::model_dataset_config(Some(&predictor.info), &organ.seg);
         let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
         predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).map_err(|e| format!("{}: {e}", dir.display()))?;
         let encoder = umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface)

@@ -35,7 +35,7 @@ fn sync(
     mut commands: Commands,
     organ: Res<Organ>,
     sim: Res<Simulation>,
-    setup: Res<crate::app::model::setup::ObservationSetup>,
+    setup: Res<crate::app::setup::ObservationSetup>,
     mut shown: ResMut<Shown>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -58,7 +58,7 @@ fn sync(
     let (surface, colors, seen) = match def {
         Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32)), false),
         None => {
-            let seen = crate::app::model::setup::seen_colors(&setup, data, organ.generation);
+            let seen = crate::app::setup::seen_colors(&setup, data, organ.generation);
             let tinted = seen.is_some();
             (data.surface.as_ref(), seen, tinted)
         }

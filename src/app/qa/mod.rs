@@ -6,7 +6,7 @@
 pub mod panel;
 pub mod scene;
 
-use crate::app::state::{ActiveModel, Organ, UiMessages};
+use crate::app::state::{ActiveModel, Organ, QaTruth, UiMessages};
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use nalgebra::Vector3;
@@ -35,7 +35,7 @@ pub struct QaSample {
     pub forces_n: Vec<Vector3<f64>>,
     /// Visible nodes with a nonzero input displacement: (node position, u_s) in mm.
     pub u_s_arrows: Vec<(Vector3<f64>, Vector3<f64>)>,
-    pub truth_surface: TriMesh,
+    pub truth_surface: Arc<TriMesh>,
     pub truth_magnitude_mm: Vec<f32>,
     pub truth_structures: Vec<(TriMesh, [u8; 3])>,
     pub max_mm: f32,
@@ -302,7 +302,7 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
         probes_mm: v3(&pr),
         forces_n: v3(&fo),
         u_s_arrows,
-        truth_surface,
+        truth_surface: Arc::new(truth_surface),
         truth_magnitude_mm,
         truth_structures,
         max_mm,
@@ -352,6 +352,7 @@ fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
                 qa.predictor = p.map(|p| Arc::new(Mutex::new(p)));
                 qa.tre.clear();
                 qa.sample = None;
+                qa.generation += 1;
                 qa.cursor = 0;
                 qa.order.clear();
                 qa.reorder();
@@ -402,6 +403,14 @@ pub struct QaPlugin;
 
 impl Plugin for QaPlugin {
     fn build(&self, app: &mut App) {
-        app.init_resource::<Qa>().add_systems(Update, poll_qa);
+        app.init_resource::<Qa>().init_resource::<QaTruth>().add_systems(Update, (poll_qa, publish_truth).chain());
+    }
+}
+
+/// Shares the shown sample's truth surface with the views that outline it.
+fn publish_truth(qa: Res<Qa>, mut truth: ResMut<QaTruth>) {
+    if truth.generation != qa.generation {
+        truth.surface = qa.sample.as_ref().map(|s| s.truth_surface.clone());
+        truth.generation = qa.generation;
     }
 }

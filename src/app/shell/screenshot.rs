@@ -66,7 +66,7 @@ fn anterior_probes(organ: &OrganData, offsets: &[(f64, f64)]) -> Vec<Probe> {
 /// into the temporary folder `name` (resumed when complete).
 fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> Result<std::path::PathBuf, String> {
     let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir).map_err(|e| e.to_string())?;
-    let mut config = crate::cli::input::model_dataset_config(Some(&info), &organ.seg);
+    let mut config = umesh_workflow::input::model_dataset_config(Some(&info), &organ.seg);
     config.samples = samples;
     config.shard_size = 4;
     let dir = scene_cache(name);
@@ -105,18 +105,18 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     world.resource_mut::<GridState>().show = show_grid;
     // The camera preview is computed in the background in the app; only its own scene shows it
     // (computed here, so that the image does not depend on timing).
-    world.resource_mut::<crate::app::model::setup::ObservationSetup>().show = scene == "camera";
+    world.resource_mut::<crate::app::setup::ObservationSetup>().show = scene == "camera";
     match scene {
         "phantom" | "grid" => {}
         "camera" => {
-            world.resource_scope(|world, mut setup: Mut<crate::app::model::setup::ObservationSetup>| {
-                setup.camera = crate::app::model::setup::CameraChoice::Named("anterior-inferior".into());
+            world.resource_scope(|world, mut setup: Mut<crate::app::setup::ObservationSetup>| {
+                setup.camera = crate::app::setup::CameraChoice::Named("anterior-inferior".into());
                 setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
             })?;
             // From behind the laparoscope and a little aside: the frustum opens toward the
             // organ, whose seen part faces the viewer.
             let eye = world
-                .resource::<crate::app::model::setup::ObservationSetup>()
+                .resource::<crate::app::setup::ObservationSetup>()
                 .preview
                 .as_ref()
                 .map(|p| p.camera.position_mm)
@@ -153,7 +153,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             world.resource_mut::<Simulation>().set(d);
         }
         "rehearsal" => {
-            let model = RehearsalModel::load(&crate::cli::input::bundled_model(), &organ)?;
+            let model = RehearsalModel::load(&umesh_workflow::input::bundled_model(), &organ)?;
             let mut probes = anterior_probes(&organ, &[(0.0, 0.1)]);
             // Pulled 15 mm inward and a little up, as a drag would.
             for p in &mut probes {
@@ -173,7 +173,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             // The dashboard on the bundled model's training metrics.
             world.insert_resource(Mode::Jobs);
             let mut j = world.resource_mut::<crate::app::jobs::panel::JobsUi>();
-            let dir = crate::cli::input::bundled_model();
+            let dir = umesh_workflow::input::bundled_model();
             j.folder_text = short_path(&dir);
             j.dash = Some(crate::app::jobs::panel::DashSource::Folder(dir));
         }
@@ -208,7 +208,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             let model = ActiveModel::default();
             let dir = scene_cache("ar-recording");
             if !dir.join("trajectory.log").is_file() {
-                run(compute::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
+                run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
             }
             world.insert_resource(Mode::Ar);
             let mut ar = world.resource_mut::<crate::app::ar::Ar>();
@@ -349,7 +349,7 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
     let model = scene_cache("bench-model");
     let _ = std::fs::remove_dir_all(&model);
     app.world_mut().insert_resource(mode);
-    let settings = umesh_net::training::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
+    let settings = umesh_net::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
     let id = app
         .world_mut()
         .resource_mut::<crate::app::jobs::queue::WorkQueue>()
@@ -390,7 +390,7 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> Result<ArPlaybac
     let model = ActiveModel::default();
     let dir = scene_cache("bench-recording");
     if !dir.join("trajectory.log").is_file() {
-        run(compute::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
+        run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }
     app.world_mut().insert_resource(Mode::Ar);
     let woken = std::sync::Arc::new((std::sync::Mutex::new(false), std::sync::Condvar::new()));

@@ -428,7 +428,7 @@ pub fn ui_system(
                     Some(d) if !st.jobs.is_running("synthetic") => {
                         st.jobs.spawn(
                             "synthetic recording",
-                            crate::app::model::compute::synth_job(
+                            crate::app::ar::panel::synth_job(
                                 d.clone(),
                                 active.dir.clone(),
                                 crate::app::ar::panel::synthetic_recording_dir(),

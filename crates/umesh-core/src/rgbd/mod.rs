@@ -6,7 +6,6 @@
 pub mod recording;
 pub mod segment;
 pub mod stream;
-pub mod synth;
 
 use nalgebra::{Matrix4, Vector3};
 use std::path::{Path, PathBuf};

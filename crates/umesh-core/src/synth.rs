@@ -2,8 +2,6 @@
 //! load that ramps up over the sequence (SVK solves), seen by a virtual depth camera with
 //! noise and holes, plus the true positions of virtual markers.
 
-use super::recording::{RecordingMeta, write_frame, write_trajectory_log};
-use super::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse};
 use crate::dataset::{DatasetConfig, DatasetContext};
 use crate::fem::solver::{FeSolver, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, MaterialParams};
@@ -13,6 +11,8 @@ use crate::progress::{Cancel, Progress};
 use crate::register::overlay::rasterize;
 use crate::register::pipeline::GroundTruth;
 use crate::register::{RegistrationContext, virtual_markers};
+use crate::rgbd::recording::{RecordingMeta, write_frame, write_trajectory_log};
+use crate::rgbd::{ColorImage, DepthImage, Frame, Intrinsics, RgbdError, rigid_inverse};
 use crate::segmentation::Segmentation;
 use crate::visible::Camera;
 use nalgebra::{Matrix4, Vector3};
@@ -295,7 +295,7 @@ pub fn run_rgbd_synth(
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<SynthReport, RgbdError> {
-    let bad = |r: String| super::invalid(out, r);
+    let bad = |r: String| crate::rgbd::invalid(out, r);
     // A pressing recording is one of the dataset's pressing patterns, whatever families the
     // dataset mixes (its sample index would otherwise draw any of them).
     let mut pressing = config.clone();
@@ -340,8 +340,8 @@ pub fn run_rgbd_synth(
     if !finite_in(settings.first_load, 0.0, 1.0) {
         return Err(bad(format!("first-frame load {}: between 0 and 1 (a share of the final load)", settings.first_load)));
     }
-    if settings.cloud_points > super::MAX_POINTS {
-        return Err(bad(format!("{} cloud points: at most {}", settings.cloud_points, super::MAX_POINTS)));
+    if settings.cloud_points > crate::rgbd::MAX_POINTS {
+        return Err(bad(format!("{} cloud points: at most {}", settings.cloud_points, crate::rgbd::MAX_POINTS)));
     }
     if settings.instruments > 10 {
         return Err(bad(format!("{} instruments: at most 10", settings.instruments)));
@@ -600,10 +600,10 @@ fn write_cloud_frame(dir: &Path, stem: &str, frame: &Frame, count: usize, rng: &
         organ[..n].iter().map(|&i| k.unproject((i % k.width) as f64, (i / k.width) as f64, frame.depth.depth_mm[i] as f64)).collect();
     let p = dir.join("points").join(format!("{stem}.ply"));
     crate::mesh_io::write_point_cloud(&p, &points, "umesh synthetic cloud, camera frame millimetres")
-        .map_err(|e| super::invalid(&p, e.to_string()))?;
+        .map_err(|e| crate::rgbd::invalid(&p, e.to_string()))?;
     if let Some(c) = &frame.color {
         let p = dir.join("color").join(format!("{stem}.png"));
-        let bytes = c.encode_png().map_err(|r| super::invalid(&p, r))?;
+        let bytes = c.encode_png().map_err(|r| crate::rgbd::invalid(&p, r))?;
         crate::write_atomic(&p, &bytes).map_err(|e| RgbdError::Io { path: p.clone(), source: e })?;
     }
     Ok(())

@@ -1,4 +1,5 @@
-//! The dataset's laparoscope pose and fixed region, chosen in the model view: the camera's
+//! The dataset's laparoscope pose and fixed region, chosen in the model view and used by the
+//! jobs view's forms (state both views share, with its preview systems): the camera's
 //! frustum drawn, the surface it sees tinted, the fixed nodes marked. The preview runs in the
 //! background through the same core check as generation (`dataset::observation_setup`), so
 //! what is shown (and any refusal: camera inside the organ, too little seen, an empty fixed
@@ -6,7 +7,6 @@
 
 use crate::app::shell::convert::{UNITS_PER_MM, bevy_from_world, world_from_bevy};
 use crate::app::state::{FixedChoice, GridState, Organ, OrganData, Simulation};
-use crate::cli::dataset::ConfigArgs;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use bevy_egui::egui;
@@ -15,6 +15,7 @@ use std::sync::Arc;
 use umesh_core::fem::FixedRegion;
 use umesh_core::segmentation::Segmentation;
 use umesh_core::visible::{Camera, VisibilitySettings};
+use umesh_workflow::options::DatasetOptions;
 
 /// The named laparoscope views offered (the CLI's `--camera`).
 pub const VIEWS: [&str; 9] =
@@ -88,7 +89,7 @@ pub struct Preview {
 impl ObservationSetup {
     /// The dataset options for this camera and fixed region, on top of `base` (loads,
     /// material): the CLI's, so the GUI's datasets are the CLI's.
-    pub fn config_args(&self, fixed: &FixedChoice, base: &ConfigArgs) -> ConfigArgs {
+    pub fn config_args(&self, fixed: &FixedChoice, base: &DatasetOptions) -> DatasetOptions {
         let mut a = base.clone();
         a.fov_deg = self.fov_deg;
         a.visible_fraction = self.max_fraction;
@@ -120,7 +121,7 @@ impl ObservationSetup {
 
     /// The camera and visibility the dataset will use on this organ.
     pub fn visibility(&self, seg: &Segmentation, fixed: &FixedChoice) -> Result<(VisibilitySettings, FixedRegion, String), String> {
-        let args = self.config_args(fixed, &ConfigArgs::default());
+        let args = self.config_args(fixed, &DatasetOptions::default());
         let camera = args.camera(seg).map_err(|e| format!("{e:#}"))?;
         let (region, description) = fixed.describe(seg);
         Ok((VisibilitySettings { camera, max_fraction: self.max_fraction, ..Default::default() }, region, description))

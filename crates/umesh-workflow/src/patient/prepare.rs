@@ -7,231 +7,23 @@
 //! `check/recording/` and `check/register.json`, and `report.html`. Every stage resumes from
 //! what is on disk; a folder made from other inputs or settings is refused.
 
-use crate::inference::Predictor;
-use crate::training::{EpochMetrics, TrainSettings, run_train};
-use crate::{NetError, eval};
+use super::folder::{
+    CheckReport, FORMAT, FORMAT_VERSION, Patient, PrepareReport, PrepareSettings, Stage, hash_inputs, model_dir, read_json, read_metrics,
+    same_as_stored, settings_differences, write_json,
+};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use umesh_core::dataset::{DatasetConfig, DatasetContext, DatasetStats, ShardSelection, fnv_hex, run_generate, run_stats};
+use umesh_core::dataset::{DatasetConfig, DatasetContext, ShardSelection, run_generate, run_stats};
 use umesh_core::register::RegistrationContext;
-use umesh_core::register::pipeline::{GroundTruth, RegisterSettings, Summary, run_register};
+use umesh_core::register::pipeline::{GroundTruth, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::stream::RecordingSource;
-use umesh_core::rgbd::synth::{SynthReport, SynthSettings, run_rgbd_synth};
 use umesh_core::segmentation::Segmentation;
+use umesh_core::synth::{SynthReport, run_rgbd_synth};
 use umesh_core::{Cancel, Progress};
-
-pub const FORMAT: &str = "umesh-patient";
-pub const FORMAT_VERSION: u32 = 1;
-
-/// Everything `prepare` does, chosen before it starts (the CLI and the app build this).
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PrepareSettings {
-    pub dataset: DatasetConfig,
-    /// How the fixed region was chosen, in words.
-    pub fixed_description: String,
-    pub train: TrainSettings,
-    /// Markers per validation sample for the TRE.
-    pub eval_markers: usize,
-    /// The registration check's synthetic recording.
-    pub check: SynthSettings,
-}
-
-impl PrepareSettings {
-    /// The paper's protocol with the `cpu` network: 1000 samples, 20 epochs, a 20-frame check.
-    pub fn paper(dataset: DatasetConfig, fixed_description: String) -> Self {
-        Self {
-            dataset,
-            fixed_description,
-            train: TrainSettings { epochs: 20, ..TrainSettings::default() },
-            eval_markers: 10,
-            check: SynthSettings::default(),
-        }
-    }
-}
-
-/// One input file and the hash of its bytes.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct InputFile {
-    pub path: String,
-    pub bytes: u64,
-    pub hash: String,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Stage {
-    Dataset,
-    Train,
-    Eval,
-    Recording,
-    Register,
-    Report,
-}
-
-impl Stage {
-    pub const ALL: [Stage; 6] = [Stage::Dataset, Stage::Train, Stage::Eval, Stage::Recording, Stage::Register, Stage::Report];
-    pub fn name(self) -> &'static str {
-        match self {
-            Stage::Dataset => "dataset",
-            Stage::Train => "training",
-            Stage::Eval => "evaluation",
-            Stage::Recording => "check recording",
-            Stage::Register => "registration check",
-            Stage::Report => "report",
-        }
-    }
-}
-
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct StageRecord {
-    pub done: bool,
-    /// Wall time spent in this stage, summed over runs (s).
-    pub seconds: f64,
-}
-
-/// `patient.json`.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Patient {
-    pub format: String,
-    pub format_version: u32,
-    pub program_version: String,
-    pub inputs: Vec<InputFile>,
-    pub segmentation_hash: String,
-    pub organ_labels: Vec<String>,
-    pub structures: Vec<String>,
-    pub settings: PrepareSettings,
-    pub stages: std::collections::BTreeMap<Stage, StageRecord>,
-}
-
-impl Patient {
-    pub fn read(dir: &Path) -> Result<Self, NetError> {
-        let p = dir.join("patient.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
-        let v: Patient =
-            serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
-        if v.format != FORMAT || v.format_version != FORMAT_VERSION {
-            return Err(NetError::Invalid(format!(
-                "{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}",
-                p.display(),
-                v.format,
-                v.format_version
-            )));
-        }
-        Ok(v)
-    }
-    fn write(&self, dir: &Path) -> Result<(), NetError> {
-        let p = dir.join("patient.json");
-        let text = serde_json::to_string_pretty(self).map_err(|e| NetError::Invalid(e.to_string()))?;
-        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))
-    }
-    pub fn done(&self, s: Stage) -> bool {
-        self.stages.get(&s).is_some_and(|r| r.done)
-    }
-    /// The segmentation the job used, with its organ and structure labels.
-    pub fn segmentation(&self, dir: &Path) -> Result<Segmentation, NetError> {
-        let path = dir.join("segmentation.nii.gz");
-        let volume = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| NetError::Invalid(e.to_string()))?;
-        let by_name = |names: &[String]| -> Vec<i64> {
-            names.iter().filter_map(|n| volume.label_names.iter().find(|(_, v)| *v == n).map(|(l, _)| *l)).collect()
-        };
-        let seg = Segmentation {
-            source: path.clone(),
-            organ_labels: by_name(&self.organ_labels),
-            structure_labels: by_name(&self.structures),
-            volume,
-        };
-        seg.validate().map_err(|e| NetError::Invalid(e.to_string()))?;
-        Ok(seg)
-    }
-}
-
-pub fn model_dir(patient: &Path) -> PathBuf {
-    patient.join("model")
-}
-
-/// The scan the segmentation was made from, when `umesh prepare --ct` was given one (the app
-/// shows it under the model).
-pub fn ct_path(patient: &Path) -> PathBuf {
-    patient.join("ct.nii.gz")
-}
-
-/// What a finished (or resumed) job reports.
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct PrepareReport {
-    pub out: PathBuf,
-    pub stages: Vec<(Stage, f64, bool)>,
-    pub dataset: DatasetStats,
-    pub dataset_samples_per_minute: Option<f64>,
-    pub final_epoch: Option<EpochMetrics>,
-    pub eval: eval::EvalReport,
-    pub check_recording: Option<SynthReport>,
-    pub check: CheckReport,
-    pub seconds: f64,
-}
-
-/// The registration check on the synthetic recording (last frame and mean over frames).
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct CheckReport {
-    pub summary: SummaryRecord,
-    pub last_frame_tre_mm: Option<f64>,
-    pub last_frame_tre_rigid_mm: Option<f64>,
-    pub last_frame_marker_displacement_mm: Option<f64>,
-    pub log: Vec<String>,
-    /// Why the check could not be made or registered: the job still ends with its model, and
-    /// the report and the command say this instead of the check's figures.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub warning: Option<String>,
-}
-
-impl CheckReport {
-    /// A check that did not run, with the reason.
-    pub fn not_run(reason: String) -> Self {
-        Self {
-            summary: SummaryRecord::default(),
-            last_frame_tre_mm: None,
-            last_frame_tre_rigid_mm: None,
-            last_frame_marker_displacement_mm: None,
-            log: Vec::new(),
-            warning: Some(reason),
-        }
-    }
-}
-
-/// `Summary` in a form that can be read back.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct SummaryRecord {
-    pub frames: usize,
-    pub skipped: usize,
-    pub frame_ms_median: f64,
-    pub tre_mean_mm: Option<f64>,
-    pub tre_rigid_mean_mm: Option<f64>,
-    pub marker_displacement_mean_mm: Option<f64>,
-}
-
-impl From<&Summary> for SummaryRecord {
-    fn from(s: &Summary) -> Self {
-        Self {
-            frames: s.frames,
-            skipped: s.skipped,
-            frame_ms_median: s.frame_ms_median,
-            tre_mean_mm: s.tre_mean_mm,
-            tre_rigid_mean_mm: s.tre_rigid_mean_mm,
-            marker_displacement_mean_mm: s.marker_displacement_mean_mm,
-        }
-    }
-}
-
-/// Hash of each input file (a folder: each file in it that the segmentation used).
-pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
-    files
-        .iter()
-        .map(|p| {
-            let bytes = std::fs::read(p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
-            Ok(InputFile { path: p.display().to_string(), bytes: bytes.len() as u64, hash: fnv_hex(&bytes) })
-        })
-        .collect()
-}
+use umesh_net::inference::Predictor;
+use umesh_net::training::run_train;
+use umesh_net::{NetError, eval};
 
 /// Estimated cost of each stage (arbitrary units ~ 10 ms on 2 cores), for one progress bar.
 fn stage_weights(s: &PrepareSettings) -> [u64; 6] {
@@ -247,42 +39,6 @@ fn stage_progress(global: &Progress, offset: u64, width: u64, total: u64, stage:
         let frac = if t > 0 { (done as f64 / t as f64).clamp(0.0, 1.0) } else { 0.0 };
         g.report(offset + (frac * width as f64) as u64, total, &format!("{}: {msg}", stage.name()));
     })
-}
-
-/// Whether `settings` are the `stored` ones read back from `patient.json`: compared as stored,
-/// since JSON's float parsing is not always exact (a camera coordinate with decimals came back
-/// one ulp off, and a folder refused to resume with two identical hashes in its message).
-pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> Result<bool, NetError> {
-    let text = serde_json::to_string(settings).map_err(|e| NetError::Invalid(e.to_string()))?;
-    let now: PrepareSettings = serde_json::from_str(&text).map_err(|e| NetError::Invalid(e.to_string()))?;
-    Ok(*stored == now)
-}
-
-/// The settings that differ, as `path: stored -> now` (at most 6), for a refusal that names them.
-pub fn settings_differences(stored: &PrepareSettings, now: &PrepareSettings) -> Vec<String> {
-    fn walk(path: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
-        match (a, b) {
-            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
-                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
-                for k in keys {
-                    let null = serde_json::Value::Null;
-                    walk(
-                        &format!("{path}{}{k}", if path.is_empty() { "" } else { "." }),
-                        x.get(k).unwrap_or(&null),
-                        y.get(k).unwrap_or(&null),
-                        out,
-                    );
-                }
-            }
-            _ if a != b => out.push(format!("{path}: {a} -> {b}")),
-            _ => {}
-        }
-    }
-    let (Ok(a), Ok(b)) = (serde_json::to_value(stored), serde_json::to_value(now)) else { return Vec::new() };
-    let mut out = Vec::new();
-    walk("", &a, &b, &mut out);
-    out.truncate(6);
-    out
 }
 
 /// Run (or resume) the whole job for `seg` into `out`. `inputs` are the files the
@@ -545,57 +301,5 @@ pub fn registration_check(
         last_frame_marker_displacement_mm: last.and_then(|f| f.marker_displacement_mean_mm),
         log: r.log,
         warning: None,
-    })
-}
-
-pub fn read_metrics(model: &Path) -> Vec<EpochMetrics> {
-    std::fs::read_to_string(model.join("metrics.jsonl"))
-        .map(|t| t.lines().filter_map(|l| serde_json::from_str(l).ok()).collect())
-        .unwrap_or_default()
-}
-
-fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<(), NetError> {
-    let text = serde_json::to_string_pretty(v).map_err(|e| NetError::Invalid(e.to_string()))?;
-    umesh_core::write_atomic(path, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))
-}
-
-fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, NetError> {
-    let text = std::fs::read_to_string(path).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))?;
-    serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))
-}
-
-/// What a patient folder holds so far, for the app's jobs view (the report's figures): every
-/// part after patient.json is optional, as an interrupted job has written only some.
-#[derive(Clone, Debug)]
-pub struct PatientFigures {
-    pub dir: PathBuf,
-    pub patient: Patient,
-    pub dataset: Option<DatasetStats>,
-    /// Per accepted sample: (achieved mean nodal displacement, its target) in mm; no target
-    /// for uncalibrated datasets.
-    pub mean_vs_target_mm: Vec<(f64, Option<f64>)>,
-    pub metrics: Vec<EpochMetrics>,
-    pub eval: Option<eval::EvalReport>,
-    pub check: Option<CheckReport>,
-    pub has_model: bool,
-}
-
-pub fn read_figures(dir: &Path) -> Result<PatientFigures, NetError> {
-    let patient = Patient::read(dir)?;
-    let ds = dir.join("dataset");
-    let dataset = run_stats(&ds).ok();
-    let mean_vs_target_mm = umesh_core::dataset::Manifest::read(&ds)
-        .map(|m| m.accepted().map(|s| (s.mean_displacement_mm, s.target_displacement_mm)).collect())
-        .unwrap_or_default();
-    let model = model_dir(dir);
-    Ok(PatientFigures {
-        dir: dir.to_path_buf(),
-        dataset,
-        mean_vs_target_mm,
-        metrics: read_metrics(&model),
-        eval: read_json(&dir.join("eval.json")).ok(),
-        check: read_json(&dir.join("check").join("register.json")).ok(),
-        has_model: model.join("model.json").exists() && model.join("model.safetensors").exists(),
-        patient,
     })
 }

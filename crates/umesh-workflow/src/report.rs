@@ -1,13 +1,13 @@
 //! `report.html` of a patient folder: one self-contained page (inline SVG, no script, no
 //! external file) with the grid, the dataset, the training, the TRE and the registration check.
 
-use crate::eval::EvalReport;
 use crate::patient::{CheckReport, Patient, Stage};
-use crate::training::EpochMetrics;
 use std::fmt::Write;
 use std::path::Path;
 use umesh_core::dataset::{DatasetStats, Distribution};
-use umesh_core::rgbd::synth::{SynthReport, SynthSettings};
+use umesh_core::synth::{SynthReport, SynthSettings};
+use umesh_net::eval::EvalReport;
+use umesh_net::training::EpochMetrics;
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")

@@ -1,0 +1,15 @@
+//! The one error of the network crate.
+
+#[derive(Debug, thiserror::Error)]
+pub enum NetError {
+    #[error(transparent)]
+    Dataset(#[from] umesh_core::dataset::DatasetError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Io(String),
+    #[error("weights: {0}")]
+    Store(String),
+    #[error("cancelled")]
+    Cancelled,
+}

@@ -1,0 +1,42 @@
+//! The one error of the workflow recipes.
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum WorkflowError {
+    /// An option or setting the user gave is out of range or malformed; the message names it.
+    #[error("{0}")]
+    Option(String),
+    #[error(transparent)]
+    Segmentation(#[from] umesh_core::segmentation::SegmentationError),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+}
+
+impl WorkflowError {
+    pub(crate) fn option_message(message: String) -> Self {
+        Self::Option(message)
+    }
+
+    pub(crate) fn option(option: impl std::fmt::Display, reason: &str) -> Self {
+        Self::Option(format!("{option}: {reason}"))
+    }
+}
+
+/// `ensure!(condition, "format", args)`: an option error unless the condition holds.
+macro_rules! ensure {
+    ($cond:expr, $($fmt:tt)+) => {
+        if !$cond {
+            return Err($crate::WorkflowError::Option(format!($($fmt)+)));
+        }
+    };
+}
+
+/// `bail!("format", args)`: an option error.
+macro_rules! bail {
+    ($($fmt:tt)+) => {
+        return Err($crate::WorkflowError::Option(format!($($fmt)+)))
+    };
+}
+
+pub(crate) use {bail, ensure};

@@ -1,0 +1,17 @@
+//! One patient from segmentation to checked model: grid, dataset (the paper's protocol),
+//! training, evaluation and a synthetic-recording registration check, as one resumable job.
+//!
+//! The patient folder holds `patient.json` (inputs and their hashes, every setting, stage
+//! status and timings), `segmentation.nii.gz` (the label volume the job used, so later
+//! commands need not find the original files), `dataset/`, `model/`, `eval.json`,
+//! `check/recording/` and `check/register.json`, and `report.html`. Every stage resumes from
+//! what is on disk; a folder made from other inputs or settings is refused.
+
+mod folder;
+mod prepare;
+
+pub use folder::{
+    CheckReport, FORMAT, FORMAT_VERSION, InputFile, Patient, PatientFigures, PrepareReport, PrepareSettings, Stage, StageRecord,
+    SummaryRecord, ct_path, hash_inputs, model_dir, read_figures, read_metrics, same_as_stored, settings_differences,
+};
+pub use prepare::{registration_check, run_prepare};

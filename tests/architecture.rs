@@ -466,7 +466,7 @@ fn the_cycle_check_finds_a_cycle_added_through_a_use_group_and_super() {
     assert_eq!(folder_cycles(&cyclic), vec!["made-up: folders a <-> b".to_string()]);
 }
 
-/// Every source or script file that README.md and ARCHITECTURE.md name in backticks exists (as
+/// Every source or script file that README.md, ARCHITECTURE.md and docs/ name in backticks exists (as
 /// a path from the repository, or from one of the crates' `src/`), and every `umesh_*::module`
 /// path they name starts with a module of that crate.
 #[test]
@@ -475,7 +475,14 @@ fn every_file_and_module_the_docs_name_exists() {
     let bases = ["", "src", "crates/umesh-core/src", "crates/umesh-net/src", "crates/umesh-workflow/src"];
     let crates = crates();
     let mut missing = Vec::new();
-    for doc in ["README.md", "ARCHITECTURE.md"] {
+    let mut docs = vec!["README.md".to_string(), "ARCHITECTURE.md".to_string()];
+    for entry in std::fs::read_dir(root.join("docs")).expect("read docs/") {
+        let name = entry.expect("a docs/ entry").file_name().to_string_lossy().into_owned();
+        if name.ends_with(".md") {
+            docs.push(format!("docs/{name}"));
+        }
+    }
+    for doc in &docs {
         let text = std::fs::read_to_string(root.join(doc)).expect("read the doc");
         for (k, span) in text.split('`').enumerate() {
             if k % 2 == 0 {

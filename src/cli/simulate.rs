@@ -91,7 +91,8 @@ pub struct Args {
     pub random_forces: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Scale of the random forces: the small-strain displacement they aim at (mm).
+    /// With random forces: the mean displacement of the free nodes a linear solve of them gives
+    /// (mm); each is spread over the datasets' probe contact radius and the set scaled to it.
     #[arg(long, default_value_t = 3.0)]
     pub target_displacement_mm: f64,
     /// Output folder: displacement.npz, result.vtu, deformed structure meshes, history.json.
@@ -158,20 +159,38 @@ pub fn run(a: Args) -> Result<()> {
         None => run_grid(&seg, &a.grid.settings(), &umesh_core::Progress::none(), &cancel)?.grid,
     };
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces = match &a.forces {
+    let mut settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces: Vec::new() };
+    let mut calibration = None;
+    settings.forces = match &a.forces {
         Some(f) => read_forces(f)?,
-        None => loads::visible_random_forces(
-            &organ,
-            &grid,
-            &material,
-            &ForceSettings::energy_scale(a.random_forces, a.target_displacement_mm),
-            &Default::default(),
-            a.seed,
-        )
-        .map_err(anyhow::Error::msg)?,
+        None => {
+            let held = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
+            let (forces, scale) = umesh_core::simulate::calibrated_random_forces(
+                &grid,
+                &organ,
+                &held,
+                &settings,
+                a.random_forces,
+                a.target_displacement_mm,
+                a.seed,
+                &cancel,
+            )
+            .context("--random-forces/--target-displacement-mm")?;
+            calibration = Some(scale);
+            forces
+        }
     };
-    let settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces };
     let bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
+    if let Some(s) = calibration
+        && !a.json
+    {
+        eprintln!(
+            "{} random forces on the visible surface, spread over {} mm contacts and scaled x{s:.3e} for a {} mm mean linear displacement of the free nodes",
+            a.random_forces,
+            ForceSettings::default().patch_radius_mm,
+            a.target_displacement_mm
+        );
+    }
     if let Some(p) = &a.export_problem {
         write_problem(p, &grid, &material, &bc, settings.solver.stabilization)?;
     }

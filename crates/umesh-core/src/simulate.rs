@@ -3,7 +3,8 @@
 use crate::fem::solver::{FeSolver, FemError, Solution, SolveMethod, SolverSettings};
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::ImmersedGrid;
-use crate::loads::{PointForce, apply_forces};
+use crate::loads::{ForceSettings, PointForce, apply_forces};
+use crate::mesh::TriMesh;
 use crate::progress::{Cancel, Progress};
 use crate::volume::Volume;
 
@@ -83,4 +84,35 @@ pub fn solve_bc(
     }
     let mut solver = FeSolver::new(grid, settings.material, &constrained, settings.solver.clone())?;
     Ok(solver.solve(bc, settings.method, progress, cancel)?)
+}
+
+/// `probes` random forces on the visible part of `surface`, loaded as dataset samples are: each
+/// spread over the default probe contact radius, then scaled so that one linear solve moves the
+/// free nodes by `target_mm` on average. Returns the forces (already spread) and the factor the
+/// linear solve asked for. (Unscaled, a few concentrated forces moved the phantom by ten times
+/// the asked displacement and inverted its boundary cells.)
+pub fn calibrated_random_forces(
+    grid: &ImmersedGrid,
+    surface: &TriMesh,
+    bc: &BoundaryConditions,
+    settings: &SimulationSettings,
+    probes: usize,
+    target_mm: f64,
+    seed: u64,
+    cancel: &Cancel,
+) -> Result<(Vec<PointForce>, f64), SimulateError> {
+    if !(target_mm > 0.0 && target_mm <= 1000.0) {
+        return Err(SimulateError::Boundary(format!("target displacement {target_mm} mm: must lie in (0, 1000]")));
+    }
+    let force_settings = ForceSettings { probes, target_displacement_mm: target_mm, ..ForceSettings::default() };
+    let drawn = crate::loads::visible_random_forces(surface, grid, &settings.material, &force_settings, &Default::default(), seed)
+        .map_err(SimulateError::Boundary)?;
+    let mut forces = crate::loads::spread_forces(surface, &drawn, force_settings.patch_radius_mm);
+    let mut trial = bc.clone();
+    apply_forces(grid, &mut trial, &forces).map_err(SimulateError::Boundary)?;
+    let linear = SimulationSettings { method: SolveMethod::Linear, ..settings.clone() };
+    let lin = solve_bc(grid, &trial, &linear, &Progress::none(), cancel)?;
+    let mean = force_settings.mean_over.mean_mm(&lin.displacement_mm, &bc.fixed);
+    let scale = crate::loads::scale_forces(&mut forces, mean, target_mm).map_err(SimulateError::Boundary)?;
+    Ok((forces, scale))
 }

@@ -375,6 +375,43 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     assert!(!ok && err.contains("no intrinsics") && err.contains("synth-rec"), "{err}");
 }
 
+/// `register --compare-fe` wrote the FE overlays into the input recording's folder (a shadowed
+/// name): they belong in --out, and the recording is read, never written.
+#[test]
+fn register_compare_fe_writes_its_overlays_into_out_and_leaves_the_recording_as_it_was() {
+    let rec = tmp("fe-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--out", rec.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    let listing = |d: &std::path::Path| {
+        let mut v: Vec<String> = walk(d).iter().map(|p| p.strip_prefix(d).unwrap().display().to_string()).collect();
+        v.sort();
+        v
+    };
+    let before = listing(&rec);
+    let reg = tmp("fe-reg");
+    let (ok, out, err) =
+        umesh(&["register", "--recording", rec.to_str().unwrap(), "--compare-fe", "--json", "--out", reg.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(json(&out)["fe"].is_object(), "{out}");
+    assert_eq!(listing(&rec), before, "the recording's folder changed");
+    assert!(reg.join("overlay_fe/00001.png").exists() && reg.join("overlay/00001.png").exists());
+}
+
+/// Every file under a folder.
+fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
 #[test]
 fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_are_used_whole() {
     // A tracked, moving camera; the instrument already pushing at the first frame (70 % of the

@@ -154,8 +154,8 @@ pub fn run(a: Args) -> Result<()> {
     let dir = staged.path().to_path_buf();
     let report = register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
     let fe_report = if a.compare_fe {
-        let Some(dir) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
-        let (mut src, _, _) = open_source(&Args { recording: Some(dir.clone()), source: None, ..a.clone() })?;
+        let Some(recording) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
+        let (mut src, _, _) = open_source(&Args { recording: Some(recording.clone()), source: None, ..a.clone() })?;
         let mut fe = FeDisplacementModel::new(&ctx, config.material).map_err(anyhow::Error::msg)?;
         if a.fe_converged {
             fe = fe.converged(0.01, 60);
@@ -282,11 +282,11 @@ fn register_with(
     message: &str,
 ) -> Result<RegisterReport> {
     let (pb, progress) = super::output::progress_bar(message);
-    let mut write = |o: &umesh_core::register::pipeline::FrameOutput| -> Result<(), String> {
+    let mut write = |o: &umesh_core::register::pipeline::FrameOutput| -> Result<(), umesh_core::Invalid> {
         if let Some(img) = &o.overlay {
             let p = overlay_dir.join(format!("{:05}.png", o.report.frame));
             let bytes = img.encode_png()?;
-            umesh_core::write_atomic(&p, &bytes).map_err(|e| format!("{}: {e}", p.display()))?;
+            umesh_core::write_atomic(&p, &bytes).map_err(|e| umesh_core::Invalid(format!("{}: {e}", p.display())))?;
         }
         Ok(())
     };

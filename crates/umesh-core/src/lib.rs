@@ -5,6 +5,7 @@
 //! y: anterior, z: superior), as NIfTI's scanner frame.
 
 pub mod dataset;
+mod error;
 pub mod fem;
 pub mod grid;
 pub mod loads;
@@ -26,6 +27,7 @@ pub mod visible;
 pub mod volume;
 pub mod vtk;
 
+pub use error::{Invalid, ModelError};
 pub use progress::{Cancel, Progress};
 
 /// A folder replaced whole or not at all: a command writes into `path()`, a staging folder

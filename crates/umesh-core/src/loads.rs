@@ -100,30 +100,33 @@ impl ForceSettings {
         }
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.probes == 0 || self.probes > 100_000 {
-            return Err(format!("{} probes: between 1 and 100000", self.probes));
+            return Err(crate::Invalid(format!("{} probes: between 1 and 100000", self.probes)));
         }
         if !(self.target_displacement_mm > 0.0 && self.target_displacement_mm < 1e4) {
-            return Err(format!("target displacement {} mm: must be positive and below 10 m", self.target_displacement_mm));
+            return Err(crate::Invalid(format!("target displacement {} mm: must be positive and below 10 m", self.target_displacement_mm)));
         }
         if !(self.direction_spread >= 0.0 && self.direction_spread.is_finite()) {
-            return Err(format!("direction spread {}: must be finite and >= 0", self.direction_spread));
+            return Err(crate::Invalid(format!("direction spread {}: must be finite and >= 0", self.direction_spread)));
         }
         if !(0.0..1.0).contains(&self.target_spread) {
-            return Err(format!("target spread {}: must lie in [0, 1)", self.target_spread));
+            return Err(crate::Invalid(format!("target spread {}: must lie in [0, 1)", self.target_spread)));
         }
         if !(self.patch_radius_mm >= 0.0 && self.patch_radius_mm <= 100.0) {
-            return Err(format!("probe contact radius {} mm: between 0 and 100 mm", self.patch_radius_mm));
+            return Err(crate::Invalid(format!("probe contact radius {} mm: between 0 and 100 mm", self.patch_radius_mm)));
         }
         if self.families.is_empty() {
-            return Err("no load family: give at least one of pressing, instrument, grasp, gravity".into());
+            return Err(crate::Invalid::from("no load family: give at least one of pressing, instrument, grasp, gravity"));
         }
         if self.families.iter().enumerate().any(|(i, f)| self.families[..i].contains(f)) {
-            return Err(format!("load families {:?}: each at most once", self.families.iter().map(|f| f.name()).collect::<Vec<_>>()));
+            return Err(crate::Invalid(format!(
+                "load families {:?}: each at most once",
+                self.families.iter().map(|f| f.name()).collect::<Vec<_>>()
+            )));
         }
         if self.calibration == LoadCalibration::EnergyScale && self.mixes_families() {
-            return Err("load families other than pressing need the mean-displacement calibration".into());
+            return Err(crate::Invalid::from("load families other than pressing need the mean-displacement calibration"));
         }
         Ok(())
     }
@@ -146,7 +149,7 @@ impl ForceSettings {
     }
 
     /// Parse a comma-separated list of families, or `mixture` (all four).
-    pub fn parse_families(s: &str) -> Result<Vec<LoadFamily>, String> {
+    pub fn parse_families(s: &str) -> Result<Vec<LoadFamily>, crate::Invalid> {
         if s.trim() == "mixture" {
             return Ok(LoadFamily::ALL.to_vec());
         }
@@ -162,9 +165,9 @@ impl ForceSettings {
 
 /// Scale forces in place so that their small-strain mean nodal displacement, `linear_mean_mm`
 /// for the forces as given, becomes `target_mm`. Errors when the pattern moves nothing.
-pub fn scale_forces(forces: &mut [PointForce], linear_mean_mm: f64, target_mm: f64) -> Result<f64, String> {
+pub fn scale_forces(forces: &mut [PointForce], linear_mean_mm: f64, target_mm: f64) -> Result<f64, crate::Invalid> {
     if !(linear_mean_mm > 1e-12) || !linear_mean_mm.is_finite() {
-        return Err(format!("the force pattern displaces the organ by {linear_mean_mm:e} mm: nothing to calibrate"));
+        return Err(crate::Invalid(format!("the force pattern displaces the organ by {linear_mean_mm:e} mm: nothing to calibrate")));
     }
     let s = target_mm / linear_mean_mm;
     for f in forces {
@@ -327,7 +330,7 @@ pub fn spread_forces(surface: &TriMesh, forces: &[PointForce], radius_mm: f64) -
 }
 
 /// Apply point forces to boundary conditions.
-pub fn apply_forces(grid: &ImmersedGrid, bc: &mut BoundaryConditions, forces: &[PointForce]) -> Result<(), String> {
+pub fn apply_forces(grid: &ImmersedGrid, bc: &mut BoundaryConditions, forces: &[PointForce]) -> Result<(), crate::Invalid> {
     for f in forces {
         bc.add_point_force(grid, &Vector3::from(f.point_mm), &Vector3::from(f.force_n))?;
     }
@@ -354,10 +357,10 @@ pub fn visible_random_forces(
     settings: &ForceSettings,
     visibility: &crate::visible::VisibilitySettings,
     seed: u64,
-) -> Result<Vec<PointForce>, String> {
+) -> Result<Vec<PointForce>, crate::Invalid> {
     let vis = crate::visible::visible_surface(surface, visibility)?;
     if vis.visible_area_mm2 <= 0.0 {
-        return Err("the camera sees none of the organ surface".into());
+        return Err(crate::Invalid::from("the camera sees none of the organ surface"));
     }
     let mut rng = SplitMix64(seed);
     let pts = crate::visible::sample_points(surface, &vis.visible, settings.probes, &mut rng);
@@ -393,11 +396,11 @@ impl LoadFamily {
         }
     }
 
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, crate::Invalid> {
         Self::ALL
             .into_iter()
             .find(|f| f.name() == s)
-            .ok_or_else(|| format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", ")))
+            .ok_or_else(|| crate::Invalid(format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", "))))
     }
 
     /// The share of the sample's target (the mean displacement of the free organ) this family is

@@ -28,9 +28,9 @@ fn parse_file(path: &Path) -> Result<TriMesh, MeshIoError> {
     let bytes = std::fs::read(path).map_err(|source| MeshIoError::Io { path: path.into(), source })?;
     let parse = |reason: String| MeshIoError::Parse { path: path.into(), reason };
     let mesh = match ext(path).as_str() {
-        "obj" => parse_obj(&String::from_utf8_lossy(&bytes)).map_err(parse)?,
-        "stl" => parse_stl(&bytes).map_err(parse)?,
-        "ply" => parse_ply(&bytes).map_err(parse)?,
+        "obj" => parse_obj(&String::from_utf8_lossy(&bytes)).map_err(|e| parse(e.into()))?,
+        "stl" => parse_stl(&bytes).map_err(|e| parse(e.into()))?,
+        "ply" => parse_ply(&bytes).map_err(|e| parse(e.into()))?,
         _ => return Err(MeshIoError::UnknownFormat { path: path.into() }),
     };
     if mesh.positions.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
@@ -78,7 +78,7 @@ pub fn read_closed_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
     Ok(mesh)
 }
 
-fn parse_obj(text: &str) -> Result<TriMesh, String> {
+fn parse_obj(text: &str) -> Result<TriMesh, crate::Invalid> {
     let mut m = TriMesh::default();
     for (ln, line) in text.lines().enumerate() {
         let mut it = line.split_whitespace();
@@ -90,7 +90,7 @@ fn parse_obj(text: &str) -> Result<TriMesh, String> {
                     .collect::<Result<_, _>>()
                     .map_err(|e| format!("line {}: bad vertex: {e}", ln + 1))?;
                 if v.len() < 3 {
-                    return Err(format!("line {}: a vertex needs 3 coordinates", ln + 1));
+                    return Err(crate::Invalid(format!("line {}: a vertex needs 3 coordinates", ln + 1)));
                 }
                 m.positions.push(Vector3::new(v[0], v[1], v[2]));
             }
@@ -102,13 +102,13 @@ fn parse_obj(text: &str) -> Result<TriMesh, String> {
                             s.split('/').next().unwrap_or("").parse().map_err(|_| format!("line {}: bad face index {s:?}", ln + 1))?;
                         let i = if i < 0 { n + i } else { i - 1 };
                         if i < 0 || i >= n {
-                            return Err(format!("line {}: face index {s} out of range", ln + 1));
+                            return Err(crate::Invalid(format!("line {}: face index {s} out of range", ln + 1)));
                         }
                         Ok(i as u32)
                     })
-                    .collect::<Result<_, String>>()?;
+                    .collect::<Result<_, crate::Invalid>>()?;
                 if idx.len() < 3 {
-                    return Err(format!("line {}: a face needs at least 3 vertices", ln + 1));
+                    return Err(crate::Invalid(format!("line {}: a face needs at least 3 vertices", ln + 1)));
                 }
                 for k in 1..idx.len() - 1 {
                     m.triangles.push([idx[0], idx[k], idx[k + 1]]);
@@ -136,7 +136,7 @@ fn weld(tris: Vec<[Vector3<f64>; 3]>) -> TriMesh {
     m
 }
 
-fn parse_stl(bytes: &[u8]) -> Result<TriMesh, String> {
+fn parse_stl(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
     let is_binary = bytes.len() >= 84 && {
         let n = u32::from_le_bytes(bytes[80..84].try_into().unwrap_or_default()) as usize;
         n.checked_mul(50).and_then(|x| x.checked_add(84)) == Some(bytes.len())
@@ -154,7 +154,7 @@ fn parse_stl(bytes: &[u8]) -> Result<TriMesh, String> {
     }
     let text = std::str::from_utf8(bytes).map_err(|_| "neither binary STL (size mismatch) nor ASCII STL".to_string())?;
     if !text.trim_start().starts_with("solid") {
-        return Err("neither binary STL (size mismatch) nor ASCII STL".into());
+        return Err(crate::Invalid::from("neither binary STL (size mismatch) nor ASCII STL"));
     }
     let mut verts = Vec::new();
     for line in text.lines() {
@@ -162,18 +162,18 @@ fn parse_stl(bytes: &[u8]) -> Result<TriMesh, String> {
         if it.next() == Some("vertex") {
             let v: Vec<f64> = it.map(|s| s.parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("bad vertex: {e}"))?;
             if v.len() != 3 {
-                return Err("a vertex needs 3 coordinates".into());
+                return Err(crate::Invalid::from("a vertex needs 3 coordinates"));
             }
             verts.push(Vector3::new(v[0], v[1], v[2]));
         }
     }
     if verts.len() % 3 != 0 {
-        return Err("the number of vertices is not a multiple of 3".into());
+        return Err(crate::Invalid::from("the number of vertices is not a multiple of 3"));
     }
     Ok(weld(verts.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()))
 }
 
-fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
+fn parse_ply(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
     let end = bytes.windows(10).position(|w| w == b"end_header").ok_or("no end_header")?;
     let header = String::from_utf8_lossy(&bytes[..end]);
     let mut body_start = end + 10;
@@ -207,23 +207,23 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
         }
     }
     if format.is_empty() {
-        return Err("no format line".into());
+        return Err(crate::Invalid::from("no format line"));
     }
-    let size = |t: &str| -> Result<usize, String> {
+    let size = |t: &str| -> Result<usize, crate::Invalid> {
         Ok(match t {
             "char" | "uchar" | "int8" | "uint8" => 1,
             "short" | "ushort" | "int16" | "uint16" => 2,
             "int" | "uint" | "float" | "int32" | "uint32" | "float32" => 4,
             "double" | "float64" => 8,
-            _ => return Err(format!("unknown property type {t}")),
+            _ => return Err(crate::Invalid(format!("unknown property type {t}"))),
         })
     };
     let body = &bytes[body_start.min(bytes.len())..];
     let mut tokens = std::str::from_utf8(if format == "ascii" { body } else { b"" }).map_err(|_| "bad ascii body")?.split_whitespace();
     let mut off = 0usize;
-    let mut read = |t: &str| -> Result<f64, String> {
+    let mut read = |t: &str| -> Result<f64, crate::Invalid> {
         if format == "ascii" {
-            return tokens.next().ok_or("the file ends early")?.parse::<f64>().map_err(|e| e.to_string());
+            return Ok(tokens.next().ok_or("the file ends early")?.parse::<f64>().map_err(|e| e.to_string())?);
         }
         let n = size(t)?;
         let b = body.get(off..off + n).ok_or("the file ends early")?;
@@ -247,7 +247,7 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
     let mut m = TriMesh::default();
     for (name, count, props) in &elements {
         if *count > 100_000_000 {
-            return Err(format!("element {name} claims {count} items"));
+            return Err(crate::Invalid(format!("element {name} claims {count} items")));
         }
         for _ in 0..*count {
             let mut xyz = [0.0; 3];
@@ -255,7 +255,7 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, String> {
                 if let Some(ct) = list {
                     let n = read(ct)? as usize;
                     if n > 1000 {
-                        return Err("a face with more than 1000 vertices".into());
+                        return Err(crate::Invalid::from("a face with more than 1000 vertices"));
                     }
                     let idx: Vec<u32> = (0..n).map(|_| read(ty).map(|v| v as u32)).collect::<Result<_, _>>()?;
                     if name == "face" && (pname == "vertex_indices" || pname == "vertex_index") && n >= 3 {

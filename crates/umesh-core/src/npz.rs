@@ -121,22 +121,22 @@ impl Array {
     }
 
     /// Parse a `.npy` (versions 1-3, C or Fortran order, either byte order).
-    pub fn from_npy(bytes: &[u8]) -> Result<Self, String> {
+    pub fn from_npy(bytes: &[u8]) -> Result<Self, crate::Invalid> {
         if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-            return Err("missing the NPY magic".into());
+            return Err(crate::Invalid::from("missing the NPY magic"));
         }
         let (hlen, hstart) = match bytes[6] {
             1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
             2 | 3 => {
                 if bytes.len() < 12 {
-                    return Err("truncated header".into());
+                    return Err(crate::Invalid::from("truncated header"));
                 }
                 (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
             }
-            v => return Err(format!("unsupported NPY version {v}")),
+            v => return Err(crate::Invalid(format!("unsupported NPY version {v}"))),
         };
         let header = std::str::from_utf8(bytes.get(hstart..hstart + hlen).ok_or("truncated header")?).map_err(|_| "header is not text")?;
-        let field = |key: &str| -> Result<&str, String> {
+        let field = |key: &str| -> Result<&str, crate::Invalid> {
             let i = header.find(&format!("'{key}'")).ok_or(format!("header lacks '{key}'"))?;
             Ok(header[i + key.len() + 2..].trim_start().trim_start_matches(':').trim_start())
         };
@@ -163,11 +163,11 @@ impl Array {
             "f8" | "i8" | "u8" => 8,
             "u1" | "i1" | "b1" => 1,
             "i2" | "u2" => 2,
-            _ => return Err(format!("unsupported dtype {descr}")),
+            _ => return Err(crate::Invalid(format!("unsupported dtype {descr}"))),
         };
         let need = n.checked_mul(size).ok_or("size overflows")?;
         if body.len() < need {
-            return Err(format!("truncated data: {} bytes for {need}", body.len()));
+            return Err(crate::Invalid(format!("truncated data: {} bytes for {need}", body.len())));
         }
         macro_rules! get {
             ($t:ty, $s:expr) => {
@@ -287,7 +287,11 @@ impl Npz {
             }
             let mut buf = Vec::with_capacity(f.size() as usize);
             f.read_to_end(&mut buf).map_err(|e| fmt(format!("entry {name}: {e}")))?;
-            let arr = Array::from_npy(&buf).map_err(|reason| NpzError::BadArray { path: path.into(), name: name.clone(), reason })?;
+            let arr = Array::from_npy(&buf).map_err(|reason| NpzError::BadArray {
+                path: path.into(),
+                name: name.clone(),
+                reason: reason.into(),
+            })?;
             arrays.insert(name, arr);
         }
         Ok(Self { path: path.into(), arrays })

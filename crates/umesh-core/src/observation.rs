@@ -34,11 +34,11 @@ pub enum Encoding {
 }
 
 impl Encoding {
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, crate::Invalid> {
         match s {
             "corner" => Ok(Encoding::Corner),
             "nearest" => Ok(Encoding::Nearest),
-            other => Err(format!("unknown observation encoding {other:?}: corner or nearest")),
+            other => Err(crate::Invalid(format!("unknown observation encoding {other:?}: corner or nearest"))),
         }
     }
     pub fn name(self) -> &'static str {
@@ -67,12 +67,12 @@ impl Default for ObservationSettings {
 impl ObservationSettings {
     /// Settings whose work and memory stay bounded (a band of 1e30 mm made the encoder grow
     /// to tens of gigabytes).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if !(self.band_mm.is_finite() && self.band_mm > 0.0 && self.band_mm <= 200.0) {
-            return Err(format!("observation band {} mm: above 0 and at most 200 mm", self.band_mm));
+            return Err(crate::Invalid(format!("observation band {} mm: above 0 and at most 200 mm", self.band_mm)));
         }
         if !(self.rest_density_per_mm2.is_finite() && self.rest_density_per_mm2 > 0.0 && self.rest_density_per_mm2 <= 10.0) {
-            return Err(format!("rest sampling density {} per mm^2: above 0 and at most 10", self.rest_density_per_mm2));
+            return Err(crate::Invalid(format!("rest sampling density {} per mm^2: above 0 and at most 10", self.rest_density_per_mm2)));
         }
         Ok(())
     }
@@ -105,12 +105,12 @@ pub struct ObservationStats {
 }
 
 impl Observer {
-    pub fn new(grid: &ImmersedGrid, rest_surface: &TriMesh, settings: ObservationSettings) -> Result<Self, String> {
+    pub fn new(grid: &ImmersedGrid, rest_surface: &TriMesh, settings: ObservationSettings) -> Result<Self, crate::Invalid> {
         if !(settings.band_mm > 0.0 && settings.band_mm.is_finite()) {
-            return Err(format!("observation band {} mm: must be positive", settings.band_mm));
+            return Err(crate::Invalid(format!("observation band {} mm: must be positive", settings.band_mm)));
         }
         if !(settings.rest_density_per_mm2 > 0.0 && settings.rest_density_per_mm2.is_finite()) {
-            return Err(format!("rest sampling density {} per mm^2: must be positive", settings.rest_density_per_mm2));
+            return Err(crate::Invalid(format!("rest sampling density {} per mm^2: must be positive", settings.rest_density_per_mm2)));
         }
         let shape = grid.padded_shape();
         let cells = shape.iter().product::<usize>();
@@ -129,7 +129,7 @@ impl Observer {
         };
         o.rest_points = dense_surface_points(rest_surface, o.settings.rest_density_per_mm2);
         if o.rest_points.is_empty() {
-            return Err("the rest surface has no triangle".into());
+            return Err(crate::Invalid::from("the rest surface has no triangle"));
         }
         if o.settings.encoding == Encoding::Corner {
             let pts: Vec<Vector3<f64>> = o.rest_points.iter().map(|p| p.0).collect();
@@ -424,16 +424,22 @@ impl Default for ViewSettings {
 }
 
 impl ViewSettings {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         let finite = [self.jitter_mm, self.jitter_deg, self.min_fraction, self.max_fraction, self.noise_mm, self.dropout];
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(format!("camera view settings must be finite and non-negative: {self:?}"));
+            return Err(crate::Invalid(format!("camera view settings must be finite and non-negative: {self:?}")));
         }
         if !(self.min_fraction > 0.0 && self.min_fraction <= self.max_fraction && self.max_fraction <= 1.0) {
-            return Err(format!("seen fraction range {}..{}: needs 0 < min <= max <= 1", self.min_fraction, self.max_fraction));
+            return Err(crate::Invalid(format!(
+                "seen fraction range {}..{}: needs 0 < min <= max <= 1",
+                self.min_fraction, self.max_fraction
+            )));
         }
         if self.dropout >= 1.0 || self.points == 0 || self.points > 1_000_000 {
-            return Err(format!("{} points with dropout {}: needs 1..1e6 points and dropout below 1", self.points, self.dropout));
+            return Err(crate::Invalid(format!(
+                "{} points with dropout {}: needs 1..1e6 points and dropout below 1",
+                self.points, self.dropout
+            )));
         }
         Ok(())
     }
@@ -445,7 +451,7 @@ pub fn simulated_view(
     camera: &crate::visible::Camera,
     settings: &ViewSettings,
     rng: &mut crate::phantom::SplitMix64,
-) -> Result<Vec<Vector3<f64>>, String> {
+) -> Result<Vec<Vector3<f64>>, crate::Invalid> {
     let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
     let unit = |rng_f: &mut dyn FnMut(f64, f64) -> f64| loop {
         let v = Vector3::new(rng_f(-1.0, 1.0), rng_f(-1.0, 1.0), rng_f(-1.0, 1.0));

@@ -259,7 +259,7 @@ pub struct AssemblyNotes {
 /// The mask files of a folder of per-structure NIfTI masks (TotalSegmentator's default
 /// output): `liver.nii.gz` is the organ; the vena cava and hepatic veins anchor it; portal
 /// vein, hepatic vessels and tumours are structures. Other files are listed as ignored.
-pub fn mask_folder(dir: &Path) -> Result<(Vec<MaskFile>, Vec<String>), SegmentationError> {
+pub fn mask_folder(dir: &Path) -> Result<MaskFolder, SegmentationError> {
     let bad = |reason: String| SegmentationError::Invalid { path: dir.into(), reason };
     let entries = std::fs::read_dir(dir).map_err(|e| bad(format!("cannot list the folder: {e}")))?;
     let mut files = Vec::new();
@@ -285,7 +285,14 @@ pub fn mask_folder(dir: &Path) -> Result<(Vec<MaskFile>, Vec<String>), Segmentat
     if !files.iter().any(|f| f.role == Role::Organ) {
         return Err(bad("no liver.nii.gz (or liver.nii) mask in the folder".into()));
     }
-    Ok((files, ignored))
+    Ok(MaskFolder { files, ignored })
+}
+
+/// The masks found in a folder, and the names of the files that are none of them.
+#[derive(Clone, Debug)]
+pub struct MaskFolder {
+    pub files: Vec<MaskFile>,
+    pub ignored: Vec<String>,
 }
 
 /// Per-structure binary masks (any non-zero voxel is inside) assembled into one label volume

@@ -48,12 +48,12 @@ pub fn boundary_conditions(
         {
             return Err(SimulateError::Boundary(format!("the fixing label {label} has no voxel")));
         }
-        bc.fix_region(grid, region, mask.as_ref()).map_err(SimulateError::Boundary)?;
+        bc.fix_region(grid, region, mask.as_ref()).map_err(|e| SimulateError::Boundary(e.into()))?;
     }
     if bc.fixed_count() == 0 {
         return Err(SimulateError::Boundary("no node is fixed by the given regions".into()));
     }
-    apply_forces(grid, &mut bc, &settings.forces).map_err(SimulateError::Boundary)?;
+    apply_forces(grid, &mut bc, &settings.forces).map_err(|e| SimulateError::Boundary(e.into()))?;
     Ok(bc)
 }
 
@@ -106,13 +106,13 @@ pub fn calibrated_random_forces(
     }
     let force_settings = ForceSettings { probes, target_displacement_mm: target_mm, ..ForceSettings::default() };
     let drawn = crate::loads::visible_random_forces(surface, grid, &settings.material, &force_settings, &Default::default(), seed)
-        .map_err(SimulateError::Boundary)?;
+        .map_err(|e| SimulateError::Boundary(e.into()))?;
     let mut forces = crate::loads::spread_forces(surface, &drawn, force_settings.patch_radius_mm);
     let mut trial = bc.clone();
-    apply_forces(grid, &mut trial, &forces).map_err(SimulateError::Boundary)?;
+    apply_forces(grid, &mut trial, &forces).map_err(|e| SimulateError::Boundary(e.into()))?;
     let linear = SimulationSettings { method: SolveMethod::Linear, ..settings.clone() };
     let lin = solve_bc(grid, &trial, &linear, &Progress::none(), cancel)?;
     let mean = force_settings.mean_over.mean_mm(&lin.displacement_mm, &bc.fixed);
-    let scale = crate::loads::scale_forces(&mut forces, mean, target_mm).map_err(SimulateError::Boundary)?;
+    let scale = crate::loads::scale_forces(&mut forces, mean, target_mm).map_err(|e| SimulateError::Boundary(e.into()))?;
     Ok((forces, scale))
 }

@@ -312,7 +312,7 @@ pub fn run_rgbd_synth(
         cx: (settings.width as f64 - 1.0) / 2.0,
         cy: (settings.height as f64 - 1.0) / 2.0,
     };
-    k.validate().map_err(bad)?;
+    k.validate().map_err(|e| bad(e.into()))?;
     let finite_in = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
     // A NaN noise made all-zero depth frames that looked like a recording.
     if !finite_in(settings.noise_mm, 0.0, 100.0) {
@@ -418,10 +418,10 @@ pub fn run_rgbd_synth(
     let grid_ref = &ctx.grid;
     let mut full = BoundaryConditions::new(grid_ref.node_count());
     full.fixed = ctx.fixed.clone();
-    ctx.apply_load(&mut full, config, &forces, settings.loads).map_err(bad)?;
+    ctx.apply_load(&mut full, config, &forces, settings.loads).map_err(|e| bad(e.into()))?;
     let rest_surface = ctx.surface.clone();
     let fixed = ctx.fixed.clone();
-    let reg = RegistrationContext::new(ctx, seg).map_err(bad)?;
+    let reg = RegistrationContext::new(ctx, seg).map_err(|e| bad(e.into()))?;
     let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
     let grid = &reg.grid;
     // The truth is solved with a larger budget than the dataset's (a frame must not be

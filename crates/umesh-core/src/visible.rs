@@ -24,7 +24,7 @@ impl Camera {
     /// The laparoscope views by name, from 2.5 organ sizes away: `anterior` (from +y, RAS),
     /// `posterior`, `right` (from +x), `left`, `superior` (from +z), `inferior`, or two of them
     /// joined by `-` for an oblique view (`anterior-inferior`). `lo`, `hi`: the organ's bounds.
-    pub fn named(view: &str, lo: &Vector3<f64>, hi: &Vector3<f64>) -> Result<Self, String> {
+    pub fn named(view: &str, lo: &Vector3<f64>, hi: &Vector3<f64>) -> Result<Self, crate::Invalid> {
         let axis = |name: &str| -> Option<Vector3<f64>> {
             Some(match name {
                 "anterior" => Vector3::y(),
@@ -43,7 +43,7 @@ impl Camera {
             })?;
         }
         if from.norm() < 1e-9 {
-            return Err(format!("camera view {view:?}: opposite directions cancel"));
+            return Err(crate::Invalid(format!("camera view {view:?}: opposite directions cancel")));
         }
         let c = (lo + hi) * 0.5;
         let size = (hi - lo).max().max(1.0);
@@ -101,11 +101,11 @@ impl VisibleSurface {
 }
 
 /// Which triangles of `mesh` the camera sees.
-pub fn visible_surface(mesh: &TriMesh, settings: &VisibilitySettings) -> Result<VisibleSurface, String> {
+pub fn visible_surface(mesh: &TriMesh, settings: &VisibilitySettings) -> Result<VisibleSurface, crate::Invalid> {
     let camera = settings.camera.clone().unwrap_or_else(|| Camera::anterior(mesh));
     let frame = camera.frame().ok_or("the camera direction is zero or not finite")?;
     if !(settings.fov_ok(&camera)) {
-        return Err(format!("field of view {} deg must lie in (0, 170)", camera.fov_deg));
+        return Err(crate::Invalid(format!("field of view {} deg must lie in (0, 170)", camera.fov_deg)));
     }
     let eye = Vector3::from(camera.position_mm);
     let res = settings.resolution.clamp(16, 4096);

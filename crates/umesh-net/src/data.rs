@@ -8,18 +8,18 @@ use umesh_core::observation::{ObservationSettings, Observer};
 
 /// The rest surface stored in a dataset's or model's `grid.npz` (the one the camera views
 /// were sampled on).
-pub fn rest_surface(npz: &Npz) -> Result<TriMesh, String> {
+pub fn rest_surface(npz: &Npz) -> Result<TriMesh, umesh_core::Invalid> {
     let v = match &npz.get("surface_vertices").map_err(|e| e.to_string())?.data {
         ArrayData::F32(v) if v.len() % 3 == 0 => v.clone(),
-        _ => return Err("'surface_vertices' is not float32 [N, 3]".into()),
+        _ => return Err(umesh_core::Invalid::from("'surface_vertices' is not float32 [N, 3]")),
     };
     let t = match &npz.get("surface_triangles").map_err(|e| e.to_string())?.data {
         ArrayData::I64(t) if t.len() % 3 == 0 => t.clone(),
-        _ => return Err("'surface_triangles' is not int64 [M, 3]".into()),
+        _ => return Err(umesh_core::Invalid::from("'surface_triangles' is not int64 [M, 3]")),
     };
     let n = v.len() / 3;
     if t.iter().any(|&i| i < 0 || i as usize >= n) {
-        return Err("'surface_triangles' indexes a vertex that does not exist".into());
+        return Err(umesh_core::Invalid::from("'surface_triangles' indexes a vertex that does not exist"));
     }
     Ok(TriMesh {
         positions: v.chunks_exact(3).map(|p| nalgebra::Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect(),
@@ -56,10 +56,10 @@ impl SampleSet {
         let n = 3 * shape[0] * shape[1] * shape[2];
         let mut observer = match observation {
             Some(o) => {
-                let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
+                let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
                 Some(
                     Observer::new(&grid, &surface, o.clone())
-                        .map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?,
+                        .map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?,
                 )
             }
             None => None,
@@ -161,7 +161,7 @@ impl ViewRefresher {
     pub fn new(dir: &std::path::Path, observation: &ObservationSettings) -> Result<Self, DatasetError> {
         let manifest = umesh_core::dataset::Manifest::read(dir)?;
         let npz = umesh_core::dataset::read_grid_npz(dir, &manifest)?;
-        let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e })?;
+        let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
         let camera = manifest.config.visibility.camera.clone().unwrap_or_else(|| umesh_core::visible::Camera::anterior(&surface));
         Ok(Self { surface, camera, view: manifest.config.view.clone(), observation: observation.clone(), seed: manifest.config.seed })
     }
@@ -179,7 +179,7 @@ impl ViewRefresher {
         epoch: usize,
         rest_fraction: f64,
         rest: &mut [bool],
-    ) -> Result<usize, String> {
+    ) -> Result<usize, umesh_core::Invalid> {
         use rayon::prelude::*;
         use umesh_core::phantom::SplitMix64;
         let grid = &set.grid;

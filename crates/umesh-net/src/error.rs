@@ -6,8 +6,8 @@ pub enum NetError {
     Dataset(#[from] umesh_core::dataset::DatasetError),
     #[error("{0}")]
     Invalid(String),
-    #[error("{0}")]
-    Io(String),
+    #[error("{}: {source}", path.display())]
+    Io { path: std::path::PathBuf, source: std::io::Error },
     #[error("weights: {0}")]
     Store(String),
     #[error("cancelled")]

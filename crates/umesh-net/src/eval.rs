@@ -139,6 +139,6 @@ pub fn calibrate_confidence(
 /// Write `reference` into the model folder (atomically).
 pub fn write_confidence(model_dir: &Path, reference: &umesh_core::register::confidence::ConfidenceReference) -> Result<(), NetError> {
     let path = model_dir.join(umesh_core::register::confidence::ConfidenceReference::FILE);
-    let text = serde_json::to_string_pretty(reference).map_err(|e| NetError::Io(e.to_string()))?;
-    umesh_core::write_atomic(&path, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))
+    let text = serde_json::to_string_pretty(reference).map_err(|e| NetError::Invalid(e.to_string()))?;
+    umesh_core::write_atomic(&path, text.as_bytes()).map_err(|e| NetError::Io { path: path.to_path_buf(), source: e })
 }

@@ -89,7 +89,7 @@ pub const MAX_WEIGHT: f32 = 1e4;
 impl FastUNet {
     /// Every weight and bias finite and at most `MAX_WEIGHT` in magnitude (NaN weights give
     /// finite, wrong predictions through the ReLU's `max`, so the output check cannot see them).
-    pub fn check_weights(&self) -> Result<(), String> {
+    pub fn check_weights(&self) -> Result<(), umesh_core::Invalid> {
         let convs = self.down.iter().chain(&self.dec).chain(std::iter::once(&self.bottom)).flat_map(|(a, b)| [a, b]);
         let all = convs
             .flat_map(|c| c.w.iter().chain(&c.b))
@@ -97,14 +97,14 @@ impl FastUNet {
             .chain(self.up.iter().flat_map(|u| u.w.iter().chain(&u.b)));
         for v in all {
             if !(v.is_finite() && v.abs() <= MAX_WEIGHT) {
-                return Err(format!("a weight is {v} (not finite or over {MAX_WEIGHT}): the weights are corrupt"));
+                return Err(umesh_core::Invalid(format!("a weight is {v} (not finite or over {MAX_WEIGHT}): the weights are corrupt")));
             }
         }
         Ok(())
     }
 
     /// The weights of `model`, repacked.
-    pub fn from_model(model: &UNet) -> Result<Self, String> {
+    pub fn from_model(model: &UNet) -> Result<Self, umesh_core::Invalid> {
         let dc = |d: &crate::model::DoubleConv| (conv_of(&d.a), conv_of(&d.b));
         let net = Self {
             down: model.down.iter().map(dc).collect(),
@@ -121,7 +121,7 @@ impl FastUNet {
             && net.head.taps == 1
             && net.up.len() == net.down.len();
         if !ok {
-            return Err("the network's layers are not the U-Net's 3x3x3 convolutions".into());
+            return Err(umesh_core::Invalid::from("the network's layers are not the U-Net's 3x3x3 convolutions"));
         }
         Ok(Self { in_channels, out_channels, ..net })
     }

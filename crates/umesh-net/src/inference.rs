@@ -54,7 +54,7 @@ impl Predictor {
         if let Some(f) = &p.fast {
             f.check_weights().map_err(|e| NetError::Invalid(format!("{}: {e}", dir.join(file).display())))?;
         }
-        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir).map_err(NetError::Invalid)?;
+        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir).map_err(|e| NetError::Invalid(e.into()))?;
         Ok(p)
     }
 
@@ -71,7 +71,7 @@ impl Predictor {
     /// returned slice is reused by the next call (no per-frame allocation on our side).
     pub fn predict(&mut self, u_s: &[f32], shape: [usize; 3]) -> Result<&[f32], NetError> {
         let c = self.info.config.in_channels;
-        self.info.config.check_shape([1, c, shape[0], shape[1], shape[2]]).map_err(NetError::Invalid)?;
+        self.info.config.check_shape([1, c, shape[0], shape[1], shape[2]]).map_err(|e| NetError::Invalid(e.into()))?;
         let n = c * shape[0] * shape[1] * shape[2];
         if u_s.len() != n {
             return Err(NetError::Invalid(format!("the input holds {} values, the grid {shape:?} x {c} needs {n}", u_s.len())));
@@ -111,9 +111,9 @@ impl umesh_core::register::pipeline::DisplacementModel for Predictor {
     fn observation(&self) -> Option<umesh_core::observation::ObservationSettings> {
         self.info.settings.observation.clone()
     }
-    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String> {
+    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), umesh_core::ModelError> {
         let shape = self.info.padded_shape;
-        let y = Predictor::predict(self, u_s, shape).map_err(|e| e.to_string())?;
+        let y = Predictor::predict(self, u_s, shape)?;
         out.clear();
         out.extend_from_slice(y);
         Ok(())
@@ -138,7 +138,9 @@ impl InputEncoder {
         rest_surface: &umesh_core::mesh::TriMesh,
     ) -> Result<Self, NetError> {
         let observer = match &info.settings.observation {
-            Some(o) => Some(umesh_core::observation::Observer::new(grid, rest_surface, o.clone()).map_err(NetError::Invalid)?),
+            Some(o) => {
+                Some(umesh_core::observation::Observer::new(grid, rest_surface, o.clone()).map_err(|e| NetError::Invalid(e.into()))?)
+            }
             None => None,
         };
         Ok(Self { observer })

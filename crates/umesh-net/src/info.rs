@@ -97,7 +97,7 @@ impl ModelInfo {
 
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("model.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })?;
         let info: Self =
             serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))?;
         info.validate().map_err(|e| NetError::Invalid(format!("{}: {e}", p.display())))?;
@@ -107,16 +107,16 @@ impl ModelInfo {
     /// The one check of a model description, wherever a model is loaded (`eval`, `register`,
     /// the app's rehearsal, QA and AR view, `prepare`'s check): normalisation, grid size and
     /// observation settings finite and within bounds.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), umesh_core::Invalid> {
         let n = &self.normalization;
         for (name, v) in [("input_scale_mm", n.input_scale_mm), ("output_scale_mm", n.output_scale_mm)] {
             if !(v.is_finite() && (1e-6..=1e6).contains(&v)) {
-                return Err(format!("normalization {name} = {v}: must lie in [1e-6, 1e6] mm"));
+                return Err(umesh_core::Invalid(format!("normalization {name} = {v}: must lie in [1e-6, 1e6] mm")));
             }
         }
         let cells = self.padded_shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
         if self.padded_shape.contains(&0) || cells.is_none_or(|c| c > 1 << 26) {
-            return Err(format!("padded grid {:?}: empty or over 2^26 cells", self.padded_shape));
+            return Err(umesh_core::Invalid(format!("padded grid {:?}: empty or over 2^26 cells", self.padded_shape)));
         }
         if let Some(o) = &self.settings.observation {
             o.validate()?;
@@ -126,6 +126,6 @@ impl ModelInfo {
     pub fn write(&self, dir: &Path) -> Result<(), NetError> {
         let p = dir.join("model.json");
         let text = serde_json::to_string_pretty(self).map_err(|e| NetError::Invalid(e.to_string()))?;
-        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))
+        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })
     }
 }

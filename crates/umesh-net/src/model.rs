@@ -56,18 +56,18 @@ impl UNetConfig {
     }
 
     /// Check an input shape [B, C, X, Y, Z]; the error says what is wrong.
-    pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), String> {
+    pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), umesh_core::Invalid> {
         let m = 1usize << self.steps;
         if shape[1] != self.in_channels {
-            return Err(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels));
+            return Err(umesh_core::Invalid(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels)));
         }
         if let Some(a) = (2..5).find(|&a| shape[a] == 0 || !shape[a].is_multiple_of(m)) {
-            return Err(format!(
+            return Err(umesh_core::Invalid(format!(
                 "the grid {:?} is not divisible by 2^{} = {m} along axis {} (pad the grid to a multiple of {m})",
                 &shape[2..],
                 self.steps,
                 a - 2
-            ));
+            )));
         }
         Ok(())
     }

@@ -63,11 +63,11 @@ pub const JOB_FILE: &str = "umesh-job.json";
 
 /// Copy the files (not folders) of `from` into `to`: a resumed model continues in its staging copy.
 fn copy_files(from: &Path, to: &Path) -> Result<(), NetError> {
-    let entries = std::fs::read_dir(from).map_err(|e| NetError::Io(format!("{}: {e}", from.display())))?;
+    let entries = std::fs::read_dir(from).map_err(|e| NetError::Io { path: from.to_path_buf(), source: e })?;
     for e in entries.flatten() {
         if e.file_type().is_ok_and(|t| t.is_file()) {
             let dst = to.join(e.file_name());
-            std::fs::copy(e.path(), &dst).map_err(|err| NetError::Io(format!("{} -> {}: {err}", e.path().display(), dst.display())))?;
+            std::fs::copy(e.path(), &dst).map_err(|err| NetError::Io { path: dst.clone(), source: err })?;
         }
     }
     Ok(())
@@ -131,7 +131,7 @@ pub fn run_train(
     let pending = umesh_core::StagedDir::pending_path(final_out);
     let continue_pending = resume && pending.join("last.safetensors").exists();
     let staged = umesh_core::StagedDir::resumable(final_out, &["model.json", "metrics.jsonl", JOB_FILE], continue_pending)
-        .map_err(|e| NetError::Io(format!("{}: {e}", final_out.display())))?;
+        .map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
     let out = staged.path();
     if resume && !continue_pending && final_out.join("last.safetensors").exists() {
         copy_files(final_out, out)?;
@@ -139,7 +139,7 @@ pub fn run_train(
     // The app records a job's settings in the folder before it runs: they travel with the model.
     let job = final_out.join(JOB_FILE);
     if job.is_file() {
-        std::fs::copy(&job, out.join(JOB_FILE)).map_err(|e| NetError::Io(format!("{}: {e}", job.display())))?;
+        std::fs::copy(&job, out.join(JOB_FILE)).map_err(|e| NetError::Io { path: job.to_path_buf(), source: e })?;
     }
     let device = Device::flex();
     device.seed(settings.seed);
@@ -201,7 +201,7 @@ pub fn run_train(
     // The grid travels with the model: registration needs its visible nodes and surface.
     let grid_src = dataset.join("grid.npz");
     if let Ok(bytes) = std::fs::read(&grid_src) {
-        umesh_core::write_atomic(&out.join("grid.npz"), &bytes).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+        umesh_core::write_atomic(&out.join("grid.npz"), &bytes).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     }
     let info = ModelInfo {
         config: cfg.clone(),
@@ -276,7 +276,7 @@ pub fn run_train(
             .append(true)
             .open(&metrics_path)
             .and_then(|mut f| f.write_all(line.as_bytes()))
-            .map_err(|e| NetError::Io(format!("{}: {e}", metrics_path.display())))?;
+            .map_err(|e| NetError::Io { path: metrics_path.to_path_buf(), source: e })?;
         on_epoch(&m);
         epochs.push(m);
     }
@@ -285,6 +285,6 @@ pub fn run_train(
         let r = crate::eval::calibrate_confidence(out, dataset, progress)?;
         crate::eval::write_confidence(out, &r)?;
     }
-    staged.commit().map_err(|e| NetError::Io(format!("replacing {}: {e}", final_out.display())))?;
+    staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
     Ok(TrainReport { out: final_out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
 }

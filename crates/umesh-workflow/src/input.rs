@@ -65,7 +65,7 @@ impl InputSpec {
         }
         let options = ReadOptions { max_voxels: self.max_voxels };
         let files = if path.is_dir() {
-            let (files, ignored) = segmentation::mask_folder(path)?;
+            let segmentation::MaskFolder { files, ignored } = segmentation::mask_folder(path)?;
             if !ignored.is_empty() {
                 notes.push(format!(
                     "{}: {} files not used (not liver, vena cava, hepatic veins, portal vein, vessels or tumours)",
@@ -120,7 +120,7 @@ impl InputSpec {
         let Some(path) = &self.seg else { return Ok(Vec::new()) };
         let mut files = Vec::new();
         if path.is_dir() {
-            files.extend(segmentation::mask_folder(path)?.0.into_iter().map(|f| f.path));
+            files.extend(segmentation::mask_folder(path)?.files.into_iter().map(|f| f.path));
         } else {
             files.push(path.clone());
             let s = path.to_string_lossy();

@@ -113,7 +113,7 @@ impl DatasetContext {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         if let Err(e) = self.apply_load(&mut bc, config, &forces, family) {
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e)) };
+            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e.into())) };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
@@ -159,10 +159,10 @@ impl DatasetContext {
         reference.forces.target_spread = 0.0;
         // Patterns differ a lot in how much they soften (on the phantom D spans 4-15 mm), so
         // the median needs several; they run in parallel, each solve single-threaded.
-        let results: Vec<Result<Option<f64>, String>> = (0..REFERENCE_PATTERNS)
+        let results: Vec<Result<Option<f64>, crate::fem::solver::FemError>> = (0..REFERENCE_PATTERNS)
             .into_par_iter()
             .map(|k| {
-                let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings.clone()).map_err(|e| e.to_string())?;
+                let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings.clone())?;
                 let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
                 let mean = |sol: &crate::fem::solver::Solution| config.forces.mean_over.mean_mm(&sol.displacement_mm, &self.fixed);
                 Ok(r.solution.ok().map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, mean(&sol))))
@@ -173,7 +173,7 @@ impl DatasetContext {
         }
         let mut scales = Vec::new();
         for r in results {
-            if let Some(d) = r.map_err(|e| invalid(Path::new("."), e))? {
+            if let Some(d) = r.map_err(|e| invalid(Path::new("."), e.to_string()))? {
                 scales.push(d);
             }
         }

@@ -160,7 +160,7 @@ impl DatasetContext {
 
     /// The probes' forces on the grid, each spread over its contact patch on the surface
     /// (`ForceSettings::patch_radius_mm`): the one load model of samples and recordings.
-    pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), String> {
+    pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), crate::Invalid> {
         self.apply_load(bc, config, forces, LoadFamily::Pressing)
     }
 
@@ -172,7 +172,7 @@ impl DatasetContext {
         config: &DatasetConfig,
         forces: &[PointForce],
         family: LoadFamily,
-    ) -> Result<(), String> {
+    ) -> Result<(), crate::Invalid> {
         match family.contact_radius_mm(config.forces.patch_radius_mm) {
             Some(r) => loads::apply_forces(&self.grid, bc, &loads::spread_forces(&self.surface, forces, r)),
             None => loads::apply_forces(&self.grid, bc, forces),
@@ -188,7 +188,7 @@ impl DatasetContext {
         forces: &mut [PointForce],
         target_mm: f64,
         family: LoadFamily,
-    ) -> Result<(), String> {
+    ) -> Result<(), crate::Invalid> {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         self.apply_load(&mut bc, config, forces, family)?;
@@ -233,7 +233,7 @@ impl DatasetContext {
         config: &DatasetConfig,
         index: usize,
         load_scale: f64,
-    ) -> Result<(Vec<PointForce>, f64), String> {
+    ) -> Result<(Vec<PointForce>, f64), crate::Invalid> {
         let (mut forces, target) = self.sample_forces(config, index);
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let _ = loads::scale_forces(&mut forces, 1.0, load_scale);

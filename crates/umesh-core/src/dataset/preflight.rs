@@ -25,12 +25,12 @@ impl Default for PreflightSettings {
 }
 
 impl PreflightSettings {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.samples == 0 || self.samples > 1000 {
-            return Err(format!("{} pre-flight samples: between 1 and 1000", self.samples));
+            return Err(crate::Invalid(format!("{} pre-flight samples: between 1 and 1000", self.samples)));
         }
         if !(0.0..=1.0).contains(&self.min_acceptance) {
-            return Err(format!("pre-flight acceptance {}: must lie in [0, 1]", self.min_acceptance));
+            return Err(crate::Invalid(format!("pre-flight acceptance {}: must lie in [0, 1]", self.min_acceptance)));
         }
         Ok(())
     }

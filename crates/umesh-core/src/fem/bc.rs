@@ -39,7 +39,7 @@ impl BoundaryConditions {
     }
 
     /// Fix the nodes of a region; returns how many nodes it fixed.
-    pub fn fix_region(&mut self, grid: &ImmersedGrid, region: &FixedRegion, label_mask: Option<&Mask>) -> Result<usize, String> {
+    pub fn fix_region(&mut self, grid: &ImmersedGrid, region: &FixedRegion, label_mask: Option<&Mask>) -> Result<usize, crate::Invalid> {
         let before = self.fixed_count();
         match region {
             FixedRegion::Label { label, distance_mm } => {
@@ -74,7 +74,7 @@ impl BoundaryConditions {
             FixedRegion::Plane { normal, offset_mm, thickness_mm } => {
                 let nrm = Vector3::from(*normal);
                 if nrm.norm() == 0.0 {
-                    return Err("the plane's normal is zero".into());
+                    return Err(crate::Invalid::from("the plane's normal is zero"));
                 }
                 let nrm = nrm.normalize();
                 for n in 0..grid.node_count() {
@@ -87,7 +87,7 @@ impl BoundaryConditions {
             FixedRegion::Nodes { nodes } => {
                 for &n in nodes {
                     if n >= grid.node_count() {
-                        return Err(format!("node {n} does not exist (the grid has {})", grid.node_count()));
+                        return Err(crate::Invalid(format!("node {n} does not exist (the grid has {})", grid.node_count())));
                     }
                     self.fixed[n] = true;
                 }
@@ -98,9 +98,9 @@ impl BoundaryConditions {
 
     /// Apply a point force at a world point, spread over the enclosing cell's nodes with the
     /// trilinear weights (this conserves the total force).
-    pub fn add_point_force(&mut self, grid: &ImmersedGrid, point_mm: &Vector3<f64>, force_n: &Vector3<f64>) -> Result<(), String> {
+    pub fn add_point_force(&mut self, grid: &ImmersedGrid, point_mm: &Vector3<f64>, force_n: &Vector3<f64>) -> Result<(), crate::Invalid> {
         if !(point_mm.iter().chain(force_n.iter()).all(|v| v.is_finite())) {
-            return Err(format!("a force of {force_n:?} N at {point_mm:?} mm: every number must be finite"));
+            return Err(crate::Invalid(format!("a force of {force_n:?} N at {point_mm:?} mm: every number must be finite")));
         }
         let e = grid.embed(point_mm).ok_or_else(|| format!("the point {point_mm:?} is not near the grid"))?;
         // `embed` clamps a point outside the grid into the nearest cell: beyond one cell the
@@ -108,10 +108,10 @@ impl BoundaryConditions {
         let at: Vector3<f64> = e.nodes.iter().zip(e.weights).map(|(&n, w)| grid.node_position(n as usize) * w).sum();
         let off = (at - point_mm).norm();
         if off > grid.cell_size_mm {
-            return Err(format!(
+            return Err(crate::Invalid(format!(
                 "the force at [{:.1}, {:.1}, {:.1}] mm lies {off:.1} mm outside the organ's grid (more than one {} mm cell): not on the organ",
                 point_mm.x, point_mm.y, point_mm.z, grid.cell_size_mm
-            ));
+            )));
         }
         for (n, w) in e.nodes.iter().zip(e.weights) {
             self.forces_n[*n as usize] += force_n * w;

@@ -58,12 +58,12 @@ impl MaterialParams {
         let nu = self.poisson;
         (e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu)))
     }
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if !(self.young_pa.is_finite() && self.young_pa > 0.0) {
-            return Err(format!("Young's modulus {} Pa must be positive", self.young_pa));
+            return Err(crate::Invalid(format!("Young's modulus {} Pa must be positive", self.young_pa)));
         }
         if !(self.poisson > -1.0 && self.poisson < 0.5) {
-            return Err(format!("Poisson's ratio {} must lie in (-1, 0.5)", self.poisson));
+            return Err(crate::Invalid(format!("Poisson's ratio {} must lie in (-1, 0.5)", self.poisson)));
         }
         Ok(())
     }
@@ -92,16 +92,16 @@ impl Default for MaterialVariation {
 }
 
 impl MaterialVariation {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         let ok = |v: f64| v.is_finite() && v > -1.0 && v < 0.5;
         if !(ok(self.poisson_min) && ok(self.poisson_max) && self.poisson_min <= self.poisson_max) {
-            return Err(format!(
+            return Err(crate::Invalid(format!(
                 "the Poisson's ratio range {}-{} must be ordered and lie in (-1, 0.5)",
                 self.poisson_min, self.poisson_max
-            ));
+            )));
         }
         if !(self.neo_hookean_fraction.is_finite() && (0.0..=1.0).contains(&self.neo_hookean_fraction)) {
-            return Err(format!("the Neo-Hookean fraction {} must lie in [0, 1]", self.neo_hookean_fraction));
+            return Err(crate::Invalid(format!("the Neo-Hookean fraction {} must lie in [0, 1]", self.neo_hookean_fraction)));
         }
         Ok(())
     }

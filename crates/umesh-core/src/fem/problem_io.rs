@@ -103,7 +103,7 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
     };
     let kind = MaterialKind::parse(mat_name.trim()).ok_or_else(|| bad(format!("unknown material {mat_name:?}")))?;
     let material = MaterialParams { kind, young_pa: young[0], poisson: poisson[0] };
-    material.validate().map_err(bad)?;
+    material.validate().map_err(|e| bad(e.into()))?;
     if n == 0 || m == 0 {
         return Err(bad("no nodes or no hexahedra".into()));
     }

@@ -407,7 +407,7 @@ fn ms(t: Instant) -> f64 {
 impl<'g> FeSolver<'g> {
     /// `constrained[n]`: node n is fixed or has a prescribed displacement.
     pub fn new(grid: &'g ImmersedGrid, material: MaterialParams, constrained: &[bool], settings: SolverSettings) -> Result<Self, FemError> {
-        material.validate().map_err(FemError::InvalidInput)?;
+        material.validate().map_err(|e| FemError::InvalidInput(e.into()))?;
         if constrained.len() != grid.node_count() {
             return Err(FemError::InvalidInput(format!("{} constraint flags for {} nodes", constrained.len(), grid.node_count())));
         }
@@ -432,7 +432,7 @@ impl<'g> FeSolver<'g> {
     /// Another material between solves (a dataset draws one per sample). The rest factor is
     /// dropped when the small-strain stiffness changes (Young's modulus or Poisson's ratio).
     pub fn set_material(&mut self, material: MaterialParams) -> Result<(), FemError> {
-        material.validate().map_err(FemError::InvalidInput)?;
+        material.validate().map_err(|e| FemError::InvalidInput(e.into()))?;
         if (material.young_pa, material.poisson) != (self.material.young_pa, self.material.poisson) {
             self.fact.rest_values = None;
             self.fact.current = None;
@@ -784,7 +784,7 @@ impl<'g> FeSolver<'g> {
                             self.newton(&mut trial, bc, model, lambda, increments, &mut history, &mut timings, &Progress::none(), cancel)?;
                         let res = match refined {
                             Ok((_, res)) => res,
-                            Err(reason) => return Err(FemError::NotConverged { reason, history }),
+                            Err(reason) => return Err(FemError::NotConverged { reason: reason.into(), history }),
                         };
                         let iterations = history.len();
                         timings.total_ms = ms(start);
@@ -965,7 +965,7 @@ impl<'g> FeSolver<'g> {
         timings: &mut Timings,
         progress: &Progress,
         cancel: &Cancel,
-    ) -> Result<Result<(usize, f64), String>, FemError> {
+    ) -> Result<Result<(usize, f64), crate::Invalid>, FemError> {
         let s = self.settings.clone();
         let t = Instant::now();
         let mut current = self.asm.assemble(model, u, true);
@@ -977,12 +977,12 @@ impl<'g> FeSolver<'g> {
                 return Err(FemError::Cancelled);
             }
             if !(current.min_det_f > 0.0) {
-                return Ok(Err("an element inverted (det F <= 0)".into()));
+                return Ok(Err(crate::Invalid::from("an element inverted (det F <= 0)")));
             }
             let (r, refn) = self.residual(&current, &bc.forces_n, load);
             let rnorm = norm(&r);
             if !rnorm.is_finite() {
-                return Ok(Err("the residual is not finite".into()));
+                return Ok(Err(crate::Invalid::from("the residual is not finite")));
             }
             let rel = rnorm / refn;
             if rel <= s.residual_tol && (last_correction <= s.correction_tol || rel <= s.residual_tol * 1e-3) {
@@ -992,11 +992,11 @@ impl<'g> FeSolver<'g> {
             let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
             if s.reject_indefinite && fac_name == "lu" {
                 timings.factorization_ms += factorization_ms;
-                return Ok(Err("the tangent stiffness is indefinite (the material collapses under this load)".into()));
+                return Ok(Err(crate::Invalid::from("the tangent stiffness is indefinite (the material collapses under this load)")));
             }
             let du_norm = (0..du.nrows()).map(|i| du[(i, 0)].powi(2)).sum::<f64>().sqrt();
             if !du_norm.is_finite() {
-                return Ok(Err("the Newton correction is not finite".into()));
+                return Ok(Err(crate::Invalid::from("the Newton correction is not finite")));
             }
             // Backtracking line search. With a descent direction (r . du > 0) the test is
             // Armijo's on the total potential energy Pi = W(u) - load f . u, the quantity Newton
@@ -1060,12 +1060,12 @@ impl<'g> FeSolver<'g> {
                 let m = over.mean_mm(u, &self.constrained_nodes);
                 if m > limit {
                     timings.assembly_ms += assembly_ms;
-                    return Ok(Err(format!("the mean displacement passed {limit:.1} mm (overshoot)")));
+                    return Ok(Err(crate::Invalid(format!("the mean displacement passed {limit:.1} mm (overshoot)"))));
                 }
             }
         }
         timings.assembly_ms += assembly_ms;
-        Ok(Err(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations)))
+        Ok(Err(crate::Invalid(format!("no convergence in {} iterations at load factor {load:.3}", s.max_iterations))))
     }
 }
 

@@ -36,7 +36,7 @@ impl ConfidenceReference {
 
     /// None when the model folder has no such file (an uncalibrated model); an error naming
     /// the file when it is there but unreadable or corrupt.
-    pub fn read(model_dir: &std::path::Path) -> Result<Option<Self>, String> {
+    pub fn read(model_dir: &std::path::Path) -> Result<Option<Self>, crate::Invalid> {
         let path = model_dir.join(Self::FILE);
         if !path.exists() {
             return Ok(None);
@@ -45,7 +45,7 @@ impl ConfidenceReference {
         let r: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
         let finite = [r.residual_p95_mm, r.residual_mean_mm, r.coverage_min, r.displacement_max_mm];
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(format!("{}: the confidence range holds negative or non-finite values", path.display()));
+            return Err(crate::Invalid(format!("{}: the confidence range holds negative or non-finite values", path.display())));
         }
         // Limits no organ reaches would silence every warning (1e308 was accepted).
         let mm = [
@@ -54,10 +54,10 @@ impl ConfidenceReference {
             ("displacement_max_mm", r.displacement_max_mm),
         ];
         if let Some((name, v)) = mm.iter().find(|(_, v)| *v > 1000.0) {
-            return Err(format!("{}: {name} = {v} mm, over 1000 mm: not a confidence range", path.display()));
+            return Err(crate::Invalid(format!("{}: {name} = {v} mm, over 1000 mm: not a confidence range", path.display())));
         }
         if r.coverage_min > 1.0 {
-            return Err(format!("{}: coverage_min = {} is a share, at most 1", path.display(), r.coverage_min));
+            return Err(crate::Invalid(format!("{}: coverage_min = {} is a share, at most 1", path.display(), r.coverage_min)));
         }
         Ok(Some(r))
     }

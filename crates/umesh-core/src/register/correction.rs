@@ -31,12 +31,12 @@ impl CorrectionSettings {
         Self { updates: 0, ..Self::default() }
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.updates > 100 || (self.updates > 0 && !(1..=1000).contains(&self.cg_iterations)) {
-            return Err(format!(
+            return Err(crate::Invalid(format!(
                 "correction: {} updates of {} CG iterations (at most 100 updates of 1-1000 iterations)",
                 self.updates, self.cg_iterations
-            ));
+            )));
         }
         Ok(())
     }
@@ -66,7 +66,7 @@ pub struct SurfaceFit<'c> {
 impl<'c> SurfaceFit<'c> {
     /// Samples every ~4.5 mm on the rest surface where all three corners of a triangle are
     /// seen by the training camera, each with its triangle's normal.
-    pub fn new(ctx: &'c RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, String> {
+    pub fn new(ctx: &'c RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, crate::Invalid> {
         let mut seen = vec![false; ctx.surface.positions.len()];
         for &v in &ctx.visible_vertices {
             seen[v] = true;
@@ -111,8 +111,8 @@ impl<'c> SurfaceFit<'c> {
     }
 
     /// `work` updates toward the points (world, mm), correspondences searched at each.
-    pub fn fit(&mut self, points_world_mm: &[Vector3<f64>], work: FitWork) -> Result<PointFitReport, String> {
-        self.fit.fit_with(points_world_mm, &mut self.u, work).map_err(|e| e.to_string())
+    pub fn fit(&mut self, points_world_mm: &[Vector3<f64>], work: FitWork) -> Result<PointFitReport, crate::Invalid> {
+        Ok(self.fit.fit_with(points_world_mm, &mut self.u, work).map_err(|e| e.to_string())?)
     }
 
     /// The physics correction of a predicted field in place.
@@ -121,7 +121,7 @@ impl<'c> SurfaceFit<'c> {
         points_world_mm: &[Vector3<f64>],
         field: &mut Vec<f32>,
         settings: &CorrectionSettings,
-    ) -> Result<CorrectionReport, String> {
+    ) -> Result<CorrectionReport, crate::Invalid> {
         let t = Instant::now();
         self.set_field(field);
         let before = self.u.clone();

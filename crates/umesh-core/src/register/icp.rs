@@ -39,17 +39,17 @@ impl IcpSettings {
         Self { max_correspondence_mm: 10.0, trim: 0.5, max_motion_mm: Some(bound_mm), ..Self::default() }
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if !(self.trim > 0.0 && self.trim <= 1.0) {
-            return Err(format!("ICP trim {}: above 0 and at most 1", self.trim));
+            return Err(crate::Invalid(format!("ICP trim {}: above 0 and at most 1", self.trim)));
         }
         if let Some(b) = self.max_motion_mm
             && !(b.is_finite() && (0.0..=1000.0).contains(&b))
         {
-            return Err(format!("pose bound {b} mm: between 0 and 1000 mm"));
+            return Err(crate::Invalid(format!("pose bound {b} mm: between 0 and 1000 mm")));
         }
         if !(self.max_correspondence_mm.is_finite() && self.max_correspondence_mm > 0.0) || self.max_iterations > 10_000 {
-            return Err("ICP: the correspondence distance must be finite and positive, at most 10000 iterations".into());
+            return Err(crate::Invalid::from("ICP: the correspondence distance must be finite and positive, at most 10000 iterations"));
         }
         Ok(())
     }

@@ -82,8 +82,8 @@ pub struct RegistrationContext {
     gate_grid: nn::PointGrid,
 }
 
-fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, String> {
-    pts.iter().map(|p| grid.embed(p).ok_or_else(|| format!("point {p:?} lies outside the grid"))).collect()
+fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, crate::Invalid> {
+    pts.iter().map(|p| grid.embed(p).ok_or_else(|| crate::Invalid(format!("point {p:?} lies outside the grid")))).collect()
 }
 
 /// The triangles of `mesh` whose three vertices lie in or near the grid, with their
@@ -115,7 +115,7 @@ fn clip_to_grid(grid: &ImmersedGrid, mesh: &TriMesh) -> Option<(TriMesh, Vec<Emb
 
 impl RegistrationContext {
     /// From the dataset context of the model's grid, with the structures of `seg`.
-    pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, String> {
+    pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, crate::Invalid> {
         let mut structures = Vec::new();
         for (label, name, color, mesh) in structure_surfaces(seg) {
             // A structure may leave the organ (TotalSegmentator's portal vein runs on to the

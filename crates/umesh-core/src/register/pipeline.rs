@@ -15,19 +15,34 @@ use nalgebra::{Matrix4, Vector3};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+/// Why a frame was skipped: its input (no organ pixel, a bad frame, a fit that failed), or the
+/// model's prediction, with the model's own error as the source.
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    #[error(transparent)]
+    Invalid(#[from] crate::Invalid),
+    #[error("frame {frame}: {model}: {source}")]
+    Model {
+        frame: usize,
+        model: String,
+        #[source]
+        source: crate::ModelError,
+    },
+}
+
 /// Volume displacement from surface displacement: the network, or the FE model.
 pub trait DisplacementModel {
     fn name(&self) -> String;
     /// u_s [3, X, Y, Z] (mm), or the encoded observation when `observation` is Some ->
     /// u_v [3, X, Y, Z] (mm), written into `out`.
-    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), String>;
+    fn predict(&mut self, u_s: &[f32], out: &mut Vec<f32>) -> Result<(), crate::ModelError>;
     /// The observation encoding the model takes; None: the surface displacement u_s.
     fn observation(&self) -> Option<crate::observation::ObservationSettings> {
         None
     }
     /// Fit the frame's organ points (world, mm) directly, for models that do (the FE
     /// baseline): Some(surface samples matched) with the field in `out`.
-    fn fit_points(&mut self, _points_world_mm: &[Vector3<f64>], _out: &mut Vec<f32>) -> Option<Result<usize, String>> {
+    fn fit_points(&mut self, _points_world_mm: &[Vector3<f64>], _out: &mut Vec<f32>) -> Option<Result<usize, crate::Invalid>> {
         None
     }
     /// The range of the confidence figures on the model's validation views, if measured.
@@ -46,11 +61,15 @@ pub struct FeDisplacementModel<'g> {
 }
 
 impl<'g> FeDisplacementModel<'g> {
-    pub fn new(ctx: &'g RegistrationContext, material: MaterialParams) -> Result<Self, String> {
+    pub fn new(ctx: &'g RegistrationContext, material: MaterialParams) -> Result<Self, crate::Invalid> {
         Self::with_settings(ctx, material, PointFitSettings::default())
     }
 
-    pub fn with_settings(ctx: &'g RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, String> {
+    pub fn with_settings(
+        ctx: &'g RegistrationContext,
+        material: MaterialParams,
+        settings: PointFitSettings,
+    ) -> Result<Self, crate::Invalid> {
         let work = FitWork::fixed(&settings);
         Ok(Self { fit: SurfaceFit::new(ctx, material, settings)?, last: PointFitReport::default(), work })
     }
@@ -70,13 +89,13 @@ impl DisplacementModel for FeDisplacementModel<'_> {
             None => "co-rotational FE fit (point-to-plane)".into(),
         }
     }
-    fn predict(&mut self, _u_s: &[f32], _out: &mut Vec<f32>) -> Result<(), String> {
+    fn predict(&mut self, _u_s: &[f32], _out: &mut Vec<f32>) -> Result<(), crate::ModelError> {
         Err("the FE registration takes the observed points".into())
     }
-    fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, String>> {
+    fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, crate::Invalid>> {
         let r = match self.fit.fit(points_world_mm, self.work) {
             Ok(r) => r,
-            Err(e) => return Some(Err(e)),
+            Err(crate::Invalid(e)) => return Some(Err(crate::Invalid(e))),
         };
         self.last = r;
         out.clear();
@@ -114,11 +133,11 @@ impl PosePolicy {
         }
     }
 
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, crate::Invalid> {
         Self::ALL
             .into_iter()
             .find(|p| p.name() == s)
-            .ok_or_else(|| format!("pose policy {s:?}: one of tracked, icp-first, icp-every-frame"))
+            .ok_or_else(|| crate::Invalid(format!("pose policy {s:?}: one of tracked, icp-first, icp-every-frame")))
     }
 }
 
@@ -177,18 +196,18 @@ fn default_pose_bound() -> f64 {
 
 impl RegisterSettings {
     /// Check the options a user sets (named as the CLI names them).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if !(self.pose_bound_mm.is_finite() && (0.0..=100.0).contains(&self.pose_bound_mm)) {
-            return Err(format!("--pose-bound-mm {}: between 0 and 100 mm", self.pose_bound_mm));
+            return Err(crate::Invalid(format!("--pose-bound-mm {}: between 0 and 100 mm", self.pose_bound_mm)));
         }
         if !(self.min_coverage.is_finite() && (0.0..=1.0).contains(&self.min_coverage)) {
-            return Err(format!("--min-coverage {}: a share between 0 and 1", self.min_coverage));
+            return Err(crate::Invalid(format!("--min-coverage {}: a share between 0 and 1", self.min_coverage)));
         }
         if self.iterations == 0 || self.iterations > 100 {
-            return Err(format!("--iterations {}: between 1 and 100", self.iterations));
+            return Err(crate::Invalid(format!("--iterations {}: between 1 and 100", self.iterations)));
         }
         self.icp.validate()?;
-        self.correction.validate().map_err(|e| format!("--correction-updates / --correction-cg: {e}"))
+        self.correction.validate().map_err(|e| crate::Invalid(format!("--correction-updates / --correction-cg: {e}")))
     }
 
     /// The ICP the pose policy runs.
@@ -234,14 +253,19 @@ pub struct GroundTruth {
 }
 
 impl GroundTruth {
-    pub fn read(path: &Path) -> Result<Self, String> {
+    pub fn read(path: &Path) -> Result<Self, crate::Invalid> {
         let t = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
         let g: Self = serde_json::from_str(&t).map_err(|e| format!("{}: not a ground-truth file: {e}", path.display()))?;
         if !g.world_from_camera_frames.is_empty() && g.world_from_camera_frames.len() != g.markers_mm.len() {
-            return Err(format!("{}: {} camera poses for {} frames", path.display(), g.world_from_camera_frames.len(), g.markers_mm.len()));
+            return Err(crate::Invalid(format!(
+                "{}: {} camera poses for {} frames",
+                path.display(),
+                g.world_from_camera_frames.len(),
+                g.markers_mm.len()
+            )));
         }
         if g.markers_mm.iter().any(|f| f.len() != g.markers_rest_mm.len()) {
-            return Err(format!("{}: a frame has a different number of markers", path.display()));
+            return Err(crate::Invalid(format!("{}: a frame has a different number of markers", path.display())));
         }
         Ok(g)
     }
@@ -369,7 +393,7 @@ impl<'c> Registrar<'c> {
         truth: Option<&[[f64; 3]]>,
         rest: Option<&[[f64; 3]]>,
         true_pose: Option<&Matrix4<f64>>,
-    ) -> Result<FrameOutput, String> {
+    ) -> Result<FrameOutput, FrameError> {
         let t0 = Instant::now();
         frame.validate()?;
         let k = frame.intrinsics;
@@ -389,13 +413,19 @@ impl<'c> Registrar<'c> {
             points = (0..MAX_FRAME_POINTS).map(|i| points[i * n / MAX_FRAME_POINTS]).collect();
         }
         if points.is_empty() {
-            return Err(format!("frame {}: no organ point in the depth image (the previous overlay stays)", frame.index));
+            return Err(FrameError::Invalid(crate::Invalid(format!(
+                "frame {}: no organ point in the depth image (the previous overlay stays)",
+                frame.index
+            ))));
         }
         let points_ms = ms(t0);
         let t1 = Instant::now();
         let mut icp = None;
         if self.needs_frame_pose && !self.posed && frame.world_from_camera.is_none() {
-            return Err(format!("frame {}: no camera pose (the source gives none and no initial pose was given)", frame.index));
+            return Err(FrameError::Invalid(crate::Invalid(format!(
+                "frame {}: no camera pose (the source gives none and no initial pose was given)",
+                frame.index
+            ))));
         }
         // The frame's tracked pose, with the refinement of the last alignment.
         if let Some(t) = frame.world_from_camera {
@@ -406,10 +436,10 @@ impl<'c> Registrar<'c> {
             let mut r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp_settings());
             if r.fitness < 0.3 {
                 if policy != PosePolicy::Tracked {
-                    return Err(format!(
+                    return Err(FrameError::Invalid(crate::Invalid(format!(
                         "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
                         frame.index, r.fitness, r.rms_mm
-                    ));
+                    ))));
                 }
                 // A tracked pose stands on its own: kept as it is when too little fits.
                 r.transform = self.world_from_camera;
@@ -434,19 +464,19 @@ impl<'c> Registrar<'c> {
         // so that a deformed or pushed organ (a first frame already deformed) is not refused.
         let coverage = self.ctx.gate_coverage(&world);
         if coverage < self.settings.min_coverage {
-            return Err(format!(
+            return Err(FrameError::Invalid(crate::Invalid(format!(
                 "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
                 frame.index,
                 100.0 * coverage,
                 100.0 * self.settings.min_coverage
-            ));
+            ))));
         }
         let t = Instant::now();
         let fitted = model.fit_points(&world, &mut self.field);
         let fe_fit = fitted.is_some();
         let direct = fe_fit || observation.is_some();
         if let Some(r) = fitted {
-            measured = r.map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+            measured = r.map_err(|e| crate::Invalid(format!("frame {}: {}: {e}", frame.index, model.name())))?;
             predict_ms += ms(t);
         } else if let Some(o) = observation.clone() {
             // Correspondence-free: the frame's organ points in the world, encoded on the rest
@@ -460,7 +490,11 @@ impl<'c> Registrar<'c> {
             surface_ms += ms(t);
             if measured > 0 {
                 let t = Instant::now();
-                model.predict(&self.u_s, &mut self.field).map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+                model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
+                    frame: frame.index,
+                    model: model.name(),
+                    source,
+                })?;
                 predict_ms += ms(t);
             }
         }
@@ -469,12 +503,19 @@ impl<'c> Registrar<'c> {
             measured = self.surface_input(&depth, &k, &camera_from_world, &current);
             surface_ms += ms(t);
             let t = Instant::now();
-            model.predict(&self.u_s, &mut self.field).map_err(|e| format!("frame {}: {}: {e}", frame.index, model.name()))?;
+            model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
+                frame: frame.index,
+                model: model.name(),
+                source,
+            })?;
             predict_ms += ms(t);
             current.clone_from(&self.field);
         }
         if measured == 0 {
-            return Err(format!("frame {}: no visible surface point found in the depth image", frame.index));
+            return Err(FrameError::Invalid(crate::Invalid(format!(
+                "frame {}: no visible surface point found in the depth image",
+                frame.index
+            ))));
         }
         // The physics correction: the prediction pulled onto the observed points by the FE model
         // (not after the FE registration, which is that fit already).
@@ -486,7 +527,7 @@ impl<'c> Registrar<'c> {
                 self.corrector = Some(SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?);
             }
             let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction)).transpose();
-            correction = c.map_err(|e| format!("frame {}: physics correction: {e}", frame.index))?;
+            correction = c.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
             correction_ms = ms(t);
         }
         self.prev_field.clone_from(&self.field);
@@ -743,7 +784,7 @@ pub fn run_register(
     initial_world_from_camera: impl Into<Option<Matrix4<f64>>>,
     truth: Option<&GroundTruth>,
     settings: &RegisterSettings,
-    on_frame: &mut dyn FnMut(&FrameOutput) -> Result<(), String>,
+    on_frame: &mut dyn FnMut(&FrameOutput) -> Result<(), crate::Invalid>,
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<RegisterReport, crate::rgbd::RgbdError> {
@@ -781,7 +822,7 @@ pub fn run_register(
         let true_pose = truth.map(|g| g.pose_at(frame.index));
         match reg.process(&frame, model, gt, rest, true_pose.as_ref()) {
             Ok(out) => {
-                on_frame(&out).map_err(crate::rgbd::RgbdError::Stream)?;
+                on_frame(&out).map_err(|e| crate::rgbd::RgbdError::Stream(e.into()))?;
                 frames.push(out.report);
             }
             Err(e) => {

@@ -49,17 +49,17 @@ struct Open3dIntrinsic {
 pub const MAX_PIXELS: usize = 1 << 24;
 
 impl Intrinsics {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.width == 0 || self.height == 0 || self.width.saturating_mul(self.height) > MAX_PIXELS {
-            return Err(format!("image size {}x{} is zero or larger than {MAX_PIXELS} pixels", self.width, self.height));
+            return Err(crate::Invalid(format!("image size {}x{} is zero or larger than {MAX_PIXELS} pixels", self.width, self.height)));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("focal length {name} = {v} must be finite and positive"));
+                return Err(crate::Invalid(format!("focal length {name} = {v} must be finite and positive")));
             }
         }
         if !(self.cx.is_finite() && self.cy.is_finite()) {
-            return Err(format!("principal point ({}, {}) is not finite", self.cx, self.cy));
+            return Err(crate::Invalid(format!("principal point ({}, {}) is not finite", self.cx, self.cy)));
         }
         Ok(())
     }
@@ -164,7 +164,7 @@ impl ColorImage {
         Ok(Self { width: w as usize, height: h as usize, rgb: img.into_raw() })
     }
 
-    pub fn encode_png(&self) -> Result<Vec<u8>, String> {
+    pub fn encode_png(&self) -> Result<Vec<u8>, crate::Invalid> {
         let mut out = Vec::new();
         image::codecs::png::PngEncoder::new(&mut out)
             .write_image(&self.rgb, self.width as u32, self.height as u32, image::ExtendedColorType::Rgb8)
@@ -208,7 +208,7 @@ pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, RgbdE
 }
 
 /// Encode depth (mm) as a 16-bit PNG with `depth_scale` units per metre.
-pub fn encode_depth_png(depth: &DepthImage, depth_scale: f64) -> Result<Vec<u8>, String> {
+pub fn encode_depth_png(depth: &DepthImage, depth_scale: f64) -> Result<Vec<u8>, crate::Invalid> {
     let k = (depth_scale / 1000.0) as f32;
     let raw: Vec<u8> = depth.depth_mm.iter().flat_map(|&d| ((d * k).round().clamp(0.0, 65535.0) as u16).to_ne_bytes()).collect();
     let mut out = Vec::new();
@@ -240,28 +240,28 @@ pub const MAX_POINTS: usize = 1 << 22;
 
 impl Frame {
     /// Check that the images agree with the intrinsics and with each other.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::Invalid> {
         self.intrinsics.validate()?;
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         if (self.depth.width, self.depth.height) != (w, h) || self.depth.depth_mm.len() != w * h {
-            return Err(format!("depth is {}x{}, the intrinsics say {w}x{h}", self.depth.width, self.depth.height));
+            return Err(crate::Invalid(format!("depth is {}x{}, the intrinsics say {w}x{h}", self.depth.width, self.depth.height)));
         }
         if let Some(c) = &self.color
             && ((c.width, c.height) != (w, h) || c.rgb.len() != 3 * w * h)
         {
-            return Err(format!("colour is {}x{}, depth is {w}x{h}", c.width, c.height));
+            return Err(crate::Invalid(format!("colour is {}x{}, depth is {w}x{h}", c.width, c.height)));
         }
         if let Some(m) = &self.mask
             && m.len() != w * h
         {
-            return Err(format!("the mask has {} pixels, depth has {}", m.len(), w * h));
+            return Err(crate::Invalid(format!("the mask has {} pixels, depth has {}", m.len(), w * h)));
         }
         if let Some(p) = &self.points {
             if p.len() > MAX_POINTS {
-                return Err(format!("the point cloud has {} points, at most {MAX_POINTS}", p.len()));
+                return Err(crate::Invalid(format!("the point cloud has {} points, at most {MAX_POINTS}", p.len())));
             }
             if p.iter().any(|q| !q.iter().all(|v| v.is_finite())) {
-                return Err("a point of the cloud is not finite".into());
+                return Err(crate::Invalid::from("a point of the cloud is not finite"));
             }
         }
         Ok(())

@@ -34,7 +34,7 @@ impl Default for SegmentSettings {
 }
 
 /// Per pixel: organ. Errors when nothing is left (the caller skips the frame).
-pub fn segment_frame(frame: &Frame, s: &SegmentSettings) -> Result<Vec<bool>, String> {
+pub fn segment_frame(frame: &Frame, s: &SegmentSettings) -> Result<Vec<bool>, crate::Invalid> {
     let n = frame.depth.depth_mm.len();
     let masked = frame.mask.is_some() && s.use_mask;
     let mut keep: Vec<bool> = match (&frame.mask, s.use_mask) {
@@ -71,10 +71,10 @@ pub fn segment_frame(frame: &Frame, s: &SegmentSettings) -> Result<Vec<bool>, St
     }
     let count = keep.iter().filter(|&&k| k).count();
     if count == 0 {
-        return Err(format!(
+        return Err(crate::Invalid(format!(
             "frame {}: no organ pixel (mask, depth range {}-{} mm, colour threshold)",
             frame.index, s.depth_min_mm, s.depth_max_mm
-        ));
+        )));
     }
     Ok(keep)
 }

@@ -164,23 +164,23 @@ pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std:
 }
 
 /// Read one frame; Ok(None) on a clean end of stream (between frames).
-pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, String> {
+pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, crate::Invalid> {
     let mut magic = [0u8; 8];
     match r.read(&mut magic[..1]) {
         Ok(0) => return Ok(None),
         Ok(_) => {}
-        Err(e) => return Err(format!("read: {e}")),
+        Err(e) => return Err(crate::Invalid(format!("read: {e}"))),
     }
     let cut = |e: std::io::Error, what: &str| format!("the stream stopped inside a frame ({what}): {e}");
     r.read_exact(&mut magic[1..]).map_err(|e| cut(e, "magic"))?;
     if &magic != MAGIC {
-        return Err(format!("bad magic {magic:?}: not a umesh RGB-D stream (UMRGBD01)"));
+        return Err(crate::Invalid(format!("bad magic {magic:?}: not a umesh RGB-D stream (UMRGBD01)")));
     }
     let mut len = [0u8; 4];
     r.read_exact(&mut len).map_err(|e| cut(e, "header length"))?;
     let len = u32::from_le_bytes(len);
     if len == 0 || len > MAX_HEADER {
-        return Err(format!("header length {len} outside 1..={MAX_HEADER}"));
+        return Err(crate::Invalid(format!("header length {len} outside 1..={MAX_HEADER}")));
     }
     let mut header = vec![0u8; len as usize];
     r.read_exact(&mut header).map_err(|e| cut(e, "header"))?;
@@ -188,15 +188,15 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
     let k = Intrinsics { width: h.width, height: h.height, fx: h.fx, fy: h.fy, cx: h.cx, cy: h.cy };
     k.validate().map_err(|e| format!("frame header: {e}"))?;
     if !(h.depth_scale.is_finite() && h.depth_scale > 0.0) {
-        return Err(format!("frame header: depth_scale {} must be finite and positive", h.depth_scale));
+        return Err(crate::Invalid(format!("frame header: depth_scale {} must be finite and positive", h.depth_scale)));
     }
     debug_assert!(k.width * k.height <= MAX_PIXELS);
     if h.points > MAX_POINTS {
-        return Err(format!("frame header: {} points, at most {MAX_POINTS}", h.points));
+        return Err(crate::Invalid(format!("frame header: {} points, at most {MAX_POINTS}", h.points)));
     }
     let world_from_camera = match h.world_from_camera {
         Some(m) if m.iter().all(|v| v.is_finite()) => Some(nalgebra::Matrix4::from_row_slice(&m)),
-        Some(_) => return Err("frame header: world_from_camera holds a value that is not finite".into()),
+        Some(_) => return Err(crate::Invalid::from("frame header: world_from_camera holds a value that is not finite")),
         None => None,
     };
     let n = k.width * k.height;
@@ -218,7 +218,7 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, Str
         let pts: Vec<nalgebra::Vector3<f64>> =
             raw.chunks_exact(12).map(|b| nalgebra::Vector3::new(f(&b[0..4]), f(&b[4..8]), f(&b[8..12]))).collect();
         if pts.iter().any(|p| !p.iter().all(|v| v.is_finite())) {
-            return Err("a point of the frame's cloud is not finite".into());
+            return Err(crate::Invalid::from("a point of the frame's cloud is not finite"));
         }
         Some(pts)
     } else {
@@ -287,7 +287,7 @@ impl TcpSource {
                             }
                         }
                         Ok(None) => s.ended = Some(None),
-                        Err(e) => s.ended = Some(Some(e)),
+                        Err(e) => s.ended = Some(Some(e.into())),
                     }
                     let done = s.ended.is_some();
                     drop(s);

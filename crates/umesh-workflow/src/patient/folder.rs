@@ -96,7 +96,7 @@ pub struct Patient {
 impl Patient {
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("patient.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+        let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })?;
         let v: Patient =
             serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
         if v.format != FORMAT || v.format_version != FORMAT_VERSION {
@@ -112,7 +112,7 @@ impl Patient {
     pub(super) fn write(&self, dir: &Path) -> Result<(), NetError> {
         let p = dir.join("patient.json");
         let text = serde_json::to_string_pretty(self).map_err(|e| NetError::Invalid(e.to_string()))?;
-        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))
+        umesh_core::write_atomic(&p, text.as_bytes()).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })
     }
     pub fn done(&self, s: Stage) -> bool {
         self.stages.get(&s).is_some_and(|r| r.done)
@@ -216,7 +216,7 @@ pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
     files
         .iter()
         .map(|p| {
-            let bytes = std::fs::read(p).map_err(|e| NetError::Io(format!("{}: {e}", p.display())))?;
+            let bytes = std::fs::read(p).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })?;
             Ok(InputFile { path: p.display().to_string(), bytes: bytes.len() as u64, hash: fnv_hex(&bytes) })
         })
         .collect()
@@ -266,11 +266,11 @@ pub fn read_metrics(model: &Path) -> Vec<EpochMetrics> {
 
 pub(super) fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<(), NetError> {
     let text = serde_json::to_string_pretty(v).map_err(|e| NetError::Invalid(e.to_string()))?;
-    umesh_core::write_atomic(path, text.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))
+    umesh_core::write_atomic(path, text.as_bytes()).map_err(|e| NetError::Io { path: path.to_path_buf(), source: e })
 }
 
 pub(super) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, NetError> {
-    let text = std::fs::read_to_string(path).map_err(|e| NetError::Io(format!("{}: {e}", path.display())))?;
+    let text = std::fs::read_to_string(path).map_err(|e| NetError::Io { path: path.to_path_buf(), source: e })?;
     serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))
 }
 

@@ -138,7 +138,7 @@ pub fn run_prepare(
         check.judge(p).map_err(|e| NetError::Invalid(e.to_string()))?;
     }
     drop(ctx);
-    std::fs::create_dir_all(out).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    std::fs::create_dir_all(out).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     let seg_path = out.join("segmentation.nii.gz");
     if !seg_path.exists() {
         let mut vol = seg.volume.clone();
@@ -147,7 +147,7 @@ pub fn run_prepare(
             vol.label_names.entry(l).or_insert_with(|| seg.label_name(l));
         }
         umesh_core::nifti_io::write_volume(&seg_path, &vol, umesh_core::nifti_io::WriteType::I16)
-            .map_err(|e| NetError::Io(format!("{}: {e}", seg_path.display())))?;
+            .map_err(|e| NetError::Io { path: seg_path.to_path_buf(), source: e })?;
     }
     patient.write(out)?;
 
@@ -241,7 +241,7 @@ pub fn run_prepare(
     patient.stages.entry(Stage::Report).or_default().done = true;
     let html =
         crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
-    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io(format!("{}: {e}", out.display())))?;
+    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     let rec = patient.stages.entry(Stage::Report).or_default();
     rec.done = true;
     rec.seconds = t.elapsed().as_secs_f64();
@@ -272,14 +272,14 @@ pub fn registration_check(
     let mut net = Predictor::load(model)?;
     let dctx = DatasetContext::prepare(seg, config, cancel)?;
     net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
-    let ctx = RegistrationContext::new(dctx, seg).map_err(NetError::Invalid)?;
+    let ctx = RegistrationContext::new(dctx, seg).map_err(|e| NetError::Invalid(e.into()))?;
     let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
     let pose = rec
         .trajectory
         .as_ref()
         .and_then(|t| t.first().copied())
         .ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
-    let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(NetError::Invalid)?;
+    let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(|e| NetError::Invalid(e.into()))?;
     let frames = rec.len() as u64;
     let mut source = RecordingSource::new(rec);
     let settings = RegisterSettings { overlay: false, ..Default::default() };

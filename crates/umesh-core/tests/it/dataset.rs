@@ -291,7 +291,7 @@ fn a_camera_inside_the_organ_or_seeing_nothing_and_an_empty_fixed_region_are_ref
 #[test]
 fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file() {
     use umesh_core::nifti_io::{ReadOptions, WriteType, write_volume};
-    use umesh_core::segmentation::{assemble_masks, mask_folder};
+    use umesh_core::segmentation::{MaskFolder, assemble_masks, mask_folder};
     let seg = phantom();
     let dir = tmp("masks");
     std::fs::create_dir_all(&dir).unwrap();
@@ -308,7 +308,7 @@ fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file
     other.data.iter_mut().for_each(|x| *x = 0.0);
     other.data[0] = 1.0;
     write_volume(&dir.join("spleen.nii.gz"), &other, WriteType::U8).unwrap();
-    let (files, ignored) = mask_folder(&dir).unwrap();
+    let MaskFolder { files, ignored } = mask_folder(&dir).unwrap();
     assert_eq!(ignored, vec!["spleen.nii.gz".to_string()]);
     let (folder, notes) = assemble_masks(&files, &ReadOptions::default()).unwrap();
     assert!(notes.resampled.is_empty());
@@ -624,10 +624,10 @@ fn a_mixture_dataset_records_each_samples_family_and_pressing_only_configs_keep_
     // Bad lists are refused with their reason.
     let mut bad = ForceSettings::default();
     bad.families.clear();
-    assert!(bad.validate().unwrap_err().contains("no load family"));
+    assert!(bad.validate().unwrap_err().to_string().contains("no load family"));
     bad.families = vec![LoadFamily::Grasp, LoadFamily::Grasp];
-    assert!(bad.validate().unwrap_err().contains("at most once"));
-    assert!(ForceSettings::parse_families("pressing,twisting").unwrap_err().contains("twisting"));
+    assert!(bad.validate().unwrap_err().to_string().contains("at most once"));
+    assert!(ForceSettings::parse_families("pressing,twisting").unwrap_err().to_string().contains("twisting"));
     // A mixture: every sample's family in the manifest, the one `family_of` gives, and the
     // statistics count them.
     let config = small_config(12);

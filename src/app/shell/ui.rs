@@ -12,18 +12,60 @@ use bevy_egui::{EguiContexts, egui};
 pub struct UiState {
     pub show_help: bool,
     pub frame_ms: f32,
-    file_dialog: Option<Task<Option<std::path::PathBuf>>>,
-    folder_dialog: Option<Task<Option<std::path::PathBuf>>>,
-    ct_dialog: Option<Task<Option<std::path::PathBuf>>>,
-    session_dialog: Option<Task<Option<std::path::PathBuf>>>,
-    save_dialog: Option<Task<Option<std::path::PathBuf>>>,
-    export_dialog: Option<Task<Option<std::path::PathBuf>>>,
+    /// The open file dialogs, at most one per purpose.
+    dialogs: Vec<(Dialog, Task<Option<std::path::PathBuf>>)>,
 }
 
-fn save_dialog(name: &'static str, ext: &'static str) -> Task<Option<std::path::PathBuf>> {
-    IoTaskPool::get().spawn(async move {
-        rfd::AsyncFileDialog::new().add_filter(ext, &[ext]).set_file_name(name).save_file().await.map(|f| f.path().to_path_buf())
-    })
+/// What a file dialog was opened for: its answer is applied by purpose, in one place.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Dialog {
+    Segmentation,
+    Patient,
+    Scan,
+    OpenSession,
+    SaveSession,
+    ExportPng,
+}
+
+impl Dialog {
+    /// The native dialog for this purpose, on the I/O pool.
+    fn spawn(self) -> Task<Option<std::path::PathBuf>> {
+        let pick = |filter: &'static str, ext: &'static [&'static str]| rfd::AsyncFileDialog::new().add_filter(filter, ext);
+        let save = |name: &'static str, ext: &'static str| rfd::AsyncFileDialog::new().add_filter(ext, &[ext]).set_file_name(name);
+        IoTaskPool::get().spawn(async move {
+            let picked = match self {
+                Dialog::Segmentation => pick("segmentation / mesh", &["nii", "gz", "hdr", "obj", "ply", "stl"]).pick_file().await,
+                Dialog::Patient => rfd::AsyncFileDialog::new().pick_folder().await,
+                Dialog::Scan => pick("NIfTI", &["nii", "gz", "hdr"]).pick_file().await,
+                Dialog::OpenSession => pick("umesh session", &["json"]).pick_file().await,
+                Dialog::SaveSession => save("session.json", "json").save_file().await,
+                Dialog::ExportPng => save("view.png", "png").save_file().await,
+            };
+            picked.map(|f| f.path().to_path_buf())
+        })
+    }
+}
+
+impl UiState {
+    /// Open the dialog for `purpose` unless one is already open for it.
+    fn open(&mut self, purpose: Dialog) {
+        if !self.dialogs.iter().any(|(p, _)| *p == purpose) {
+            self.dialogs.push((purpose, purpose.spawn()));
+        }
+    }
+
+    /// The dialogs answered since the last frame (None: cancelled), removed from the open ones.
+    fn answered(&mut self) -> Vec<(Dialog, Option<std::path::PathBuf>)> {
+        let mut out = Vec::new();
+        self.dialogs.retain_mut(|(purpose, task)| match check_ready(task) {
+            Some(picked) => {
+                out.push((*purpose, picked));
+                false
+            }
+            None => true,
+        });
+        out
+    }
 }
 
 /// The state of the jobs, QA and AR views.
@@ -54,18 +96,10 @@ fn menu_bar(
     egui::MenuBar::new().ui(ui, |ui| {
         ui.menu_button("File", |ui| {
             if ui.button("Open segmentation or mesh...").clicked() {
-                uis.file_dialog = Some(IoTaskPool::get().spawn(async {
-                    rfd::AsyncFileDialog::new()
-                        .add_filter("segmentation / mesh", &["nii", "gz", "hdr", "obj", "ply", "stl"])
-                        .pick_file()
-                        .await
-                        .map(|f| f.path().to_path_buf())
-                }));
+                uis.open(Dialog::Segmentation);
             }
             if ui.button("Open patient folder...").on_hover_text("a folder made by umesh prepare (or New patient in Jobs)").clicked() {
-                uis.folder_dialog = Some(
-                    IoTaskPool::get().spawn(async { rfd::AsyncFileDialog::new().pick_folder().await.map(|f| f.path().to_path_buf()) }),
-                );
+                uis.open(Dialog::Patient);
             }
             let has_organ = st.organ.data.is_some();
             if ui
@@ -74,18 +108,14 @@ fn menu_bar(
                 .on_disabled_hover_text("open a segmentation first")
                 .clicked()
             {
-                uis.ct_dialog = Some(IoTaskPool::get().spawn(async {
-                    rfd::AsyncFileDialog::new().add_filter("NIfTI", &["nii", "gz", "hdr"]).pick_file().await.map(|f| f.path().to_path_buf())
-                }));
+                uis.open(Dialog::Scan);
             }
             if ui.button("Bundled phantom").clicked() {
                 st.jobs.spawn("load phantom", load_job(OpenRequest::default()));
             }
             ui.separator();
             if ui.button("Open session...").clicked() {
-                uis.session_dialog = Some(IoTaskPool::get().spawn(async {
-                    rfd::AsyncFileDialog::new().add_filter("umesh session", &["json"]).pick_file().await.map(|f| f.path().to_path_buf())
-                }));
+                uis.open(Dialog::OpenSession);
             }
             let current = views.session_file.0.clone();
             let label = match &current {
@@ -95,14 +125,14 @@ fn menu_bar(
             if ui.add_enabled(has_organ, egui::Button::new(label)).clicked() {
                 match current {
                     Some(p) => views.save.0 = Some(p),
-                    None => uis.save_dialog = Some(save_dialog("session.json", "json")),
+                    None => uis.open(Dialog::SaveSession),
                 }
             }
             if ui.add_enabled(has_organ, egui::Button::new("Save session as...")).clicked() {
-                uis.save_dialog = Some(save_dialog("session.json", "json"));
+                uis.open(Dialog::SaveSession);
             }
             if ui.button("Export view as PNG...").clicked() {
-                uis.export_dialog = Some(save_dialog("view.png", "png"));
+                uis.open(Dialog::ExportPng);
             }
             ui.separator();
             ui.menu_button("Recent", |ui| {
@@ -262,52 +292,27 @@ pub fn ui_system(
     mut ar_texture: Local<Option<egui::TextureHandle>>,
 ) -> Result {
     uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
-    if let Some(task) = &mut uis.file_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.file_dialog = None;
-        if let Some(path) = picked {
-            views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
-            st.jobs.spawn("inspect", inspect_job(path));
+    for (purpose, picked) in uis.answered() {
+        match (purpose, picked) {
+            (Dialog::Segmentation, Some(path)) => {
+                views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
+                st.jobs.spawn("inspect", inspect_job(path));
+            }
+            (Dialog::Patient, Some(dir)) => {
+                views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
+                st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
+            }
+            (Dialog::Scan, Some(path)) => {
+                let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
+                st.jobs.spawn("scan", crate::app::model::compute::load_ct_job(path, bounds));
+            }
+            (Dialog::OpenSession, Some(path)) => {
+                st.jobs.spawn("open session", crate::app::model::session::open_job(path));
+            }
+            (Dialog::SaveSession, picked) => views.save.0 = picked,
+            (Dialog::ExportPng, picked) => views.export.0 = picked,
+            (_, None) => {}
         }
-    }
-    if let Some(task) = &mut uis.folder_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.folder_dialog = None;
-        if let Some(dir) = picked {
-            views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
-            st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
-        }
-    }
-    if let Some(task) = &mut uis.ct_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.ct_dialog = None;
-        if let Some(path) = picked {
-            let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
-            st.jobs.spawn("scan", crate::app::model::compute::load_ct_job(path, bounds));
-        }
-    }
-    if let Some(task) = &mut uis.session_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.session_dialog = None;
-        if let Some(path) = picked {
-            st.jobs.spawn("open session", crate::app::model::session::open_job(path));
-        }
-    }
-    if let Some(task) = &mut uis.save_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.save_dialog = None;
-        views.save.0 = picked;
-    }
-    if let Some(task) = &mut uis.export_dialog
-        && let Some(picked) = check_ready(task)
-    {
-        uis.export_dialog = None;
-        views.export.0 = picked;
     }
     let ctx = contexts.ctx_mut()?.clone();
     let mode = *views.mode;
@@ -321,8 +326,7 @@ pub fn ui_system(
         if ctrl && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
             match views.session_file.0.clone() {
                 Some(p) => views.save.0 = Some(p),
-                None if uis.save_dialog.is_none() => uis.save_dialog = Some(save_dialog("session.json", "json")),
-                None => {}
+                None => uis.open(Dialog::SaveSession),
             }
         }
         if mode == Mode::Model && !ctrl && keys.just_pressed(KeyCode::KeyS) {

@@ -292,74 +292,11 @@ pub fn ui_system(
     mut ar_texture: Local<Option<egui::TextureHandle>>,
 ) -> Result {
     uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
-    for (purpose, picked) in uis.answered() {
-        match (purpose, picked) {
-            (Dialog::Segmentation, Some(path)) => {
-                views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
-                st.jobs.spawn("inspect", inspect_job(path));
-            }
-            (Dialog::Patient, Some(dir)) => {
-                views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
-                st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
-            }
-            (Dialog::Scan, Some(path)) => {
-                let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
-                st.jobs.spawn("scan", crate::app::model::compute::load_ct_job(path, bounds));
-            }
-            (Dialog::OpenSession, Some(path)) => {
-                st.jobs.spawn("open session", crate::app::model::session::open_job(path));
-            }
-            (Dialog::SaveSession, picked) => views.save.0 = picked,
-            (Dialog::ExportPng, picked) => views.export.0 = picked,
-            (_, None) => {}
-        }
-    }
+    answer_dialogs(&mut uis, &mut st, &mut views);
     let ctx = contexts.ctx_mut()?.clone();
     let mode = *views.mode;
     if !ctx.egui_wants_keyboard_input() {
-        if keys.just_pressed(KeyCode::F1) {
-            uis.show_help = !uis.show_help;
-        }
-        // Held, or pressed and released within this frame (a fast chord, a slow frame).
-        let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
-        let ctrl = keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys);
-        if ctrl && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
-            match views.session_file.0.clone() {
-                Some(p) => views.save.0 = Some(p),
-                None => uis.open(Dialog::SaveSession),
-            }
-        }
-        if mode == Mode::Model && !ctrl && keys.just_pressed(KeyCode::KeyS) {
-            start_simulation(&mut st);
-        }
-        if mode == Mode::Model {
-            if keys.just_pressed(KeyCode::KeyG) {
-                st.grid.show = !st.grid.show;
-            }
-            if keys.just_pressed(KeyCode::KeyD) {
-                st.sim.show_deformed = !st.sim.show_deformed;
-                st.sim.generation += 1;
-            }
-            if keys.just_pressed(KeyCode::Delete)
-                && let Some(i) = st.probes.selected
-            {
-                st.probes.remove(i);
-            }
-        }
-        if mode == Mode::Qa {
-            if keys.just_pressed(KeyCode::ArrowRight) {
-                views.qa.step(1);
-            }
-            if keys.just_pressed(KeyCode::ArrowLeft) {
-                views.qa.step(-1);
-            }
-            if keys.just_pressed(KeyCode::KeyR) {
-                match views.qa.toggle_flag() {
-                    Ok(m) => st.messages.info(m),
-                    Err(e) => st.messages.error(e),
-                }
-            }
-        }
+        shortcuts(&keys, mode, &mut st, &mut uis, &mut views);
     }
     let mut root = egui::Ui::new(
         ctx.clone(),
@@ -369,83 +306,7 @@ pub fn ui_system(
     let mut new_mode = mode;
     egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut views, &mut new_mode));
     egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
-    let waker = views.proxy.as_ref().map(|p| {
-        let p = (**p).clone();
-        Box::new(move || {
-            let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
-        }) as crate::app::ar::Waker
-    });
-    let Views { jobs_ui, queue, qa, ar, active, patient, .. } = &mut views;
-    match mode {
-        Mode::Model => {
-            egui::Panel::left("left").default_size(260.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, &mut st));
-            });
-            egui::Panel::right("right").default_size(280.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, &mut st));
-            });
-        }
-        Mode::Jobs => {
-            egui::Panel::left("jobs_left").default_size(300.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| {
-                    crate::app::jobs::panel::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages)
-                });
-            });
-            let load = egui::CentralPanel::default()
-                .show(&mut root, |ui| crate::app::jobs::panel::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
-                .inner;
-            if let Some((dir, file)) = load {
-                **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
-                if let Some(d) = &st.organ.data {
-                    st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir, file, d.clone()));
-                }
-            }
-        }
-        Mode::Qa => {
-            egui::Panel::left("qa_left").default_size(280.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| crate::app::qa::panel::left_panel(ui, qa, &st.organ, active, &mut st.messages));
-            });
-            egui::Panel::right("qa_right").default_size(280.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| {
-                    crate::app::qa::panel::right_panel(ui, qa);
-                    if st.organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
-                        ui.separator();
-                        ui.heading("Scan");
-                        ui.weak("yellow: the organ at rest; cyan: the sample's FE deformation");
-                        crate::app::model::ct::ct_ui(ui, &mut st.ct, &st.organ);
-                    }
-                });
-            });
-        }
-        Mode::Ar => {
-            let mut synth = false;
-            egui::Panel::left("ar_left").default_size(290.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical()
-                    .show(ui, |ui| synth = crate::app::ar::panel::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
-            });
-            egui::Panel::right("ar_right").default_size(250.0).show(&mut root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| crate::app::ar::panel::right_panel(ui, ar));
-            });
-            egui::CentralPanel::default().show(&mut root, |ui| crate::app::ar::panel::central(ui, ar, &mut ar_texture));
-            if synth {
-                match &st.organ.data {
-                    Some(d) if !st.jobs.is_running("synthetic") => {
-                        st.jobs.spawn(
-                            "synthetic recording",
-                            crate::app::ar::panel::synth_job(
-                                d.clone(),
-                                active.dir.clone(),
-                                crate::app::ar::panel::synthetic_recording_dir(),
-                                20,
-                            ),
-                        );
-                    }
-                    Some(_) => {}
-                    None => st.messages.error("load an organ first"),
-                }
-            }
-        }
-    }
+    view_panels(&mut root, mode, &mut st, &mut views, &mut ar_texture);
     if new_mode != mode {
         *views.mode = new_mode;
     }
@@ -471,8 +332,87 @@ pub fn ui_system(
         }
     }
     open_window(&ctx, &mut st);
+    help_and_error_windows(&ctx, &mut uis, &mut st);
+    Ok(())
+}
+
+/// Apply the answers of the file dialogs closed since the last frame.
+fn answer_dialogs(uis: &mut UiState, st: &mut AppState, views: &mut Views) {
+    for (purpose, picked) in uis.answered() {
+        match (purpose, picked) {
+            (Dialog::Segmentation, Some(path)) => {
+                views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
+                st.jobs.spawn("inspect", inspect_job(path));
+            }
+            (Dialog::Patient, Some(dir)) => {
+                views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
+                st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
+            }
+            (Dialog::Scan, Some(path)) => {
+                let bounds = st.organ.data.as_ref().and_then(|d| d.surface.bounds());
+                st.jobs.spawn("scan", crate::app::model::compute::load_ct_job(path, bounds));
+            }
+            (Dialog::OpenSession, Some(path)) => {
+                st.jobs.spawn("open session", crate::app::model::session::open_job(path));
+            }
+            (Dialog::SaveSession, picked) => views.save.0 = picked,
+            (Dialog::ExportPng, picked) => views.export.0 = picked,
+            (_, None) => {}
+        }
+    }
+}
+
+/// The keyboard shortcuts (when egui does not want the keyboard).
+fn shortcuts(keys: &ButtonInput<KeyCode>, mode: Mode, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
+    if keys.just_pressed(KeyCode::F1) {
+        uis.show_help = !uis.show_help;
+    }
+    // Held, or pressed and released within this frame (a fast chord, a slow frame).
+    let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
+    let ctrl = keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys);
+    if ctrl && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
+        match views.session_file.0.clone() {
+            Some(p) => views.save.0 = Some(p),
+            None => uis.open(Dialog::SaveSession),
+        }
+    }
+    if mode == Mode::Model && !ctrl && keys.just_pressed(KeyCode::KeyS) {
+        start_simulation(st);
+    }
+    if mode == Mode::Model {
+        if keys.just_pressed(KeyCode::KeyG) {
+            st.grid.show = !st.grid.show;
+        }
+        if keys.just_pressed(KeyCode::KeyD) {
+            st.sim.show_deformed = !st.sim.show_deformed;
+            st.sim.generation += 1;
+        }
+        if keys.just_pressed(KeyCode::Delete)
+            && let Some(i) = st.probes.selected
+        {
+            st.probes.remove(i);
+        }
+    }
+    if mode == Mode::Qa {
+        if keys.just_pressed(KeyCode::ArrowRight) {
+            views.qa.step(1);
+        }
+        if keys.just_pressed(KeyCode::ArrowLeft) {
+            views.qa.step(-1);
+        }
+        if keys.just_pressed(KeyCode::KeyR) {
+            match views.qa.toggle_flag() {
+                Ok(m) => st.messages.info(m),
+                Err(e) => st.messages.error(e),
+            }
+        }
+    }
+}
+
+/// The help window (F1) and the window that shows errors not yet acknowledged.
+fn help_and_error_windows(ctx: &egui::Context, uis: &mut UiState, st: &mut AppState) {
     if uis.show_help {
-        egui::Window::new("Keyboard and mouse").open(&mut uis.show_help).show(&ctx, |ui| {
+        egui::Window::new("Keyboard and mouse").open(&mut uis.show_help).show(ctx, |ui| {
             egui::Grid::new("keys").show(ui, |ui| {
                 for (k, what) in [
                     ("left click", "place a force probe on the organ"),
@@ -506,7 +446,7 @@ pub fn ui_system(
             .map(|(_, m)| m.clone())
             .collect();
         let mut dismiss = false;
-        egui::Window::new("Error").collapsible(false).show(&ctx, |ui| {
+        egui::Window::new("Error").collapsible(false).show(ctx, |ui| {
             for e in errors.iter().rev() {
                 ui.colored_label(egui::Color32::LIGHT_RED, e);
             }
@@ -516,5 +456,85 @@ pub fn ui_system(
             st.messages.unread_errors = 0;
         }
     }
-    Ok(())
+}
+
+/// The active view's panels around the 3-D view (or instead of it).
+fn view_panels(root: &mut egui::Ui, mode: Mode, st: &mut AppState, views: &mut Views, ar_texture: &mut Option<egui::TextureHandle>) {
+    let waker = views.proxy.as_ref().map(|p| {
+        let p = (**p).clone();
+        Box::new(move || {
+            let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
+        }) as crate::app::ar::Waker
+    });
+    let Views { jobs_ui, queue, qa, ar, active, patient, .. } = views;
+    match mode {
+        Mode::Model => {
+            egui::Panel::left("left").default_size(260.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, st));
+            });
+            egui::Panel::right("right").default_size(280.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, st));
+            });
+        }
+        Mode::Jobs => {
+            egui::Panel::left("jobs_left").default_size(300.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| {
+                    crate::app::jobs::panel::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages)
+                });
+            });
+            let load = egui::CentralPanel::default()
+                .show(root, |ui| crate::app::jobs::panel::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
+                .inner;
+            if let Some((dir, file)) = load {
+                **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
+                if let Some(d) = &st.organ.data {
+                    st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir, file, d.clone()));
+                }
+            }
+        }
+        Mode::Qa => {
+            egui::Panel::left("qa_left").default_size(280.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| crate::app::qa::panel::left_panel(ui, qa, &st.organ, active, &mut st.messages));
+            });
+            egui::Panel::right("qa_right").default_size(280.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| {
+                    crate::app::qa::panel::right_panel(ui, qa);
+                    if st.organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
+                        ui.separator();
+                        ui.heading("Scan");
+                        ui.weak("yellow: the organ at rest; cyan: the sample's FE deformation");
+                        crate::app::model::ct::ct_ui(ui, &mut st.ct, &st.organ);
+                    }
+                });
+            });
+        }
+        Mode::Ar => {
+            let mut synth = false;
+            egui::Panel::left("ar_left").default_size(290.0).show(root, |ui| {
+                egui::ScrollArea::vertical()
+                    .show(ui, |ui| synth = crate::app::ar::panel::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
+            });
+            egui::Panel::right("ar_right").default_size(250.0).show(root, |ui| {
+                egui::ScrollArea::vertical().show(ui, |ui| crate::app::ar::panel::right_panel(ui, ar));
+            });
+            egui::CentralPanel::default().show(root, |ui| crate::app::ar::panel::central(ui, ar, ar_texture));
+            if synth {
+                match &st.organ.data {
+                    Some(d) if !st.jobs.is_running("synthetic") => {
+                        st.jobs.spawn(
+                            "synthetic recording",
+                            crate::app::ar::panel::synth_job(
+                                d.clone(),
+                                active.dir.clone(),
+                                crate::app::ar::panel::synthetic_recording_dir(),
+                                20,
+                            ),
+                        );
+                    }
+                    Some(_) => {}
+                    None => st.messages.error("load an organ first"),
+                }
+            }
+        }
+    }
 }

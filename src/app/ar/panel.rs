@@ -22,6 +22,33 @@ pub fn left_panel(
     messages: &mut UiMessages,
     waker: Option<crate::app::ar::Waker>,
 ) -> bool {
+    let want_synth = source_ui(ui, ar, organ, model, messages, waker);
+    ui.weak(format!("model: {} ({})", crate::app::state::short_path(&model.dir), model.checkpoint));
+    // Held outside `ar` while the sections below edit it; put back unless closed.
+    let Some(s) = ar.session.take() else {
+        ui.label("Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.");
+        return want_synth;
+    };
+    playback_ui(ui, ar, &s);
+    alignment_ui(ui, ar, &s);
+    display_ui(ui, ar, &s);
+    if ui.button("Close").clicked() {
+        ar.playing = false;
+    } else {
+        ar.session = Some(s);
+    }
+    want_synth
+}
+
+/// Where the frames come from: a recording, a synthetic one made now, or a live stream.
+fn source_ui(
+    ui: &mut egui::Ui,
+    ar: &mut Ar,
+    organ: &Organ,
+    model: &ActiveModel,
+    messages: &mut UiMessages,
+    waker: Option<crate::app::ar::Waker>,
+) -> bool {
     let mut want_synth = false;
     ui.heading("AR view");
     if ar.source_text.is_empty() {
@@ -74,11 +101,11 @@ pub fn left_panel(
             None => messages.error("load the organ (segmentation) the recording shows first"),
         }
     }
-    ui.weak(format!("model: {} ({})", crate::app::state::short_path(&model.dir), model.checkpoint));
-    let Some(s) = &ar.session else {
-        ui.label("Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.");
-        return want_synth;
-    };
+    want_synth
+}
+
+/// Play, pause, step and scrub.
+fn playback_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     ui.separator();
     ui.label(&ar.label);
     ui.horizontal(|ui| {
@@ -106,6 +133,10 @@ pub fn left_panel(
         }
         ui.weak(format!("recorded at {:.1} fps", ar.fps));
     }
+}
+
+/// The camera pose policy, ICP on demand and the initial pose offset.
+fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     ui.separator();
     ui.strong("Rigid alignment");
     let before = ar.pose;
@@ -158,6 +189,10 @@ pub fn left_panel(
     if changed {
         s.send(ArCommand::PoseOffset(ar.offset_t_mm, ar.offset_r_deg));
     }
+}
+
+/// What is drawn (observed points), the physics correction and recording the overlays.
+fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     ui.separator();
     if ui.checkbox(&mut ar.show_points, "observed organ points").changed() {
         s.send(ArCommand::ShowPoints(ar.show_points));
@@ -177,11 +212,6 @@ pub fn left_panel(
         }
         ui.add(egui::TextEdit::singleline(&mut ar.record_dir).desired_width(110.0));
     });
-    if ui.button("Close").clicked() {
-        ar.session = None;
-        ar.playing = false;
-    }
-    want_synth
 }
 
 pub fn right_panel(ui: &mut egui::Ui, ar: &Ar) {

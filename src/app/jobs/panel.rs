@@ -213,6 +213,23 @@ pub fn forms_panel(
     fixed: &FixedChoice,
     messages: &mut UiMessages,
 ) {
+    dataset_form(ui, f, q, organ, setup, fixed, messages);
+    ui.separator();
+    patient_form(ui, f, q, organ, setup, fixed, messages);
+    ui.separator();
+    training_form(ui, f, q, messages);
+}
+
+/// Dataset generation: the paper's protocol with these loads and material, the model view's camera and fixed region.
+fn dataset_form(
+    ui: &mut egui::Ui,
+    f: &mut JobsUi,
+    q: &mut WorkQueue,
+    organ: &Organ,
+    setup: &ObservationSetup,
+    fixed: &FixedChoice,
+    messages: &mut UiMessages,
+) {
     ui.heading("Dataset generation");
     let d = &mut f.dataset;
     egui::Grid::new("dataset_form").num_columns(2).show(ui, |ui| {
@@ -270,7 +287,18 @@ pub fn forms_panel(
             Err(e) => messages.error(e),
         }
     }
-    ui.separator();
+}
+
+/// New patient: `umesh prepare` on the loaded organ.
+fn patient_form(
+    ui: &mut egui::Ui,
+    f: &mut JobsUi,
+    q: &mut WorkQueue,
+    organ: &Organ,
+    setup: &ObservationSetup,
+    fixed: &FixedChoice,
+    messages: &mut UiMessages,
+) {
     ui.heading("New patient");
     ui.weak("umesh prepare: grid, dataset (these loads, the model view's camera and fixed region), training, evaluation, registration check, report.html; resumable");
     let pf = &mut f.patient;
@@ -301,7 +329,10 @@ pub fn forms_panel(
             Err(e) => messages.error(e),
         }
     }
-    ui.separator();
+}
+
+/// Training on a dataset folder.
+fn training_form(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, messages: &mut UiMessages) {
     ui.heading("Training");
     let t = &mut f.train;
     path_field(ui, "dataset folder", &mut t.dataset);

@@ -286,30 +286,7 @@ fn start(item: &mut WorkItem) {
     item.status = WorkStatus::Running;
     item.started = Some(Instant::now());
     item.task = Some(AsyncComputeTaskPool::get().spawn(async move {
-        let push = {
-            let log = log.clone();
-            move |line: String| {
-                if let Ok(mut l) = log.lock() {
-                    l.push(line);
-                    let n = l.len();
-                    if n > 500 {
-                        l.drain(..n - 500);
-                    }
-                }
-            }
-        };
-        let last_msg = Mutex::new(String::new());
-        let sink = Progress::new(move |done, total, msg| {
-            if let Ok(mut p) = p2.lock() {
-                *p = JobProgress { done, total, message: msg.to_string() };
-            }
-            if let Ok(mut m) = last_msg.lock()
-                && *m != msg
-            {
-                *m = msg.to_string();
-                push(msg.to_string());
-            }
-        });
+        let sink = progress_sink(p2, log.clone());
         // A patient folder records its own settings (patient.json) and refuses foreign files.
         if !matches!(kind, WorkKind::Prepare { .. }) {
             std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
@@ -331,55 +308,93 @@ fn start(item: &mut WorkItem) {
             }
         };
         let check = umesh_core::dataset::PreflightCheck { settings: Default::default(), force: false, report: &report_preflight };
-        pool.install(|| match kind {
-            WorkKind::Dataset { seg, config } => {
-                let r = run_generate_checked(&seg, &out, &config, ShardSelection::all(), Some(&check), &sink, &cancel)
-                    .map_err(|e| e.to_string())?;
-                Ok(format!(
-                    "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
-                    r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
-                ))
-            }
-            WorkKind::Prepare { seg, inputs, settings } => {
-                let r = run_prepare(&seg, &inputs, &out, &settings, Some(&check), &sink, &cancel).map_err(|e| e.to_string())?;
-                Ok(format!(
-                    "{} / {} samples accepted, validation TRE {:.2} mm; {}; report.html written",
-                    r.dataset.accepted,
-                    r.dataset.samples,
-                    r.eval.tre_mean_mm,
-                    match &r.check.warning {
-                        Some(w) => format!("warning: {w}"),
-                        None => format!(
-                            "check TRE {} mm (rigid {})",
-                            r.check.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
-                            r.check.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
-                        ),
-                    },
-                ))
-            }
-            WorkKind::Train { dataset, settings, resume } => {
-                let on_epoch = |m: &EpochMetrics| {
-                    if let Ok(mut v) = metrics.lock() {
-                        v.push(m.clone());
-                    }
-                    if let Ok(mut l) = log.lock() {
-                        l.push(format!(
-                            "epoch {}: train loss {:.3e}, val loss {:.3e}, val TRE {:.2} mm (max {:.2}), {:.0} s",
-                            m.epoch, m.train_loss, m.val_loss, m.val_tre_mean_mm, m.val_tre_max_mm, m.seconds
-                        ));
-                    }
-                };
-                let r = run_train(&dataset, &out, &settings, resume, &sink, &on_epoch, &cancel).map_err(|e| e.to_string())?;
-                Ok(format!(
-                    "best epoch {} of {}; {} train / {} validation samples",
-                    r.best_epoch,
-                    r.epochs.len(),
-                    r.train_samples,
-                    r.val_samples
-                ))
-            }
-        })
+        pool.install(|| run_work(kind, &out, &check, &sink, &cancel, &log, &metrics))
     }));
+}
+
+/// The job's progress, its messages also appended to its log (the last 500 lines kept).
+fn progress_sink(progress: Arc<Mutex<JobProgress>>, log: Arc<Mutex<Vec<String>>>) -> Progress {
+    let push = move |line: String| {
+        if let Ok(mut l) = log.lock() {
+            l.push(line);
+            let n = l.len();
+            if n > 500 {
+                l.drain(..n - 500);
+            }
+        }
+    };
+    let last_msg = Mutex::new(String::new());
+    Progress::new(move |done, total, msg| {
+        if let Ok(mut p) = progress.lock() {
+            *p = JobProgress { done, total, message: msg.to_string() };
+        }
+        if let Ok(mut m) = last_msg.lock()
+            && *m != msg
+        {
+            *m = msg.to_string();
+            push(msg.to_string());
+        }
+    })
+}
+
+/// Run one job on the current thread pool; its summary line, or why it failed.
+fn run_work(
+    kind: WorkKind,
+    out: &std::path::Path,
+    check: &umesh_core::dataset::PreflightCheck,
+    sink: &Progress,
+    cancel: &Cancel,
+    log: &Mutex<Vec<String>>,
+    metrics: &Mutex<Vec<EpochMetrics>>,
+) -> Result<String, String> {
+    match kind {
+        WorkKind::Dataset { seg, config } => {
+            let r =
+                run_generate_checked(&seg, out, &config, ShardSelection::all(), Some(check), sink, cancel).map_err(|e| e.to_string())?;
+            Ok(format!(
+                "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
+                r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
+            ))
+        }
+        WorkKind::Prepare { seg, inputs, settings } => {
+            let r = run_prepare(&seg, &inputs, out, &settings, Some(check), sink, cancel).map_err(|e| e.to_string())?;
+            Ok(format!(
+                "{} / {} samples accepted, validation TRE {:.2} mm; {}; report.html written",
+                r.dataset.accepted,
+                r.dataset.samples,
+                r.eval.tre_mean_mm,
+                match &r.check.warning {
+                    Some(w) => format!("warning: {w}"),
+                    None => format!(
+                        "check TRE {} mm (rigid {})",
+                        r.check.last_frame_tre_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()),
+                        r.check.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
+                    ),
+                },
+            ))
+        }
+        WorkKind::Train { dataset, settings, resume } => {
+            let on_epoch = |m: &EpochMetrics| {
+                if let Ok(mut v) = metrics.lock() {
+                    v.push(m.clone());
+                }
+                if let Ok(mut l) = log.lock() {
+                    l.push(format!(
+                        "epoch {}: train loss {:.3e}, val loss {:.3e}, val TRE {:.2} mm (max {:.2}), {:.0} s",
+                        m.epoch, m.train_loss, m.val_loss, m.val_tre_mean_mm, m.val_tre_max_mm, m.seconds
+                    ));
+                }
+            };
+            let r = run_train(&dataset, out, &settings, resume, sink, &on_epoch, cancel).map_err(|e| e.to_string())?;
+            Ok(format!(
+                "best epoch {} of {}; {} train / {} validation samples",
+                r.best_epoch,
+                r.epochs.len(),
+                r.train_samples,
+                r.val_samples
+            ))
+        }
+    }
 }
 
 /// Poll the running job; start the next queued one.

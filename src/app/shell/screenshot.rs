@@ -108,67 +108,9 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     world.resource_mut::<crate::app::setup::ObservationSetup>().show = scene == "camera";
     match scene {
         "phantom" | "grid" => {}
-        "camera" => {
-            world.resource_scope(|world, mut setup: Mut<crate::app::setup::ObservationSetup>| {
-                setup.camera = crate::app::setup::CameraChoice::Named("anterior-inferior".into());
-                setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
-            })?;
-            // From behind the laparoscope and a little aside: the frustum opens toward the
-            // organ, whose seen part faces the viewer.
-            let eye = world
-                .resource::<crate::app::setup::ObservationSetup>()
-                .preview
-                .as_ref()
-                .map(|p| p.camera.position_mm)
-                .ok_or("no preview")?;
-            let eye = crate::app::shell::convert::bevy_from_world(&Vector3::from(eye));
-            let mut cam = world.resource_mut::<OrbitCamera>();
-            let v = (eye - cam.focus).normalize();
-            cam.pitch = v.y.asin() + 0.15;
-            cam.yaw = (-v.x).atan2(-v.z) + 0.35;
-            cam.distance = (eye - cam.focus).length() * 1.1;
-        }
-        "probes" | "ct" => {
-            let mut probes = anterior_probes(&organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
-            if scene == "ct" {
-                // The real liver is softer under these forces: a deformation of the dataset's
-                // scale (about 10 mm), and a view from the front, above and right, where the
-                // three slices show.
-                probes.iter_mut().for_each(|p| p.force_n *= 0.3);
-                let mut cam = world.resource_mut::<OrbitCamera>();
-                cam.yaw = 0.75;
-                cam.pitch = -0.6;
-                cam.distance *= 0.85;
-            }
-            let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
-            let fixed = FixedChoice::default();
-            let JobOutput::Simulated(d) = run(compute::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
-                return Err("simulate".into());
-            };
-            let mut pr = world.resource_mut::<Probes>();
-            for p in probes {
-                pr.add(p);
-            }
-            pr.selected = None;
-            world.resource_mut::<Simulation>().set(d);
-        }
-        "rehearsal" => {
-            let model = RehearsalModel::load(&umesh_workflow::input::bundled_model(), &organ)?;
-            let mut probes = anterior_probes(&organ, &[(0.0, 0.1)]);
-            // Pulled 15 mm inward and a little up, as a drag would.
-            for p in &mut probes {
-                p.force_n = (-p.normal * 15.0 + Vector3::new(0.0, 0.0, 5.0)) * ProbeSettings::default().newtons_per_mm;
-            }
-            let mut pr = world.resource_mut::<Probes>();
-            for p in probes {
-                pr.add(p);
-            }
-            pr.selected = None;
-            let mut reh = world.resource_mut::<Rehearsal>();
-            reh.model = Some(Arc::new(Mutex::new(model)));
-            reh.enabled = true;
-            reh.shown_generation = u64::MAX;
-        }
+        "camera" => camera_scene(world)?,
+        "probes" | "ct" => probes_scene(world, &organ, scene)?,
+        "rehearsal" => rehearsal_scene(world, &organ)?,
         "jobs" => {
             // The dashboard on the bundled model's training metrics.
             world.insert_resource(Mode::Jobs);
@@ -177,54 +119,127 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
             j.folder_text = short_path(&dir);
             j.dash = Some(crate::app::jobs::panel::DashSource::Folder(dir));
         }
-        "qa" => {
-            // Four samples made with the bundled model's configuration, the model beside them.
-            let model = ActiveModel::default();
-            let dir = small_dataset(&organ, "qa-dataset", 4)?;
-            let (ds, m, p) = crate::app::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
-            let p = p.map(|p| Arc::new(Mutex::new(p)));
-            let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
-            let sample = crate::app::qa::load_sample(&ds, &m, first, p.as_deref())?;
-            world.insert_resource(Mode::Qa);
-            let mut qa = world.resource_mut::<crate::app::qa::Qa>();
-            qa.path_text = dir.display().to_string();
-            qa.dataset = Some(Arc::new(ds));
-            qa.manifest = Some(m);
-            qa.predictor = p;
-            if let Some(t) = sample.tre_mm {
-                qa.tre.insert(first, t);
-            }
-            qa.sample = Some(Arc::new(sample));
-            qa.show_u_s = true;
-            qa.show_prediction = true;
-            qa.generation += 1;
-            qa.reorder();
-            // Frame the truth and the prediction beside it.
-            let mut cam = world.resource_mut::<OrbitCamera>();
-            cam.focus.x -= cam.distance * 0.18;
-            cam.distance *= 1.5;
-        }
-        "ar" => {
-            let model = ActiveModel::default();
-            let dir = scene_cache("ar-recording");
-            if !dir.join("trajectory.log").is_file() {
-                run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
-            }
-            world.insert_resource(Mode::Ar);
-            let mut ar = world.resource_mut::<crate::app::ar::Ar>();
-            ar.source_text = dir.display().to_string();
-            ar.show_points = true;
-            let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
-            s.send(crate::app::ar::ArCommand::ShowPoints(true));
-            // Through the frames in order: the rigid alignment is made on the undeformed first
-            // frame, as when a recording plays (aligning on a deformed frame absorbs the motion).
-            for f in 0..=3 {
-                s.send(crate::app::ar::ArCommand::Seek(f));
-            }
-            ar.session = Some(s);
-        }
+        "qa" => qa_scene(world, &organ)?,
+        "ar" => ar_scene(world, &organ)?,
         other => return Err(format!("unknown scene {other:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", "))),
     }
+    Ok(())
+}
+
+/// The dataset camera's preview, seen from behind the laparoscope.
+fn camera_scene(world: &mut World) -> Result<(), String> {
+    world.resource_scope(|world, mut setup: Mut<crate::app::setup::ObservationSetup>| {
+        setup.camera = crate::app::setup::CameraChoice::Named("anterior-inferior".into());
+        setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
+    })?;
+    // From behind the laparoscope and a little aside: the frustum opens toward the
+    // organ, whose seen part faces the viewer.
+    let eye = world.resource::<crate::app::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).ok_or("no preview")?;
+    let eye = crate::app::shell::convert::bevy_from_world(&Vector3::from(eye));
+    let mut cam = world.resource_mut::<OrbitCamera>();
+    let v = (eye - cam.focus).normalize();
+    cam.pitch = v.y.asin() + 0.15;
+    cam.yaw = (-v.x).atan2(-v.z) + 0.35;
+    cam.distance = (eye - cam.focus).length() * 1.1;
+    Ok(())
+}
+
+/// Three probes and their SVK solve (softer on the real liver of the `ct` scene).
+fn probes_scene(world: &mut World, organ: &OrganData, scene: &str) -> Result<(), String> {
+    let mut probes = anterior_probes(organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
+    if scene == "ct" {
+        // The real liver is softer under these forces: a deformation of the dataset's
+        // scale (about 10 mm), and a view from the front, above and right, where the
+        // three slices show.
+        probes.iter_mut().for_each(|p| p.force_n *= 0.3);
+        let mut cam = world.resource_mut::<OrbitCamera>();
+        cam.yaw = 0.75;
+        cam.pitch = -0.6;
+        cam.distance *= 0.85;
+    }
+    let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
+    let fixed = FixedChoice::default();
+    let JobOutput::Simulated(d) = run(compute::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
+        return Err("simulate".into());
+    };
+    let mut pr = world.resource_mut::<Probes>();
+    for p in probes {
+        pr.add(p);
+    }
+    pr.selected = None;
+    world.resource_mut::<Simulation>().set(d);
+    Ok(())
+}
+
+/// One probe pulled, the bundled network predicting.
+fn rehearsal_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+    let model = RehearsalModel::load(&umesh_workflow::input::bundled_model(), organ)?;
+    let mut probes = anterior_probes(organ, &[(0.0, 0.1)]);
+    // Pulled 15 mm inward and a little up, as a drag would.
+    for p in &mut probes {
+        p.force_n = (-p.normal * 15.0 + Vector3::new(0.0, 0.0, 5.0)) * ProbeSettings::default().newtons_per_mm;
+    }
+    let mut pr = world.resource_mut::<Probes>();
+    for p in probes {
+        pr.add(p);
+    }
+    pr.selected = None;
+    let mut reh = world.resource_mut::<Rehearsal>();
+    reh.model = Some(Arc::new(Mutex::new(model)));
+    reh.enabled = true;
+    reh.shown_generation = u64::MAX;
+    Ok(())
+}
+
+/// The dataset browser on four samples made with the bundled model's configuration.
+fn qa_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+    // Four samples made with the bundled model's configuration, the model beside them.
+    let model = ActiveModel::default();
+    let dir = small_dataset(organ, "qa-dataset", 4)?;
+    let (ds, m, p) = crate::app::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
+    let p = p.map(|p| Arc::new(Mutex::new(p)));
+    let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
+    let sample = crate::app::qa::load_sample(&ds, &m, first, p.as_deref())?;
+    world.insert_resource(Mode::Qa);
+    let mut qa = world.resource_mut::<crate::app::qa::Qa>();
+    qa.path_text = dir.display().to_string();
+    qa.dataset = Some(Arc::new(ds));
+    qa.manifest = Some(m);
+    qa.predictor = p;
+    if let Some(t) = sample.tre_mm {
+        qa.tre.insert(first, t);
+    }
+    qa.sample = Some(Arc::new(sample));
+    qa.show_u_s = true;
+    qa.show_prediction = true;
+    qa.generation += 1;
+    qa.reorder();
+    // Frame the truth and the prediction beside it.
+    let mut cam = world.resource_mut::<OrbitCamera>();
+    cam.focus.x -= cam.distance * 0.18;
+    cam.distance *= 1.5;
+    Ok(())
+}
+
+/// The AR view on a synthetic recording, stepped through its frames.
+fn ar_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+    let model = ActiveModel::default();
+    let dir = scene_cache("ar-recording");
+    if !dir.join("trajectory.log").is_file() {
+        run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
+    }
+    world.insert_resource(Mode::Ar);
+    let mut ar = world.resource_mut::<crate::app::ar::Ar>();
+    ar.source_text = dir.display().to_string();
+    ar.show_points = true;
+    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Recording(dir), organ.seg.clone(), model, None);
+    s.send(crate::app::ar::ArCommand::ShowPoints(true));
+    // Through the frames in order: the rigid alignment is made on the undeformed first
+    // frame, as when a recording plays (aligning on a deformed frame absorbs the motion).
+    for f in 0..=3 {
+        s.send(crate::app::ar::ArCommand::Seek(f));
+    }
+    ar.session = Some(s);
     Ok(())
 }
 

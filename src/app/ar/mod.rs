@@ -155,7 +155,102 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .map_err(|e| format!("the model {} does not fit {}: {e}", am.dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, seg)?;
-    let (mut src, base_pose, truth, label, fps) = match &source {
+    let (mut src, base_pose, truth, label, fps) = open_source(&source, &ctx, &log)?;
+    let frames = match &src {
+        Src::Recording(r, _) => Some(r.len()),
+        Src::Live(_) => None,
+    };
+    let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
+    let settings = RegisterSettings { overlay: true, ..Default::default() };
+    let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
+    let true_pose = truth.as_ref().map(|g| g.pose());
+    let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
+    let mut state = Playback { playing: false, record: None, show_points: true, next_due: Instant::now(), want: Some(0), last_index: None };
+    // While a recording plays, the next frame's files are decoded on a helper thread during
+    // this frame's registration (a few ms of PNG decoding off the frame's path).
+    let mut prefetch: Option<(usize, std::thread::JoinHandle<Result<Frame, umesh_core::rgbd::RgbdError>>)> = None;
+    loop {
+        // Commands: block briefly when idle, so a paused session costs nothing.
+        let cmd = if state.playing || state.want.is_some() {
+            rx.try_recv().map_err(Some)
+        } else {
+            rx.recv_timeout(Duration::from_millis(50)).map_err(|_| None)
+        };
+        match cmd {
+            Ok(ArCommand::Stop) | Err(Some(TryRecvError::Disconnected)) => return Ok(()),
+            Ok(c) => state.apply(c, &mut reg, &src, &base_pose, &log)?,
+            Err(_) => {}
+        }
+        // The frame to process now, if any.
+        let frame: Option<Frame> = match &mut src {
+            Src::Recording(rec, pos) => recording_frame(&mut state, rec, pos, fps, &mut prefetch, tx, &log),
+            Src::Live(s) => {
+                state.want = None;
+                if !state.playing {
+                    None
+                } else {
+                    match s.poll(Duration::from_millis(100)) {
+                        Poll::Frame(f) => Some(*f),
+                        Poll::Pending => None,
+                        Poll::Ended(reason) => {
+                            for l in s.take_log() {
+                                log(l);
+                            }
+                            let _ =
+                                tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
+                            state.playing = false;
+                            None
+                        }
+                    }
+                }
+            }
+        };
+        let Some(frame) = frame else { continue };
+        let index = frame.index;
+        state.last_index = Some(match &src {
+            Src::Recording(_, p) => *p,
+            Src::Live(_) => index,
+        });
+        let gt = truth.as_ref().and_then(|g| g.markers_mm.get(index)).map(|v| v.as_slice());
+        match reg.process(&frame, &mut net, gt, rest, true_pose.as_ref()) {
+            Ok(out) => {
+                let Some(mut image) = out.overlay else { continue };
+                if state.show_points {
+                    draw_points(&mut image, &frame, &settings);
+                }
+                if let Some(dir) = &state.record {
+                    let p = dir.join(format!("{index:05}.png"));
+                    match image.encode_png() {
+                        Ok(bytes) => {
+                            if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
+                                log(format!("{}: {e}; recording stopped", p.display()));
+                                state.record = None;
+                            }
+                        }
+                        Err(e) => log(format!("{}: {e}", p.display())),
+                    }
+                }
+                let report = out.report;
+                let _ = tx.send(ArEvent::Frame(Box::new(ArFrame {
+                    index: state.last_index.unwrap_or(index),
+                    image,
+                    report,
+                    received: Instant::now(),
+                })));
+            }
+            Err(e) => log(format!("frame {index} skipped: {e}")),
+        }
+    }
+}
+
+/// Open the frames' source: a recording (its first tracked pose, ground truth if any, frame
+/// rate) or a live stream (starting from the training camera).
+fn open_source(
+    source: &ArSource,
+    ctx: &RegistrationContext,
+    log: &dyn Fn(String),
+) -> Result<(Src, Matrix4<f64>, Option<GroundTruth>, String, f64), String> {
+    Ok(match &source {
         ArSource::Recording(dir) => {
             let rec = Recording::open(dir, None).map_err(|e| e.to_string())?;
             for w in &rec.warnings {
@@ -176,183 +271,137 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
         ArSource::Tcp(addr) => {
             let s = TcpSource::connect(addr, Duration::from_secs(5)).map_err(|e| format!("{addr}: {e}"))?;
             // A live camera has no recorded pose: start from the phantom's training camera.
-            (Src::Live(s), default_pose(&ctx), None, format!("tcp://{addr}"), 30.0)
+            (Src::Live(s), default_pose(ctx), None, format!("tcp://{addr}"), 30.0)
         }
-    };
-    let frames = match &src {
-        Src::Recording(r, _) => Some(r.len()),
-        Src::Live(_) => None,
-    };
-    let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
-    let settings = RegisterSettings { overlay: true, ..Default::default() };
-    let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
-    let true_pose = truth.as_ref().map(|g| g.pose());
-    let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
-    let (mut playing, mut record, mut show_points) = (false, None::<PathBuf>, true);
-    let mut next_due = Instant::now();
-    let mut want: Option<usize> = Some(0); // frame to (re)process now
-    let mut last_index: Option<usize> = None;
-    // While a recording plays, the next frame's files are decoded on a helper thread during
-    // this frame's registration (a few ms of PNG decoding off the frame's path).
-    let mut prefetch: Option<(usize, std::thread::JoinHandle<Result<Frame, umesh_core::rgbd::RgbdError>>)> = None;
-    loop {
-        // Commands: block briefly when idle, so a paused session costs nothing.
-        let cmd = if playing || want.is_some() {
-            rx.try_recv().map_err(Some)
-        } else {
-            rx.recv_timeout(Duration::from_millis(50)).map_err(|_| None)
-        };
+    })
+}
+
+/// Where a session's playback stands: what the commands change between frames.
+struct Playback {
+    playing: bool,
+    record: Option<PathBuf>,
+    show_points: bool,
+    next_due: Instant,
+    /// The frame to (re)process now.
+    want: Option<usize>,
+    last_index: Option<usize>,
+}
+
+impl Playback {
+    /// Apply one command from the view (other than Stop).
+    fn apply(
+        &mut self,
+        cmd: ArCommand,
+        reg: &mut Registrar,
+        src: &Src,
+        base_pose: &Matrix4<f64>,
+        log: &dyn Fn(String),
+    ) -> Result<(), String> {
         match cmd {
-            Ok(ArCommand::Stop) | Err(Some(TryRecvError::Disconnected)) => return Ok(()),
-            Ok(ArCommand::Play(p)) => {
-                playing = p;
-                next_due = Instant::now();
+            ArCommand::Stop => {}
+            ArCommand::Play(p) => {
+                self.playing = p;
+                self.next_due = Instant::now();
             }
-            Ok(ArCommand::Step(d)) => {
-                playing = false;
-                if let Src::Recording(r, _) = &src {
-                    let cur = last_index.unwrap_or(0);
-                    want = Some((cur as i64 + d).clamp(0, r.len() as i64 - 1) as usize);
+            ArCommand::Step(d) => {
+                self.playing = false;
+                if let Src::Recording(r, _) = src {
+                    let cur = self.last_index.unwrap_or(0);
+                    self.want = Some((cur as i64 + d).clamp(0, r.len() as i64 - 1) as usize);
                 }
             }
-            Ok(ArCommand::Seek(f)) => {
-                if let Src::Recording(r, _) = &src {
-                    want = Some(f.min(r.len() - 1));
+            ArCommand::Seek(f) => {
+                if let Src::Recording(r, _) = src {
+                    self.want = Some(f.min(r.len() - 1));
                 }
             }
-            Ok(ArCommand::Icp) => {
+            ArCommand::Icp => {
                 reg.reset(reg.world_from_camera);
-                want = last_index;
+                self.want = self.last_index;
                 log("rigid alignment (ICP) requested".into());
             }
-            Ok(ArCommand::PoseOffset(t, r)) => {
-                reg.reset(pose_with_offset(&base_pose, t, r));
-                want = last_index;
+            ArCommand::PoseOffset(t, r) => {
+                reg.reset(pose_with_offset(base_pose, t, r));
+                self.want = self.last_index;
             }
-            Ok(ArCommand::Record(dir)) => {
+            ArCommand::Record(dir) => {
                 if let Some(d) = &dir {
                     std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
                 }
-                record = dir;
+                self.record = dir;
             }
-            Ok(ArCommand::ShowPoints(s)) => {
-                show_points = s;
-                want = last_index;
+            ArCommand::ShowPoints(s) => {
+                self.show_points = s;
+                self.want = self.last_index;
             }
-            Ok(ArCommand::Correction(on)) => {
+            ArCommand::Correction(on) => {
                 reg.settings.correction = if on { CorrectionSettings::default() } else { CorrectionSettings::off() };
-                want = last_index;
+                self.want = self.last_index;
             }
-            Ok(ArCommand::Pose(p)) => {
+            ArCommand::Pose(p) => {
                 reg.settings.pose = p;
                 reg.reset(reg.world_from_camera);
-                want = last_index;
+                self.want = self.last_index;
             }
-            Err(_) => {}
         }
-        // The frame to process now, if any.
-        let frame: Option<Frame> = match &mut src {
-            Src::Recording(rec, pos) => {
-                let idx = if let Some(w) = want.take() {
-                    Some(w)
-                } else if playing && Instant::now() >= next_due {
-                    // Keep the recording's rate: when processing is slower, skip frames.
-                    let late = next_due.elapsed().as_secs_f64();
-                    let skip = (late * fps).floor() as usize;
-                    let n = last_index.map(|i| i + 1 + skip).unwrap_or(0);
-                    next_due += Duration::from_secs_f64((1 + skip) as f64 / fps);
-                    if n >= rec.len() {
-                        playing = false;
-                        let _ = tx.send(ArEvent::Ended("end of the recording".into()));
-                        None
-                    } else {
-                        Some(n)
-                    }
-                } else {
-                    if playing {
-                        std::thread::sleep(next_due.saturating_duration_since(Instant::now()).min(Duration::from_millis(20)));
-                    }
-                    None
-                };
-                match idx {
-                    Some(i) => {
-                        *pos = i;
-                        let read = match prefetch.take() {
-                            Some((j, h)) if j == i => h.join().unwrap_or_else(|_| rec.read_frame(i)),
-                            _ => rec.read_frame(i),
-                        };
-                        if playing && i + 1 < rec.len() {
-                            let r = rec.clone();
-                            prefetch = Some((i + 1, std::thread::spawn(move || r.read_frame(i + 1))));
-                        }
-                        match read {
-                            Ok(f) => Some(f),
-                            Err(e) => {
-                                log(format!("frame {i} skipped: {e}"));
-                                last_index = Some(i);
-                                None
-                            }
-                        }
-                    }
-                    None => None,
-                }
-            }
-            Src::Live(s) => {
-                want = None;
-                if !playing {
-                    None
-                } else {
-                    match s.poll(Duration::from_millis(100)) {
-                        Poll::Frame(f) => Some(*f),
-                        Poll::Pending => None,
-                        Poll::Ended(reason) => {
-                            for l in s.take_log() {
-                                log(l);
-                            }
-                            let _ =
-                                tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
-                            playing = false;
-                            None
-                        }
-                    }
-                }
-            }
-        };
-        let Some(frame) = frame else { continue };
-        let index = frame.index;
-        last_index = Some(match &src {
-            Src::Recording(_, p) => *p,
-            Src::Live(_) => index,
-        });
-        let gt = truth.as_ref().and_then(|g| g.markers_mm.get(index)).map(|v| v.as_slice());
-        match reg.process(&frame, &mut net, gt, rest, true_pose.as_ref()) {
-            Ok(out) => {
-                let Some(mut image) = out.overlay else { continue };
-                if show_points {
-                    draw_points(&mut image, &frame, &settings);
-                }
-                if let Some(dir) = &record {
-                    let p = dir.join(format!("{index:05}.png"));
-                    match image.encode_png() {
-                        Ok(bytes) => {
-                            if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
-                                log(format!("{}: {e}; recording stopped", p.display()));
-                                record = None;
-                            }
-                        }
-                        Err(e) => log(format!("{}: {e}", p.display())),
-                    }
-                }
-                let report = out.report;
-                let _ = tx.send(ArEvent::Frame(Box::new(ArFrame {
-                    index: last_index.unwrap_or(index),
-                    image,
-                    report,
-                    received: Instant::now(),
-                })));
-            }
-            Err(e) => log(format!("frame {index} skipped: {e}")),
+        Ok(())
+    }
+}
+
+/// The recording's frame to process now, if any: the one asked for, else the next one due at
+/// the recording's rate (skipping frames when processing is slower); the one after it is
+/// decoded on a helper thread meanwhile.
+fn recording_frame(
+    state: &mut Playback,
+    rec: &std::sync::Arc<Recording>,
+    pos: &mut usize,
+    fps: f64,
+    prefetch: &mut Option<(usize, std::thread::JoinHandle<Result<Frame, umesh_core::rgbd::RgbdError>>)>,
+    tx: &EventSender,
+    log: &dyn Fn(String),
+) -> Option<Frame> {
+    let idx = if let Some(w) = state.want.take() {
+        Some(w)
+    } else if state.playing && Instant::now() >= state.next_due {
+        // Keep the recording's rate: when processing is slower, skip frames.
+        let late = state.next_due.elapsed().as_secs_f64();
+        let skip = (late * fps).floor() as usize;
+        let n = state.last_index.map(|i| i + 1 + skip).unwrap_or(0);
+        state.next_due += Duration::from_secs_f64((1 + skip) as f64 / fps);
+        if n >= rec.len() {
+            state.playing = false;
+            let _ = tx.send(ArEvent::Ended("end of the recording".into()));
+            None
+        } else {
+            Some(n)
         }
+    } else {
+        if state.playing {
+            std::thread::sleep(state.next_due.saturating_duration_since(Instant::now()).min(Duration::from_millis(20)));
+        }
+        None
+    };
+    match idx {
+        Some(i) => {
+            *pos = i;
+            let read = match prefetch.take() {
+                Some((j, h)) if j == i => h.join().unwrap_or_else(|_| rec.read_frame(i)),
+                _ => rec.read_frame(i),
+            };
+            if state.playing && i + 1 < rec.len() {
+                let r = rec.clone();
+                *prefetch = Some((i + 1, std::thread::spawn(move || r.read_frame(i + 1))));
+            }
+            match read {
+                Ok(f) => Some(f),
+                Err(e) => {
+                    log(format!("frame {i} skipped: {e}"));
+                    state.last_index = Some(i);
+                    None
+                }
+            }
+        }
+        None => None,
     }
 }
 

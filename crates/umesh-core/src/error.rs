@@ -19,6 +19,12 @@ impl From<&str> for Invalid {
     }
 }
 
+/// A job stopped because its `Cancel` flag was set: one type, which every error enum of the
+/// libraries wraps (`From`), so `cancel.check()?` works in any of them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("cancelled")]
+pub struct Cancelled;
+
 /// A model that failed to predict a frame (the network's error, or the FE fit's), its source kept.
 pub type ModelError = Box<dyn std::error::Error + Send + Sync>;
 

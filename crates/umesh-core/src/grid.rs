@@ -51,8 +51,8 @@ pub enum GridError {
         "the immersed boundary would take {samples} inside tests (box cells x (2^subdivisions x samples per leaf axis)^3), more than the limit of {limit}; use a larger --cell-size-mm or fewer --subdivisions"
     )]
     TooMuchWork { samples: u64, limit: u64 },
-    #[error("cancelled")]
-    Cancelled,
+    #[error(transparent)]
+    Cancelled(#[from] crate::Cancelled),
     #[error(transparent)]
     Npz(#[from] NpzError),
     #[error("{0}")]
@@ -485,9 +485,7 @@ pub fn build(
             out
         })
         .collect();
-    if cancel.is_cancelled() {
-        return Err(GridError::Cancelled);
-    }
+    cancel.check()?;
     let mut occupied = Vec::new();
     let mut quadrature = Vec::new();
     // Slabs are in k order and cells inside in (j, i) order: cell numbers follow the lattice.

@@ -27,7 +27,7 @@ pub mod visible;
 pub mod volume;
 pub mod vtk;
 
-pub use error::{Invalid, ModelError};
+pub use error::{Cancelled, Invalid, ModelError};
 pub use progress::{Cancel, Progress};
 
 /// A folder replaced whole or not at all: a command writes into `path()`, a staging folder

@@ -18,6 +18,10 @@ impl Cancel {
     pub fn is_cancelled(&self) -> bool {
         self.0.load(Ordering::Relaxed)
     }
+    /// `Err(Cancelled)` once the flag is set: `cancel.check()?` in a long loop.
+    pub fn check(&self) -> Result<(), crate::Cancelled> {
+        if self.is_cancelled() { Err(crate::Cancelled) } else { Ok(()) }
+    }
 }
 
 /// Progress callback: `(done, total, message)`. Called from worker threads.

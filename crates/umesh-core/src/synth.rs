@@ -469,9 +469,7 @@ pub fn run_rgbd_synth(
     let mut last_ramp = 0.0f64;
     let mut held: Option<Vec<Vector3<f64>>> = None;
     for f in 0..settings.frames {
-        if cancel.is_cancelled() {
-            return Err(RgbdError::Cancelled);
-        }
+        cancel.check()?;
         progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
         let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
         let ramp = (settings.first_load + (1.0 - settings.first_load) * t).min(load_cap);

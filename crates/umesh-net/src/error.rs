@@ -10,6 +10,6 @@ pub enum NetError {
     Io { path: std::path::PathBuf, source: std::io::Error },
     #[error("weights: {0}")]
     Store(String),
-    #[error("cancelled")]
-    Cancelled,
+    #[error(transparent)]
+    Cancelled(#[from] umesh_core::Cancelled),
 }

@@ -237,9 +237,7 @@ pub fn run_train(
         let mut train_loss = 0.0;
         let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();
         for ids in &batches {
-            if cancel.is_cancelled() {
-                return Err(NetError::Cancelled);
-            }
+            cancel.check()?;
             let x = batch(&set.u_s, ids, set.shape, norm.input_scale_mm, &ad);
             let y = target_batch(&set, ids, &rest, norm.output_scale_mm, &ad);
             let loss = (model.forward(x) - y).square().mean();

@@ -268,7 +268,7 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     let cancel = umesh_core::Cancel::new();
     cancel.cancel();
     let e = run_train(&ds, &out, &more, false, &Default::default(), &|_| {}, &cancel).unwrap_err();
-    assert!(matches!(e, umesh_net::NetError::Cancelled), "{e}");
+    assert!(matches!(e, umesh_net::NetError::Cancelled(_)), "{e}");
     assert_eq!(std::fs::read(out.join("model.safetensors")).unwrap(), weights);
     assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
     std::fs::write(out.join("stale.txt"), "from the earlier model").unwrap();

@@ -168,9 +168,7 @@ impl DatasetContext {
                 Ok(r.solution.ok().map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, mean(&sol))))
             })
             .collect();
-        if cancel.is_cancelled() {
-            return Err(DatasetError::Cancelled);
-        }
+        cancel.check()?;
         let mut scales = Vec::new();
         for r in results {
             if let Some(d) = r.map_err(|e| invalid(Path::new("."), e.to_string()))? {
@@ -207,9 +205,7 @@ pub fn generate_sample(
 ) -> Result<SampleResult, DatasetError> {
     let t = Instant::now();
     let r = ctx.solve_sample_softening(solver, config, index, 1.0, softening_mm, cancel);
-    if cancel.is_cancelled() {
-        return Err(DatasetError::Cancelled);
-    }
+    cancel.check()?;
     let (forces, target_mm) = (r.forces, r.target_mm);
     // What the camera sees of this deformation: decided on the deformed shape, with its own
     // random stream so that the loads do not depend on the view settings.

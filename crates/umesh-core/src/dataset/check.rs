@@ -136,9 +136,7 @@ pub(super) fn preflight_with(
             });
         }
     });
-    if cancel.is_cancelled() {
-        return Err(DatasetError::Cancelled);
-    }
+    cancel.check()?;
     let mut results: Vec<SampleResult> = out
         .into_inner()
         .map_err(|_| invalid(&std::path::PathBuf::from("pre-flight"), "a worker panicked"))?

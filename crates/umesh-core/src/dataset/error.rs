@@ -18,8 +18,8 @@ pub enum DatasetError {
     /// The pre-flight check projects too low an acceptance (the message names the likely cause).
     #[error("{message}")]
     Refused { message: String, preflight: Box<Preflight> },
-    #[error("cancelled")]
-    Cancelled,
+    #[error(transparent)]
+    Cancelled(#[from] crate::Cancelled),
 }
 
 pub(super) fn invalid(path: &Path, reason: impl Into<String>) -> DatasetError {

@@ -231,7 +231,7 @@ pub fn run_generate_checked(
                     let result = match generate_sample(&ctx, &mut solver, config, index, softening, cancel) {
                         Ok(r) => r,
                         Err(e) => {
-                            if !matches!(e, DatasetError::Cancelled) {
+                            if !matches!(e, DatasetError::Cancelled(_)) {
                                 record_error(&first_error, e);
                             }
                             cancel.cancel();
@@ -263,9 +263,7 @@ pub fn run_generate_checked(
     if let Ok(Some(e)) = first_error.into_inner() {
         return Err(e);
     }
-    if cancel.is_cancelled() {
-        return Err(DatasetError::Cancelled);
-    }
+    cancel.check()?;
     let manifest = manifest.into_inner().map_err(|_| invalid(out, "a worker panicked"))?;
     let secs = start.elapsed().as_secs_f64();
     let mut rejected = BTreeMap::new();

@@ -175,8 +175,8 @@ pub enum FemError {
     InvalidInput(String),
     #[error("the linear system could not be factorised: {0}")]
     Factorization(String),
-    #[error("cancelled")]
-    Cancelled,
+    #[error(transparent)]
+    Cancelled(#[from] crate::Cancelled),
 }
 
 /// Cached factorisations for one sparsity pattern: Cholesky with a nested-dissection
@@ -733,9 +733,7 @@ impl<'g> FeSolver<'g> {
         let mut failures = 0;
         let mut probes = 0;
         loop {
-            if cancel.is_cancelled() {
-                return Err(FemError::Cancelled);
-            }
+            cancel.check()?;
             // Probes that converge at once (a warm start already in equilibrium) add no Newton
             // iteration: the probe count bounds the search as well.
             probes += 1;
@@ -906,9 +904,7 @@ impl<'g> FeSolver<'g> {
         let mut increments = 0;
         let mut final_residual = 0.0;
         while done < 1.0 - 1e-12 {
-            if cancel.is_cancelled() {
-                return Err(FemError::Cancelled);
-            }
+            cancel.check()?;
             let load = (done + step).min(1.0);
             let mut trial = u.clone();
             self.apply_prescribed(&mut trial, bc, load);
@@ -973,9 +969,7 @@ impl<'g> FeSolver<'g> {
         let mut last_correction = f64::INFINITY;
         let mut stale = false;
         for it in 1..=s.max_iterations {
-            if cancel.is_cancelled() {
-                return Err(FemError::Cancelled);
-            }
+            cancel.check()?;
             if !(current.min_det_f > 0.0) {
                 return Ok(Err(crate::Invalid::from("an element inverted (det F <= 0)")));
             }

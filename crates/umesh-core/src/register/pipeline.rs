@@ -799,9 +799,7 @@ pub fn run_register(
     let rest = truth.map(|g| g.markers_rest_mm.as_slice());
     let mut n = 0u64;
     loop {
-        if cancel.is_cancelled() {
-            return Err(crate::rgbd::RgbdError::Cancelled);
-        }
+        cancel.check()?;
         let frame = match source.poll(Duration::from_secs(10)) {
             Poll::Frame(f) => f,
             Poll::Pending => {

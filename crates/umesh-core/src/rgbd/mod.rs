@@ -18,8 +18,8 @@ pub enum RgbdError {
     Invalid { path: PathBuf, reason: String },
     #[error("stream: {0}")]
     Stream(String),
-    #[error("cancelled")]
-    Cancelled,
+    #[error(transparent)]
+    Cancelled(#[from] crate::Cancelled),
 }
 
 pub(crate) fn invalid(path: &Path, reason: impl Into<String>) -> RgbdError {

@@ -199,7 +199,7 @@ fn grid_build_is_cancellable_and_rejects_bad_settings() {
     let inside = move |p: &Point3<f64>| p.coords.norm() <= 30.0;
     let cancel = Cancel::new();
     cancel.cancel();
-    assert!(matches!(grid::build(-r, r, inside, &GridSettings::default(), &Progress::none(), &cancel), Err(grid::GridError::Cancelled)));
+    assert!(matches!(grid::build(-r, r, inside, &GridSettings::default(), &Progress::none(), &cancel), Err(grid::GridError::Cancelled(_))));
     for bad in [
         GridSettings { cell_size_mm: 0.0, ..Default::default() },
         GridSettings { cell_size_mm: f64::NAN, ..Default::default() },

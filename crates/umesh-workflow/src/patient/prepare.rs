@@ -132,7 +132,7 @@ pub fn run_prepare(
         && settings.dataset.samples > check.settings.samples
     {
         let p = ctx.preflight(&settings.dataset, &check.settings, progress, cancel).map_err(|e| match e {
-            umesh_core::dataset::DatasetError::Cancelled => NetError::Cancelled,
+            umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
             e => e.into(),
         })?;
         check.judge(p).map_err(|e| NetError::Invalid(e.to_string()))?;
@@ -175,7 +175,7 @@ pub fn run_prepare(
     let mut samples_per_minute = None;
     run_stage(&mut patient, Stage::Dataset, &mut |p| {
         let r = run_generate(seg, &ds_dir, &settings.dataset, ShardSelection::all(), p, cancel).map_err(|e| match e {
-            umesh_core::dataset::DatasetError::Cancelled => NetError::Cancelled,
+            umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
             e => e.into(),
         })?;
         if r.samples_computed > 0 {
@@ -212,7 +212,7 @@ pub fn run_prepare(
             let _ = std::fs::remove_dir_all(&rec_dir);
             match run_rgbd_synth(seg, &settings.dataset, &check, &rec_dir, p, cancel) {
                 Ok(r) => return write_json(&synth_path, &r),
-                Err(umesh_core::rgbd::RgbdError::Cancelled) => return Err(NetError::Cancelled),
+                Err(umesh_core::rgbd::RgbdError::Cancelled(c)) => return Err(c.into()),
                 Err(e @ umesh_core::rgbd::RgbdError::Io { .. }) => return Err(NetError::Invalid(e.to_string())),
                 Err(e) => failures.push(format!("at load scale {:.2}: {e}", check.load_scale)),
             }
@@ -227,7 +227,7 @@ pub fn run_prepare(
             Ok(reason) => CheckReport::not_run(reason),
             Err(_) => match registration_check(seg, &settings.dataset, &model, &rec_dir, p, cancel) {
                 Ok(r) => r,
-                Err(NetError::Cancelled) => return Err(NetError::Cancelled),
+                Err(NetError::Cancelled(c)) => return Err(c.into()),
                 Err(e) => CheckReport::not_run(format!("the registration check failed: {e}")),
             },
         };
@@ -287,7 +287,7 @@ pub fn registration_check(
     let inner = Progress::new(move |done, _, msg| p.report(done, frames, msg));
     let r =
         run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(|e| match e {
-            umesh_core::rgbd::RgbdError::Cancelled => NetError::Cancelled,
+            umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
             e => NetError::Invalid(e.to_string()),
         })?;
     if r.summary.frames == 0 {

@@ -160,15 +160,16 @@ pub fn run(a: Args) -> Result<()> {
     };
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
     let mut settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces: Vec::new() };
+    // The fixed region once: the random forces are calibrated on it, then loaded onto it.
+    let mut bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
     let mut calibration = None;
     settings.forces = match &a.forces {
         Some(f) => read_forces(f)?,
         None => {
-            let held = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
             let (forces, scale) = umesh_core::simulate::calibrated_random_forces(
                 &grid,
                 &organ,
-                &held,
+                &bc,
                 &settings,
                 a.random_forces,
                 a.target_displacement_mm,
@@ -180,7 +181,7 @@ pub fn run(a: Args) -> Result<()> {
             forces
         }
     };
-    let bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
+    loads::apply_forces(&grid, &mut bc, &settings.forces).map_err(|e| umesh_core::simulate::SimulateError::Boundary(e.into()))?;
     if let Some(s) = calibration
         && !a.json
     {

@@ -95,7 +95,7 @@ impl DisplacementModel for FeDisplacementModel<'_> {
     fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, crate::Invalid>> {
         let r = match self.fit.fit(points_world_mm, self.work) {
             Ok(r) => r,
-            Err(crate::Invalid(e)) => return Some(Err(crate::Invalid(e))),
+            Err(e) => return Some(Err(e)),
         };
         self.last = r;
         out.clear();

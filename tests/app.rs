@@ -40,6 +40,31 @@ fn finish_jobs(app: &mut App, limit: Duration) {
     }
 }
 
+/// The shell's tabs are the registered views, one per mode in the menu's order; a tab switches
+/// the `Mode` state, and a model chosen in the jobs view is loaded into the rehearsal.
+#[test]
+fn every_mode_has_one_registered_view_and_the_jobs_view_hands_its_model_to_the_rehearsal() {
+    use umesh::app::shell::views::ViewRegistry;
+    let mut app = app();
+    umesh::app::views::register_default_views(&mut app);
+    let registry = app.world().resource::<ViewRegistry>();
+    let modes: Vec<Mode> = registry.iter().map(|v| v.mode).collect();
+    assert_eq!(modes, [Mode::Model, Mode::Jobs, Mode::Qa, Mode::Ar]);
+    assert!(registry.iter().all(|v| v.shows_3d == matches!(v.mode, Mode::Model | Mode::Qa)));
+    app.world_mut().resource_mut::<NextState<Mode>>().set(Mode::Qa);
+    app.update();
+    assert_eq!(*app.world().resource::<State<Mode>>().get(), Mode::Qa);
+    // The dashboard's "load" on the organ open now.
+    app.world_mut().resource_mut::<Organ>().set(phantom());
+    app.world_mut().resource_mut::<ModelToLoad>().0 = Some(ActiveModel::default());
+    app.update();
+    assert!(app.world().resource::<ModelToLoad>().0.is_none());
+    finish_jobs(&mut app, Duration::from_secs(120));
+    let finished = &app.world().resource::<Jobs>().finished;
+    assert!(finished.iter().any(|(label, outcome, _)| label == "load model" && !outcome.contains("failed")), "{finished:?}");
+    assert!(app.world().resource::<umesh::app::model::probes::Rehearsal>().model.is_some());
+}
+
 #[test]
 fn a_ray_on_the_organ_places_a_probe_on_its_surface_and_a_miss_places_none() {
     let mut app = app();
@@ -179,7 +204,7 @@ fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
     };
     q.submit(kind(), dir.clone()).unwrap();
     // The same folder spelled differently.
-    let err = q.submit(kind(), dir.join("x").join("..")).unwrap_err();
+    let err = format!("{:#}", q.submit(kind(), dir.join("x").join("..")).unwrap_err());
     assert!(err.contains("already writes there"), "{err}");
     let train = WorkKind::Train { dataset: dir.clone(), settings: Default::default(), resume: false };
     assert!(q.submit(train, dir.clone()).is_err(), "a training may not write into a queued job's folder");
@@ -218,7 +243,7 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let job: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data_dir.join("umesh-job.json")).unwrap()).unwrap();
     assert!(job["command"].as_str().unwrap().starts_with("umesh dataset generate"));
     // Browse it and flag the first accepted sample.
-    app.world_mut().insert_resource(Mode::Qa);
+    app.world_mut().resource_mut::<NextState<Mode>>().set(Mode::Qa);
     {
         let world = app.world_mut();
         let organ_res = Organ { data: Some(organ.clone()), ..Default::default() };
@@ -305,10 +330,11 @@ fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
     .unwrap();
     let mut other = (*organ.seg).clone();
     other.organ_labels = vec![umesh_core::phantom::VENA_CAVA];
-    let err = umesh::app::qa::open_dataset(&data_dir, &other, None).err().expect("refused");
+    let err = format!("{:#}", umesh::app::qa::open_dataset(&data_dir, &other, None).err().expect("refused"));
     assert!(err.contains("another segmentation") && err.contains(&data_dir.display().to_string()), "{err}");
     // A folder that is no dataset.
-    let err = umesh::app::qa::open_dataset(&std::env::temp_dir().join("umesh-no-such-dataset"), &organ.seg, None).err().unwrap();
+    let err =
+        format!("{:#}", umesh::app::qa::open_dataset(&std::env::temp_dir().join("umesh-no-such-dataset"), &organ.seg, None).err().unwrap());
     assert!(err.contains("umesh-no-such-dataset"), "{err}");
     let _ = std::fs::remove_dir_all(&data_dir);
 }
@@ -598,6 +624,12 @@ fn a_damaged_session_file_is_one_error_naming_it_and_changes_nothing() {
         assert!(m.last().unwrap().1.contains(name), "{name}: {}", m.last().unwrap().1);
         assert!(app.world().resource::<Organ>().data.is_none(), "{name}: nothing opened");
     }
+    // The app's errors keep their sources: a missing file's io::Error under the path it names.
+    let missing = dir.join("missing.json");
+    let err = umesh::app::model::session::Session::read(&missing).err().expect("a missing session is an error");
+    assert!(err.to_string().contains("missing.json"), "{err:#}");
+    let io = err.chain().find_map(|c| c.downcast_ref::<std::io::Error>()).expect("the io::Error is kept as the source");
+    assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
 }
 
 #[test]

@@ -4,12 +4,14 @@
 //! `state.rs`. Heavy work runs in background tasks.
 
 pub mod ar;
+pub mod ct;
 pub mod jobs;
 pub mod model;
 pub mod qa;
 pub mod setup;
 pub mod shell;
 pub mod state;
+pub mod views;
 
 use bevy::prelude::*;
 use bevy::render::error_handler::{RenderError, RenderErrorHandler, RenderErrorPolicy};
@@ -31,11 +33,14 @@ impl Plugin for CorePlugins {
             model::session::SessionPlugin,
         ))
         // The session's state: held here so that headless tests can save and reopen one.
-        .init_resource::<model::ct::CtView>()
+        .init_resource::<ct::CtView>()
         .init_resource::<shell::camera::OrbitCamera>()
         .init_resource::<state::OpenPatient>()
-        .init_resource::<state::ActiveModel>()
-        .init_resource::<state::Mode>();
+        .init_resource::<state::ActiveModel>();
+        if !app.is_plugin_added::<bevy::state::app::StatesPlugin>() {
+            app.add_plugins(bevy::state::app::StatesPlugin);
+        }
+        app.init_state::<state::Mode>();
     }
 }
 
@@ -44,11 +49,12 @@ pub struct ViewPlugins;
 
 impl Plugin for ViewPlugins {
     fn build(&self, app: &mut App) {
+        views::register_default_views(app);
         app.add_plugins(EguiPlugin::default())
             .add_plugins((
                 CorePlugins,
                 model::scene::ScenePlugin,
-                model::ct::CtPlugin,
+                ct::CtPlugin,
                 shell::camera::OrbitCameraPlugin,
                 model::grid_preview::GridPreviewPlugin,
                 model::probes::ProbeInputPlugin,

@@ -43,7 +43,7 @@ pub struct ObservationSetup {
     pub error: Option<String>,
     pub generation: u64,
     computed: Option<PreviewKey>,
-    task: Option<(PreviewKey, Task<Result<Preview, String>>)>,
+    task: Option<(PreviewKey, Task<anyhow::Result<Preview>>)>,
 }
 
 impl Default for ObservationSetup {
@@ -120,16 +120,16 @@ impl ObservationSetup {
     }
 
     /// The camera and visibility the dataset will use on this organ.
-    pub fn visibility(&self, seg: &Segmentation, fixed: &FixedChoice) -> Result<(VisibilitySettings, FixedRegion, String), String> {
+    pub fn visibility(&self, seg: &Segmentation, fixed: &FixedChoice) -> anyhow::Result<(VisibilitySettings, FixedRegion, String)> {
         let args = self.config_args(fixed, &DatasetOptions::default());
-        let camera = args.camera(seg).map_err(|e| format!("{e:#}"))?;
+        let camera = args.camera(seg)?;
         let (region, description) = fixed.describe(seg);
         Ok((VisibilitySettings { camera, max_fraction: self.max_fraction, ..Default::default() }, region, description))
     }
 
     /// Compute the preview now (screenshots: a rendered frame waits for nothing).
-    pub fn compute_now(&mut self, organ: &Organ, grid: &GridState, fixed: &FixedChoice) -> Result<(), String> {
-        let (Some(data), Some(g)) = (&organ.data, &grid.grid) else { return Err("no organ or grid".into()) };
+    pub fn compute_now(&mut self, organ: &Organ, grid: &GridState, fixed: &FixedChoice) -> anyhow::Result<()> {
+        let (Some(data), Some(g)) = (&organ.data, &grid.grid) else { anyhow::bail!("no organ or grid") };
         let vis = self.visibility(&data.seg, fixed)?;
         let p = compute(data.clone(), organ.generation, g.clone(), vis)?;
         self.preview = Some(Arc::new(p));
@@ -168,9 +168,9 @@ fn compute(
     organ_generation: u64,
     grid: Arc<umesh_core::grid::ImmersedGrid>,
     setup_vis: (VisibilitySettings, FixedRegion, String),
-) -> Result<Preview, String> {
+) -> anyhow::Result<Preview> {
     let (vis, region, fixed_description) = setup_vis;
-    let s = umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &vis, &region).map_err(|e| e.to_string())?;
+    let s = umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &vis, &region)?;
     let fixed_nodes_mm = (0..grid.node_count()).filter(|&n| s.fixed[n]).map(|n| grid.node_position(n)).collect();
     Ok(Preview {
         organ_generation,
@@ -197,7 +197,7 @@ fn update_preview(mut setup: ResMut<ObservationSetup>, organ: Res<Organ>, grid: 
             }
             Err(e) => {
                 setup.preview = None;
-                setup.error = Some(e);
+                setup.error = Some(format!("{e:#}"));
             }
         }
         setup.computed = Some(key);
@@ -220,7 +220,7 @@ fn update_preview(mut setup: ResMut<ObservationSetup>, organ: Res<Organ>, grid: 
         Ok(v) => v,
         Err(e) => {
             setup.preview = None;
-            setup.error = Some(e);
+            setup.error = Some(format!("{e:#}"));
             setup.computed = Some(key);
             setup.generation += 1;
             return;
@@ -374,6 +374,6 @@ pub struct SetupViewPlugin;
 
 impl Plugin for SetupViewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, draw_preview.run_if(resource_equals(crate::app::state::Mode::Model)));
+        app.add_systems(Update, draw_preview.run_if(in_state(crate::app::state::Mode::Model)));
     }
 }

@@ -304,24 +304,20 @@ impl Default for ActiveModel {
     }
 }
 
+/// A model to load into the rehearsal on the organ open now (chosen in the jobs view).
+#[derive(Resource, Default)]
+pub struct ModelToLoad(pub Option<ActiveModel>);
+
 /// What the window shows: the organ and its simulation, the jobs, the dataset browser or
-/// the AR view.
-#[derive(Resource, Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// the AR view. A bevy state: systems of one view run `in_state` of it; each view says what
+/// it shows in its registry entry (`shell::views`).
+#[derive(States, Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Mode {
     #[default]
     Model,
     Jobs,
     Qa,
     Ar,
-}
-
-impl Mode {
-    pub const ALL: [(Mode, &'static str); 4] =
-        [(Mode::Model, "Model"), (Mode::Jobs, "Jobs"), (Mode::Qa, "Dataset QA"), (Mode::Ar, "AR view")];
-    /// Whether the 3-D view is shown (the jobs and AR views are pure UI).
-    pub fn shows_3d(self) -> bool {
-        matches!(self, Mode::Model | Mode::Qa)
-    }
 }
 
 /// A path relative to the working directory when it lies inside it (shorter to read, and

@@ -123,8 +123,7 @@ pub fn fe_scenario(seed: u64) -> Result<FeScenario> {
     let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new())?.grid;
     let material = MaterialParams::default();
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)
-        .map_err(anyhow::Error::msg)?;
+    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)?;
     let fixed = vec![loads::default_fixed_region(&grid, Some(umesh_core::phantom::VENA_CAVA), 6.0)];
     let settings = SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
     Ok(FeScenario { seg, grid, settings })
@@ -151,8 +150,7 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
             &ForceSettings::energy_scale(100, 3.0),
             &Default::default(),
             seed,
-        )
-        .map_err(anyhow::Error::msg)?;
+        )?;
         let settings = SimulationSettings { forces, ..sc.settings.clone() };
         let bc = boundary_conditions(&sc.grid, Some(&sc.seg.volume), &settings)?;
         svk.push(solver.solve(&bc, SolveMethod::Newton, &Progress::none(), &Cancel::new())?);
@@ -376,12 +374,12 @@ fn bench_ui() -> Result<serde_json::Value> {
         let p95 = t[((t.len() - 1) as f64 * 0.95).round() as usize];
         serde_json::json!({ "frames": t.len(), "median_ms": t[t.len() / 2], "p95_ms": p95, "max_ms": t[t.len() - 1] })
     };
-    let (t, idle, solve_ms) = frame_times_during_solve(1280, 800).map_err(anyhow::Error::msg)?;
+    let (t, idle, solve_ms) = frame_times_during_solve(1280, 800)?;
     anyhow::ensure!(!t.is_empty(), "the solve finished before the first frame");
-    let (train_jobs, train_ms) = frame_times_during_training(1280, 800, Mode::Jobs).map_err(anyhow::Error::msg)?;
-    let (train_model, _) = frame_times_during_training(1280, 800, Mode::Model).map_err(anyhow::Error::msg)?;
-    let ar = ar_playback(1280, 800, true).map_err(anyhow::Error::msg)?;
-    let ar_cont = ar_playback(1280, 800, false).map_err(anyhow::Error::msg)?;
+    let (train_jobs, train_ms) = frame_times_during_training(1280, 800, Mode::Jobs)?;
+    let (train_model, _) = frame_times_during_training(1280, 800, Mode::Model)?;
+    let ar = ar_playback(1280, 800, true)?;
+    let ar_cont = ar_playback(1280, 800, false)?;
     Ok(serde_json::json!({
         "backend": std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "default".into()),
         "during_solve": stats(t), "idle": stats(idle), "solve_ms": solve_ms,

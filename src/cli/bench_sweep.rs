@@ -120,7 +120,7 @@ fn cameras(seg: &Segmentation) -> Result<Vec<(String, Camera)>> {
     let (lo, hi) = seg.organ_mask().world_bounds().context("the organ mask is empty")?;
     let mut v = Vec::new();
     for name in ["anterior", "posterior", "right", "left", "superior", "inferior"] {
-        v.push((name.to_string(), Camera::named(name, &lo, &hi).map_err(anyhow::Error::msg)?));
+        v.push((name.to_string(), Camera::named(name, &lo, &hi)?));
     }
     let c = (lo + hi) / 2.0;
     let r = 2.5 * (hi - lo).norm();
@@ -145,7 +145,7 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
     let r = match r {
         Ok(r) => r,
         // A set-up the dataset refuses (camera inside the organ, nothing fixed) is a result too.
-        Err(e) => return Ok(serde_json::json!({ "config": name, "error": e.to_string() })),
+        Err(e) => return Ok(serde_json::json!({ "config": name, "error": format!("{e:#}") })),
     };
     let st = run_stats(dir)?;
     let ctx = umesh_core::dataset::DatasetContext::prepare(seg, config, &Cancel::new())?;

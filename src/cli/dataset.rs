@@ -65,7 +65,7 @@ pub struct PreflightArgs {
 impl PreflightArgs {
     pub fn settings(&self) -> Result<umesh_core::dataset::PreflightSettings> {
         let s = umesh_core::dataset::PreflightSettings { samples: self.preflight_samples, ..Default::default() };
-        s.validate().map_err(|e| anyhow::anyhow!("--preflight-samples: {e}"))?;
+        s.validate().context("--preflight-samples")?;
         Ok(s)
     }
 }

@@ -46,7 +46,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(s) = &a.session
         && s.exists()
     {
-        crate::app::model::session::Session::read(s).map_err(anyhow::Error::msg).context("--session")?;
+        crate::app::model::session::Session::read(s).context("--session")?;
     }
     if !has_display() {
         bail!("no display (DISPLAY / WAYLAND_DISPLAY unset): the app needs one; `umesh screenshot` renders headless");

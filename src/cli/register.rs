@@ -93,7 +93,7 @@ fn open_source(a: &Args) -> Result<(Box<dyn FrameSource>, Option<Matrix4<f64>>, 
             }
             let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied());
             let gt_path = dir.join("ground_truth.json");
-            let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path).map_err(anyhow::Error::msg)?) } else { None };
+            let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
             Ok((Box::new(RecordingSource::new(rec)), pose, truth))
         }
         (None, Some(addr)) => Ok((Box::new(TcpSource::connect(addr, Duration::from_secs(5))?), None, None)),
@@ -124,9 +124,9 @@ pub fn run(a: Args) -> Result<()> {
     net.info
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
-    let ctx = RegistrationContext::new(dctx, &seg).map_err(anyhow::Error::msg)?;
+    let ctx = RegistrationContext::new(dctx, &seg)?;
     let (mut source, rec_pose, truth) = open_source(&a)?;
-    let pose_policy = PosePolicy::parse(&a.pose).map_err(|e| anyhow::anyhow!("--pose: {e}"))?;
+    let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;
     let pose = match (&a.initial_pose, rec_pose) {
         (Some(p), _) => Some(*read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?),
         (None, Some(p)) => Some(p),
@@ -145,7 +145,7 @@ pub fn run(a: Args) -> Result<()> {
         correction: CorrectionSettings { updates: a.correction_updates, cg_iterations: a.correction_cg },
         ..Default::default()
     };
-    settings.validate().map_err(anyhow::Error::msg)?;
+    settings.validate()?;
     settings.segment.depth_min_mm = a.depth_min_mm;
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
@@ -156,7 +156,7 @@ pub fn run(a: Args) -> Result<()> {
     let fe_report = if a.compare_fe {
         let Some(recording) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
         let (mut src, _, _) = open_source(&Args { recording: Some(recording.clone()), source: None, ..a.clone() })?;
-        let mut fe = FeDisplacementModel::new(&ctx, config.material).map_err(anyhow::Error::msg)?;
+        let mut fe = FeDisplacementModel::new(&ctx, config.material)?;
         if a.fe_converged {
             fe = fe.converged(0.01, 60);
         }

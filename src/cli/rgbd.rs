@@ -143,7 +143,7 @@ fn synth(a: SynthArgs) -> Result<()> {
             })
         }
     };
-    let loads = umesh_core::loads::LoadFamily::parse(&a.loads).map_err(|e| anyhow::anyhow!("--loads: {e}"))?;
+    let loads = umesh_core::loads::LoadFamily::parse(&a.loads).context("--loads")?;
     let settings = SynthSettings {
         loads,
         first_load: a.first_load,

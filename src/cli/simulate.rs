@@ -39,7 +39,7 @@ impl FeArgs {
         let kind = MaterialKind::parse(&self.material)
             .with_context(|| format!("unknown material {:?} (svk, linear, neo-hookean)", self.material))?;
         let m = MaterialParams { kind, young_pa: self.young_pa, poisson: self.poisson };
-        m.validate().map_err(anyhow::Error::msg)?;
+        m.validate()?;
         Ok(m)
     }
     pub fn method(&self) -> Result<SolveMethod> {

@@ -3,8 +3,10 @@
 //! play / pause / step / seek / ICP / pose commands. The UI thread never waits for it.
 
 pub mod panel;
+pub mod view;
 
 use crate::app::state::ActiveModel;
+use anyhow::Context;
 use bevy::prelude::*;
 use nalgebra::{Matrix4, Rotation3, Vector3};
 use std::path::PathBuf;
@@ -97,7 +99,7 @@ impl ArSession {
             .name("ar".into())
             .spawn(move || {
                 if let Err(e) = worker(source, &seg, &model, crx, &etx) {
-                    let _ = etx.send(ArEvent::Failed(e));
+                    let _ = etx.send(ArEvent::Failed(format!("{e:#}")));
                 }
             })
             .ok();
@@ -143,17 +145,17 @@ fn draw_points(img: &mut ColorImage, frame: &Frame, settings: &RegisterSettings)
     }
 }
 
-fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &EventSender) -> Result<(), String> {
+fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &EventSender) -> anyhow::Result<()> {
     let log = |s: String| {
         let _ = tx.send(ArEvent::Log(s));
     };
     let mut net =
-        umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
+        umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).with_context(|| am.dir.display().to_string())?;
     let config = umesh_workflow::input::model_dataset_config(Some(&net.info), seg);
-    let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
+    let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new())?;
     net.info
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
-        .map_err(|e| format!("the model {} does not fit {}: {e}", am.dir.display(), seg.source.display()))?;
+        .with_context(|| format!("the model {} does not fit {}", am.dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, seg)?;
     let (mut src, base_pose, truth, label, fps) = open_source(&source, &ctx, &log)?;
     let frames = match &src {
@@ -223,11 +225,11 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                     match image.encode_png() {
                         Ok(bytes) => {
                             if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
-                                log(format!("{}: {e}; recording stopped", p.display()));
+                                log(format!("{}: {e:#}; recording stopped", p.display()));
                                 state.record = None;
                             }
                         }
-                        Err(e) => log(format!("{}: {e}", p.display())),
+                        Err(e) => log(format!("{}: {e:#}", p.display())),
                     }
                 }
                 let report = out.report;
@@ -238,7 +240,7 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                     received: Instant::now(),
                 })));
             }
-            Err(e) => log(format!("frame {index} skipped: {e}")),
+            Err(e) => log(format!("frame {index} skipped: {e:#}")),
         }
     }
 }
@@ -249,17 +251,17 @@ fn open_source(
     source: &ArSource,
     ctx: &RegistrationContext,
     log: &dyn Fn(String),
-) -> Result<(Src, Matrix4<f64>, Option<GroundTruth>, String, f64), String> {
+) -> anyhow::Result<(Src, Matrix4<f64>, Option<GroundTruth>, String, f64)> {
     Ok(match &source {
         ArSource::Recording(dir) => {
-            let rec = Recording::open(dir, None).map_err(|e| e.to_string())?;
+            let rec = Recording::open(dir, None)?;
             for w in &rec.warnings {
                 log(format!("warning: {w}"));
             }
             if rec.is_empty() {
-                return Err(format!("{}: the recording holds no frame", dir.display()));
+                anyhow::bail!("{}: the recording holds no frame", dir.display());
             }
-            let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| {
+            let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).with_context(|| {
                 format!("{}: no trajectory.log, so no initial camera pose; the AR view needs one to start the alignment", dir.display())
             })?;
             let gt_path = dir.join("ground_truth.json");
@@ -269,7 +271,7 @@ fn open_source(
             (Src::Recording(std::sync::Arc::new(rec), 0), pose, truth, dir.display().to_string(), fps)
         }
         ArSource::Tcp(addr) => {
-            let s = TcpSource::connect(addr, Duration::from_secs(5)).map_err(|e| format!("{addr}: {e}"))?;
+            let s = TcpSource::connect(addr, Duration::from_secs(5)).with_context(|| addr.to_string())?;
             // A live camera has no recorded pose: start from the phantom's training camera.
             (Src::Live(s), default_pose(ctx), None, format!("tcp://{addr}"), 30.0)
         }
@@ -296,7 +298,7 @@ impl Playback {
         src: &Src,
         base_pose: &Matrix4<f64>,
         log: &dyn Fn(String),
-    ) -> Result<(), String> {
+    ) -> anyhow::Result<()> {
         match cmd {
             ArCommand::Stop => {}
             ArCommand::Play(p) => {
@@ -326,7 +328,7 @@ impl Playback {
             }
             ArCommand::Record(dir) => {
                 if let Some(d) = &dir {
-                    std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
+                    std::fs::create_dir_all(d).with_context(|| d.display().to_string())?;
                 }
                 self.record = dir;
             }
@@ -395,7 +397,7 @@ fn recording_frame(
             match read {
                 Ok(f) => Some(f),
                 Err(e) => {
-                    log(format!("frame {i} skipped: {e}"));
+                    log(format!("frame {i} skipped: {e:#}"));
                     state.last_index = Some(i);
                     None
                 }
@@ -510,7 +512,7 @@ fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<crate::app::state::UiMessage
             ArEvent::Failed(e) => {
                 ar.playing = false;
                 ar.session = None;
-                messages.error(format!("AR: {e}"));
+                messages.error(format!("AR: {e:#}"));
                 break;
             }
         }

@@ -4,6 +4,7 @@
 use crate::app::ar::{Ar, ArCommand, ArSession, ArSource};
 use crate::app::shell::tasks::JobOutput;
 use crate::app::state::{ActiveModel, Organ, OrganData, UiMessages};
+use anyhow::Context;
 use bevy_egui::egui;
 use std::path::PathBuf;
 use umesh_core::register::pipeline::PosePolicy;
@@ -344,13 +345,13 @@ pub fn synth_job(
     model_dir: std::path::PathBuf,
     out: std::path::PathBuf,
     frames: usize,
-) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, cancel| {
         let info = umesh_net::ModelInfo::read(&model_dir).ok();
         let config = umesh_workflow::input::model_dataset_config(info.as_ref(), &organ.seg);
         let settings = umesh_core::synth::SynthSettings { frames, ..Default::default() };
         let r = umesh_core::synth::run_rgbd_synth(&organ.seg, &config, &settings, &out, progress, cancel)
-            .map_err(|e| format!("{}: {e}", out.display()))?;
+            .with_context(|| out.display().to_string())?;
         let summary = format!("{} frames, markers move {:.1} mm by the last", r.frames, r.mean_marker_displacement_mm);
         Ok(JobOutput::Apply(Box::new(move |world| {
             world.resource_mut::<Ar>().source_text = out.display().to_string();

@@ -2,3 +2,4 @@
 
 pub mod panel;
 pub mod queue;
+pub mod view;

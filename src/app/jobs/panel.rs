@@ -68,20 +68,17 @@ impl DatasetForm {
 
     /// The configuration `umesh dataset generate` builds from the same values (its checks
     /// too), with the camera and fixed region chosen in the model view.
-    pub fn config_with(&self, seg: &Segmentation, setup: &ObservationSetup, fixed: &FixedChoice) -> Result<DatasetConfig, String> {
+    pub fn config_with(&self, seg: &Segmentation, setup: &ObservationSetup, fixed: &FixedChoice) -> anyhow::Result<DatasetConfig> {
         let grid =
             umesh_core::grid::GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, ..Default::default() };
-        let (mut c, _) = self
-            .config_args(setup, fixed)
-            .config(seg, grid, self.samples.max(1), self.seed, self.shard_size)
-            .map_err(|e| format!("{e:#}"))?;
+        let (mut c, _) = self.config_args(setup, fixed).config(seg, grid, self.samples.max(1), self.seed, self.shard_size)?;
         // Regions the options cannot spell (a posterior slab, a patient's region) are set as they are.
         c.fixed = fixed.region(seg);
         Ok(c)
     }
 
     /// With the default camera and fixed region.
-    pub fn config(&self, seg: &Segmentation) -> Result<DatasetConfig, String> {
+    pub fn config(&self, seg: &Segmentation) -> anyhow::Result<DatasetConfig> {
         self.config_with(seg, &ObservationSetup::default(), &FixedChoice::default())
     }
 }
@@ -109,7 +106,7 @@ impl PatientForm {
         seg: &Segmentation,
         setup: &ObservationSetup,
         fixed: &FixedChoice,
-    ) -> Result<PrepareSettings, String> {
+    ) -> anyhow::Result<PrepareSettings> {
         let form = DatasetForm { samples: self.samples, shard_size: 50, ..dataset.clone() };
         let config = form.config_with(seg, setup, fixed)?;
         let mut s = PrepareSettings::paper(config, fixed.describe(seg).1);
@@ -265,7 +262,7 @@ fn dataset_form(
     let organ_name = organ.data.as_ref().map(|o| o.source.clone());
     ui.weak(format!("organ: {}", organ_name.as_deref().unwrap_or("none loaded")));
     ui.weak(match (&setup.preview, &setup.error) {
-        (_, Some(e)) => format!("camera and fixed region (model view): {e}"),
+        (_, Some(e)) => format!("camera and fixed region (model view): {e:#}"),
         (Some(p), None) => format!(
             "camera and fixed region as in the model view: {:.0} % of the surface seen, {} fixed nodes",
             100.0 * p.visible_fraction,
@@ -284,7 +281,7 @@ fn dataset_form(
                 messages.info(format!("dataset job #{id} queued"));
                 f.train.dataset = d.out.clone();
             }
-            Err(e) => messages.error(e),
+            Err(e) => messages.error(format!("{e:#}")),
         }
     }
 }
@@ -326,7 +323,7 @@ fn patient_form(
         });
         match submitted {
             Ok(id) => messages.info(format!("patient job #{id} queued")),
-            Err(e) => messages.error(e),
+            Err(e) => messages.error(format!("{e:#}")),
         }
     }
 }
@@ -372,7 +369,7 @@ fn training_form(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, messages:
                 messages.info(format!("training job #{id} queued"));
                 f.dash = Some(DashSource::Job(id));
             }
-            Err(e) => messages.error(e),
+            Err(e) => messages.error(format!("{e:#}")),
         }
     }
 }
@@ -447,7 +444,7 @@ pub fn queue_and_dashboard(
                         ui.colored_label(egui::Color32::LIGHT_GREEN, format!("done in {}: {m}", fmt_secs(item.seconds.unwrap_or(0.0))));
                     }
                     WorkStatus::Failed(e) => {
-                        ui.colored_label(egui::Color32::LIGHT_RED, format!("failed: {e}"));
+                        ui.colored_label(egui::Color32::LIGHT_RED, format!("failed: {e:#}"));
                     }
                     WorkStatus::Cancelled => {
                         ui.weak("cancelled");
@@ -505,7 +502,7 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
                 match read_metrics(dir) {
                     Ok(m) => f.folder_metrics = Some((m, now)),
                     Err(e) => {
-                        ui.colored_label(egui::Color32::LIGHT_RED, e);
+                        ui.colored_label(egui::Color32::LIGHT_RED, format!("{e:#}"));
                         return None;
                     }
                 }

@@ -4,6 +4,7 @@
 
 use crate::app::shell::tasks::{JobProgress, lower_thread_priority};
 use crate::app::state::UiMessages;
+use anyhow::Context;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use std::path::{Path, PathBuf};
@@ -76,7 +77,7 @@ pub struct WorkItem {
     pub started: Option<Instant>,
     pub seconds: Option<f64>,
     kind: Option<WorkKind>,
-    task: Option<Task<Result<String, String>>>,
+    task: Option<Task<anyhow::Result<String>>>,
 }
 
 impl WorkItem {
@@ -135,23 +136,23 @@ pub fn normalize(p: &Path) -> PathBuf {
 
 impl WorkQueue {
     /// Queue a job writing into `out`. Refused when a queued or running job writes there.
-    pub fn submit(&mut self, kind: WorkKind, out: PathBuf) -> Result<u64, String> {
+    pub fn submit(&mut self, kind: WorkKind, out: PathBuf) -> anyhow::Result<u64> {
         if out.as_os_str().is_empty() {
-            return Err("choose an output folder".into());
+            anyhow::bail!("choose an output folder");
         }
         let norm = normalize(&out);
         if let Some(other) = self.items.iter().find(|i| i.status.is_active() && normalize(&i.out) == norm) {
-            return Err(format!(
+            anyhow::bail!(
                 "{}: job #{} ({}) already writes there; wait for it or choose another folder",
                 out.display(),
                 other.id,
                 other.label
-            ));
+            );
         }
         if let WorkKind::Train { dataset, .. } = &kind
             && normalize(dataset) == norm
         {
-            return Err(format!("{}: the model folder must differ from the dataset folder", out.display()));
+            anyhow::bail!("{}: the model folder must differ from the dataset folder", out.display());
         }
         let (settings, command) = describe(&kind, &out);
         self.next_id += 1;
@@ -289,17 +290,13 @@ fn start(item: &mut WorkItem) {
         let sink = progress_sink(p2, log.clone());
         // A patient folder records its own settings (patient.json) and refuses foreign files.
         if !matches!(kind, WorkKind::Prepare { .. }) {
-            std::fs::create_dir_all(&out).map_err(|e| format!("{}: {e}", out.display()))?;
+            std::fs::create_dir_all(&out).with_context(|| out.display().to_string())?;
             let job_file = out.join(umesh_net::training::JOB_FILE);
             umesh_core::write_atomic(&job_file, serde_json::to_string_pretty(&record).unwrap_or_default().as_bytes())
-                .map_err(|e| format!("{}: {e}", job_file.display()))?;
+                .with_context(|| job_file.display().to_string())?;
         }
         let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .start_handler(|_| lower_thread_priority())
-            .build()
-            .map_err(|e| e.to_string())?;
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).start_handler(|_| lower_thread_priority()).build()?;
         // The pre-flight figures go to the job's log; a job it refuses ends at once with the
         // likely cause as its error.
         let report_preflight = |p: &umesh_core::dataset::Preflight| {
@@ -346,18 +343,17 @@ fn run_work(
     cancel: &Cancel,
     log: &Mutex<Vec<String>>,
     metrics: &Mutex<Vec<EpochMetrics>>,
-) -> Result<String, String> {
+) -> anyhow::Result<String> {
     match kind {
         WorkKind::Dataset { seg, config } => {
-            let r =
-                run_generate_checked(&seg, out, &config, ShardSelection::all(), Some(check), sink, cancel).map_err(|e| e.to_string())?;
+            let r = run_generate_checked(&seg, out, &config, ShardSelection::all(), Some(check), sink, cancel)?;
             Ok(format!(
                 "{} samples computed ({} reused), {} accepted; {:.1} samples/min",
                 r.samples_computed, r.samples_reused, r.accepted, r.samples_per_minute
             ))
         }
         WorkKind::Prepare { seg, inputs, settings } => {
-            let r = run_prepare(&seg, &inputs, out, &settings, Some(check), sink, cancel).map_err(|e| e.to_string())?;
+            let r = run_prepare(&seg, &inputs, out, &settings, Some(check), sink, cancel)?;
             Ok(format!(
                 "{} / {} samples accepted, validation TRE {:.2} mm; {}; report.html written",
                 r.dataset.accepted,
@@ -385,7 +381,7 @@ fn run_work(
                     ));
                 }
             };
-            let r = run_train(&dataset, out, &settings, resume, sink, &on_epoch, cancel).map_err(|e| e.to_string())?;
+            let r = run_train(&dataset, out, &settings, resume, sink, &on_epoch, cancel)?;
             Ok(format!(
                 "best epoch {} of {}; {} train / {} validation samples",
                 r.best_epoch,
@@ -414,8 +410,8 @@ pub fn run_queue(mut q: ResMut<WorkQueue>, mut messages: ResMut<UiMessages>) {
                 WorkStatus::Cancelled
             }
             Err(e) => {
-                messages.error(format!("{} job #{} ({}) failed: {e}", item.label, item.id, item.out.display()));
-                WorkStatus::Failed(e)
+                messages.error(format!("{} job #{} ({}) failed: {e:#}", item.label, item.id, item.out.display()));
+                WorkStatus::Failed(format!("{e:#}"))
             }
         };
         if let Ok(mut l) = item.log.lock() {
@@ -431,14 +427,14 @@ pub fn run_queue(mut q: ResMut<WorkQueue>, mut messages: ResMut<UiMessages>) {
 
 /// Training metrics of a model folder (`metrics.jsonl`), for the dashboard; a training still
 /// running (or cancelled) into that folder writes them in its staging folder beside it.
-pub fn read_metrics(dir: &Path) -> Result<Vec<EpochMetrics>, String> {
+pub fn read_metrics(dir: &Path) -> anyhow::Result<Vec<EpochMetrics>> {
     let pending = umesh_core::StagedDir::pending_path(dir).join("metrics.jsonl");
     let path = if pending.exists() { pending } else { dir.join("metrics.jsonl") };
-    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let text = std::fs::read_to_string(&path).with_context(|| path.display().to_string())?;
     text.lines()
         .filter(|l| !l.trim().is_empty())
         .enumerate()
-        .map(|(i, l)| serde_json::from_str(l).map_err(|e| format!("{} line {}: {e}", path.display(), i + 1)))
+        .map(|(i, l)| serde_json::from_str(l).with_context(|| format!("{} line {}", path.display(), i + 1)))
         .collect()
 }
 

@@ -16,7 +16,7 @@ use umesh_core::surface::{SurfaceSettings, extract_surface};
 use umesh_core::{Cancel, Progress};
 
 /// Load a segmentation (or the bundled phantom) and extract its surfaces.
-pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, cancel| {
         progress.report(0, 3, "reading");
         let input = umesh_workflow::input::InputSpec {
@@ -30,12 +30,12 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
             max_voxels: umesh_core::nifti_io::DEFAULT_MAX_VOXELS,
         };
         let mut notes = Vec::new();
-        let seg = input.load_with_notes(&mut notes).map_err(|e| e.to_string())?;
+        let seg = input.load_with_notes(&mut notes)?;
         for n in notes {
             eprintln!("note: {n}");
         }
         if cancel.is_cancelled() {
-            return Err("cancelled".into());
+            anyhow::bail!("cancelled");
         }
         progress.report(1, 3, "organ surface");
         let source = req.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled phantom".into());
@@ -49,14 +49,14 @@ pub fn load_job(req: OpenRequest) -> impl FnOnce(&Progress, &Cancel) -> Result<J
         }
         if let Some(ct) = &req.ct {
             progress.report(2, 3, "scan");
-            data.ct = Some(Arc::new(crate::app::model::ct::read_ct(ct, data.surface.bounds())?));
+            data.ct = Some(Arc::new(crate::app::ct::read_ct(ct, data.surface.bounds())?));
         }
         Ok(JobOutput::Loaded(data))
     }
 }
 
 /// The organ's display surfaces.
-pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -> Result<OrganData, String> {
+pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -> anyhow::Result<OrganData> {
     // Sampled every 3 mm (6 mm on software rasterisers: every second / fourth voxel of the
     // phantom's 1.5 mm): 68k (17k) triangles instead of 272k on the phantom, plenty for display
     // and picking. In millimetres, so that a 3 mm CT is not sampled every 12 mm.
@@ -68,7 +68,7 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
     let settings = SurfaceSettings { step, sigma_voxels: (0.5 * step as f64).max(1.0), ..Default::default() };
     let surface = extract_surface(&seg.organ_mask(), &settings);
     if surface.triangles.is_empty() {
-        return Err(format!("{}: the organ labels give an empty surface", seg.source.display()));
+        anyhow::bail!("{}: the organ labels give an empty surface", seg.source.display());
     }
     let structures = umesh_core::register::structure_surfaces(&seg)
         .into_iter()
@@ -78,18 +78,18 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
 }
 
 /// Open a patient folder made by `umesh prepare`: its segmentation and figures.
-pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, _| {
         progress.report(0, 2, "reading the patient");
-        let figures = umesh_workflow::patient::read_figures(&dir).map_err(|e| e.to_string())?;
-        let seg = figures.patient.segmentation(&dir).map_err(|e| e.to_string())?;
+        let figures = umesh_workflow::patient::read_figures(&dir)?;
+        let seg = figures.patient.segmentation(&dir)?;
         progress.report(1, 2, "organ surface");
         let mut organ = organ_data(seg, format!("patient {}", dir.display()))?;
         organ.opened = OrganSource::Patient { dir: std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone()) };
         // The scan, when the folder holds one (`umesh prepare --ct`).
         let ct = umesh_workflow::patient::ct_path(&dir);
         if ct.is_file() {
-            organ.ct = Some(Arc::new(crate::app::model::ct::read_ct(&ct, organ.surface.bounds())?));
+            organ.ct = Some(Arc::new(crate::app::ct::read_ct(&ct, organ.surface.bounds())?));
         }
         Ok(JobOutput::Apply(Box::new(move |world| Ok(open_patient(world, organ, figures)))))
     }
@@ -117,10 +117,10 @@ fn open_patient(world: &mut World, data: OrganData, figures: umesh_workflow::pat
 pub fn grid_job(
     seg: Arc<umesh_core::segmentation::Segmentation>,
     settings: umesh_core::grid::GridSettings,
-) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, cancel| {
         let mask = seg.organ_mask();
-        let g = ImmersedGrid::from_mask(&mask, &settings, progress, cancel).map_err(|e| e.to_string())?;
+        let g = ImmersedGrid::from_mask(&mask, &settings, progress, cancel)?;
         Ok(JobOutput::Grid(Arc::new(g), mask.volume_mm3()))
     }
 }
@@ -174,10 +174,10 @@ pub fn simulate_job(
     grid: Arc<ImmersedGrid>,
     fixed: FixedChoice,
     probes: Vec<Probe>,
-) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, cancel| {
         if probes.is_empty() {
-            return Err("place at least one force probe (click on the organ)".into());
+            anyhow::bail!("place at least one force probe (click on the organ)");
         }
         let settings = SimulationSettings {
             material: Default::default(),
@@ -187,19 +187,19 @@ pub fn simulate_job(
             forces: spread_probes(&organ.surface, &probes, PROBE_TIP_RADIUS_MM),
         };
         let t = Instant::now();
-        let out = run_simulate(&grid, Some(&organ.seg.volume), &settings, progress, cancel).map_err(|e| e.to_string())?;
+        let out = run_simulate(&grid, Some(&organ.seg.volume), &settings, progress, cancel)?;
         let history = out.solution.history.iter().enumerate().map(|(i, h)| (i + 1, h.residual)).collect();
         Ok(JobOutput::Simulated(deformation(&grid, &organ, &out.solution.displacement_mm, history, t.elapsed().as_secs_f64() * 1e3, "SVK")))
     }
 }
 
 /// Read a NIfTI's labels (names and voxel counts) so the user can choose organ and structures.
-pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |_, _| {
         if umesh_core::segmentation::is_mesh_path(&path) {
             return Ok(JobOutput::Inspected(path, Vec::new()));
         }
-        let v = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| e.to_string())?;
+        let v = umesh_core::nifti_io::read_volume(&path, &Default::default())?;
         let labels = v
             .label_counts()
             .into_iter()
@@ -207,7 +207,7 @@ pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) 
             .map(|(l, n)| (l, v.label_names.get(&l).cloned().unwrap_or_default(), n))
             .collect::<Vec<_>>();
         if labels.is_empty() {
-            return Err(format!("{}: no non-zero label: not a segmentation", path.display()));
+            anyhow::bail!("{}: no non-zero label: not a segmentation", path.display());
         }
         Ok(JobOutput::Inspected(path, labels))
     }
@@ -217,9 +217,9 @@ pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) 
 pub fn load_ct_job(
     path: std::path::PathBuf,
     organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>,
-) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> Result<JobOutput, String> + Send + 'static {
+) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, _| {
         progress.report(0, 1, "reading the scan");
-        Ok(JobOutput::Ct(Arc::new(crate::app::model::ct::read_ct(&path, organ_bounds)?)))
+        Ok(JobOutput::Ct(Arc::new(crate::app::ct::read_ct(&path, organ_bounds)?)))
     }
 }

@@ -24,6 +24,6 @@ pub struct GridPreviewPlugin;
 
 impl Plugin for GridPreviewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, draw_grid.run_if(resource_equals(crate::app::state::Mode::Model)));
+        app.add_systems(Update, draw_grid.run_if(in_state(crate::app::state::Mode::Model)));
     }
 }

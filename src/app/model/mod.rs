@@ -3,9 +3,9 @@
 //! background computations behind them, and its panels.
 
 pub mod compute;
-pub mod ct;
 pub mod grid_preview;
 pub mod panel;
 pub mod probes;
 pub mod scene;
 pub mod session;
+pub mod view;

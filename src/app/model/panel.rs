@@ -24,7 +24,7 @@ pub struct AppState<'w> {
     pub rehearsal: ResMut<'w, Rehearsal>,
     pub setup: ResMut<'w, crate::app::setup::ObservationSetup>,
     pub orbit: Res<'w, crate::app::shell::camera::OrbitCamera>,
-    pub ct: ResMut<'w, crate::app::model::ct::CtView>,
+    pub ct: ResMut<'w, crate::app::ct::CtView>,
 }
 
 pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
@@ -43,7 +43,7 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     }
     ui.separator();
     ui.heading("Scan");
-    crate::app::model::ct::ct_ui(ui, &mut st.ct, &st.organ);
+    crate::app::ct::ct_ui(ui, &mut st.ct, &st.organ);
     ui.separator();
     ui.heading("Grid");
     let mut h = st.grid.settings.cell_size_mm as f32;
@@ -86,7 +86,7 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     if ui.add_enabled(has_model && !st.probes.list.is_empty(), egui::Button::new("FE check")).clicked()
         && let Err(e) = start_fe_check(&mut st.jobs, &st.rehearsal, &st.probes, &st.organ, &st.probe_settings)
     {
-        st.messages.error(e);
+        st.messages.error(format!("{e:#}"));
     }
     if let Some((mean, max)) = st.sim.check {
         ui.label(format!("U-Net vs SVK: {mean:.2} mm mean, {max:.2} mm max"));

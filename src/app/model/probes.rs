@@ -8,6 +8,7 @@ use crate::app::shell::convert::{bevy_dir_from_world, bevy_from_world, world_dir
 use crate::app::shell::tasks::{JobOutput, Jobs};
 use crate::app::shell::view3d::View3d;
 use crate::app::state::*;
+use anyhow::Context;
 use bevy::prelude::*;
 use bevy::window::PrimaryWindow;
 use bevy_egui::input::egui_wants_any_pointer_input;
@@ -147,18 +148,18 @@ pub struct RehearsalModel {
 
 impl RehearsalModel {
     /// Load a model and rebuild its grid from the organ's segmentation (they must match).
-    pub fn load(dir: &std::path::Path, organ: &OrganData) -> Result<Self, String> {
+    pub fn load(dir: &std::path::Path, organ: &OrganData) -> anyhow::Result<Self> {
         Self::load_checkpoint(dir, "model.safetensors", organ)
     }
 
     /// Load one checkpoint of a model folder (`model.safetensors`, `last.safetensors`).
-    pub fn load_checkpoint(dir: &std::path::Path, file: &str, organ: &OrganData) -> Result<Self, String> {
-        let predictor = umesh_net::inference::Predictor::load_checkpoint(dir, file).map_err(|e| format!("{}: {e}", dir.display()))?;
+    pub fn load_checkpoint(dir: &std::path::Path, file: &str, organ: &OrganData) -> anyhow::Result<Self> {
+        let predictor = umesh_net::inference::Predictor::load_checkpoint(dir, file).with_context(|| dir.display().to_string())?;
         let config = umesh_workflow::input::model_dataset_config(Some(&predictor.info), &organ.seg);
-        let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
-        predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).map_err(|e| format!("{}: {e}", dir.display()))?;
-        let encoder = umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface)
-            .map_err(|e| format!("{}: {e}", dir.display()))?;
+        let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new())?;
+        predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).with_context(|| dir.display().to_string())?;
+        let encoder =
+            umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface).with_context(|| dir.display().to_string())?;
         let seen = umesh_core::mesh::TriMesh {
             positions: ctx.surface.positions.clone(),
             triangles: ctx.surface.triangles.iter().zip(&ctx.visible.visible).filter(|(_, v)| **v).map(|(t, _)| *t).collect(),
@@ -175,11 +176,11 @@ impl RehearsalModel {
 
     /// The network input for the probes: a camera view of the surface they move (models
     /// trained on camera views) or u_s.
-    pub fn network_input(&mut self, probes: &[Probe], newtons_per_mm: f64, radius_mm: f64) -> Result<Vec<f32>, String> {
+    pub fn network_input(&mut self, probes: &[Probe], newtons_per_mm: f64, radius_mm: f64) -> anyhow::Result<Vec<f32>> {
         if self.encoder.takes_points() {
             let pts: Vec<Vector3<f64>> =
                 self.view_rest_mm.iter().map(|p| p + Self::probe_displacement(probes, newtons_per_mm, radius_mm, p)).collect();
-            self.encoder.input(Some(&pts), None).map_err(|e| e.to_string())
+            self.encoder.input(Some(&pts), None).map_err(anyhow::Error::from)
         } else {
             Ok(self.surface_input(probes, newtons_per_mm, radius_mm))
         }
@@ -232,10 +233,10 @@ fn rehearse(
     let t = std::time::Instant::now();
     let input = m.network_input(&probes.list, settings.newtons_per_mm, reh.radius_mm.max(1.0));
     let shape = m.ctx.grid.padded_shape();
-    let field = match input.and_then(|x| m.predictor.predict(&x, shape).map(|f| f.to_vec()).map_err(|e| e.to_string())) {
+    let field = match input.and_then(|x| m.predictor.predict(&x, shape).map(|f| f.to_vec()).map_err(anyhow::Error::from)) {
         Ok(f) => f,
         Err(e) => {
-            messages.error(format!("prediction failed: {e}"));
+            messages.error(format!("prediction failed: {e:#}"));
             reh.enabled = false;
             return;
         }
@@ -249,13 +250,13 @@ fn rehearse(
 }
 
 /// Compare the rehearsal prediction with the SVK solution for the same surface displacement.
-pub fn start_fe_check(jobs: &mut Jobs, reh: &Rehearsal, probes: &Probes, organ: &Organ, settings: &ProbeSettings) -> Result<(), String> {
-    let model = reh.model.clone().ok_or("load a model first")?;
-    let data = organ.data.clone().ok_or("no organ")?;
+pub fn start_fe_check(jobs: &mut Jobs, reh: &Rehearsal, probes: &Probes, organ: &Organ, settings: &ProbeSettings) -> anyhow::Result<()> {
+    let model = reh.model.clone().context("load a model first")?;
+    let data = organ.data.clone().context("no organ")?;
     let list = probes.list.clone();
     let (k, r) = (settings.newtons_per_mm, reh.radius_mm.max(1.0));
     jobs.spawn("FE check", move |progress, cancel| {
-        let m = model.lock().map_err(|_| "model lock poisoned".to_string())?;
+        let m = model.lock().map_err(|_| anyhow::anyhow!("model lock poisoned"))?;
         let u_s = m.surface_input(&list, k, r);
         let g = &m.ctx.grid;
         let [x, y, z] = g.padded_shape();
@@ -280,7 +281,7 @@ pub fn start_fe_check(jobs: &mut Jobs, reh: &Rehearsal, probes: &Probes, organ: 
             forces: Vec::new(),
         };
         let t = std::time::Instant::now();
-        let sol = solve_bc(g, &bc, &settings, progress, cancel).map_err(|e| e.to_string())?;
+        let sol = solve_bc(g, &bc, &settings, progress, cancel)?;
         let fe = deformation(g, &data, &sol.displacement_mm, Vec::new(), t.elapsed().as_secs_f64() * 1e3, "SVK check");
         let net = deformation(g, &data, &m.nodal(&m.field), Vec::new(), 0.0, "U-Net");
         let diffs: Vec<f64> = fe.surface.positions.iter().zip(&net.surface.positions).map(|(a, b)| (a - b).norm()).collect();
@@ -298,7 +299,17 @@ impl Plugin for ProbesPlugin {
         app.add_message::<ProbeRay>()
             .init_resource::<ProbeSettings>()
             .insert_resource(Rehearsal { radius_mm: 25.0, ..default() })
-            .add_systems(Update, (place_probes, rehearse).chain());
+            .init_resource::<ModelToLoad>()
+            .add_systems(Update, ((place_probes, rehearse).chain(), load_chosen_model));
+    }
+}
+
+/// A model chosen elsewhere (the jobs view's dashboard) becomes the rehearsal's, on this organ.
+fn load_chosen_model(mut to_load: ResMut<ModelToLoad>, organ: Res<Organ>, mut jobs: ResMut<Jobs>) {
+    if let Some(m) = to_load.0.take()
+        && let Some(d) = &organ.data
+    {
+        jobs.spawn("load model", load_model_job(m.dir, m.checkpoint, d.clone()));
     }
 }
 
@@ -309,7 +320,7 @@ impl Plugin for ProbeInputPlugin {
     fn build(&self, app: &mut App) {
         app.add_systems(
             Update,
-            (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes).run_if(resource_equals(Mode::Model)),
+            (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes).run_if(in_state(Mode::Model)),
         );
     }
 }
@@ -319,7 +330,7 @@ pub fn load_model_job(
     dir: std::path::PathBuf,
     file: String,
     organ: OrganData,
-) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> Result<JobOutput, String> + Send + 'static {
+) -> impl FnOnce(&umesh_core::Progress, &umesh_core::Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |_, _| {
         let m = RehearsalModel::load_checkpoint(&dir, &file, &organ)?;
         Ok(JobOutput::Apply(Box::new(move |world| {

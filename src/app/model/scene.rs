@@ -109,8 +109,8 @@ fn sync(
 }
 
 /// The organ and its structures show in the model view only (the QA view has its own).
-fn visibility(mode: Res<crate::app::state::Mode>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
-    let want = if *mode == crate::app::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
+fn visibility(mode: Res<State<crate::app::state::Mode>>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
+    let want = if *mode.get() == crate::app::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
     for mut v in &mut q {
         if *v != want {
             *v = want;

@@ -3,10 +3,11 @@
 //! slices, as one small JSON file written atomically and reopened; the File menu's recent files;
 //! the current view exported as a PNG.
 
-use crate::app::model::ct::CtView;
+use crate::app::ct::CtView;
 use crate::app::shell::camera::OrbitCamera;
 use crate::app::shell::tasks::{JobOutput, Jobs};
 use crate::app::state::*;
+use anyhow::Context;
 use bevy::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -58,8 +59,8 @@ pub struct Session {
 
 impl Session {
     /// Check what a hand-edited or damaged file could hold: numbers finite, sizes sane.
-    fn validate(&self, path: &Path) -> Result<(), String> {
-        let bad = |what: String| Err(format!("{}: {what}", path.display()));
+    fn validate(&self, path: &Path) -> anyhow::Result<()> {
+        let bad = |what: String| Err(anyhow::anyhow!("{}: {what}", path.display()));
         if self.format != FORMAT || self.format_version != FORMAT_VERSION {
             return bad(format!("format {} v{} is not {FORMAT} v{FORMAT_VERSION}", self.format, self.format_version));
         }
@@ -94,16 +95,16 @@ impl Session {
         Ok(())
     }
 
-    pub fn read(path: &Path) -> Result<Session, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let s: Session = serde_json::from_str(&text).map_err(|e| format!("{}: not a umesh session: {e}", path.display()))?;
+    pub fn read(path: &Path) -> anyhow::Result<Session> {
+        let text = std::fs::read_to_string(path).with_context(|| path.display().to_string())?;
+        let s: Session = serde_json::from_str(&text).with_context(|| format!("{}: not a umesh session", path.display()))?;
         s.validate(path)?;
         Ok(s)
     }
 
-    pub fn write(&self, path: &Path) -> Result<(), String> {
-        let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
-        umesh_core::write_atomic(path, text.as_bytes()).map_err(|e| format!("{}: {e}", path.display()))
+    pub fn write(&self, path: &Path) -> anyhow::Result<()> {
+        let text = serde_json::to_string_pretty(self)?;
+        umesh_core::write_atomic(path, text.as_bytes()).with_context(|| path.display().to_string())
     }
 }
 
@@ -134,8 +135,8 @@ pub struct SessionState<'w> {
 }
 
 /// The session of what is open now.
-pub fn capture(st: &SessionState) -> Result<Session, String> {
-    let d = st.organ.data.as_ref().ok_or("nothing is open")?;
+pub fn capture(st: &SessionState) -> anyhow::Result<Session> {
+    let d = st.organ.data.as_ref().context("nothing is open")?;
     let v3 = |v: &nalgebra::Vector3<f64>| [v.x, v.y, v.z];
     let c = &*st.camera;
     Ok(Session {
@@ -167,13 +168,13 @@ pub fn save(st: &mut SessionState, path: PathBuf) {
             st.recent.push(&path, RecentKind::Session);
             st.file.0 = Some(path);
         }
-        Err(e) => st.messages.error(format!("saving the session: {e}")),
+        Err(e) => st.messages.error(format!("saving the session: {e:#}")),
     }
 }
 
 /// Read a session and open its organ (and scan) in the background; the rest is applied when it
 /// has loaded.
-pub fn open_job(path: PathBuf) -> impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static {
+pub fn open_job(path: PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, cancel| {
         let s = Session::read(&path)?;
         let inner = match &s.organ {
@@ -288,7 +289,7 @@ impl Recent {
             if let Ok(t) = serde_json::to_string_pretty(self)
                 && let Err(e) = umesh_core::write_atomic(f, t.as_bytes())
             {
-                warn!("{}: {e}", f.display());
+                warn!("{}: {e:#}", f.display());
             }
         }
     }

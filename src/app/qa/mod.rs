@@ -5,8 +5,10 @@
 
 pub mod panel;
 pub mod scene;
+pub mod view;
 
 use crate::app::state::{ActiveModel, Organ, QaTruth, UiMessages};
+use anyhow::Context;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use nalgebra::Vector3;
@@ -79,9 +81,9 @@ pub struct Qa {
     pub generation: u64,
     pub show_u_s: bool,
     pub show_prediction: bool,
-    opening: Option<Task<Result<(QaDataset, Manifest, Option<Predictor>), String>>>,
-    loading: Option<(usize, Task<Result<QaSample, String>>)>,
-    evaluating: Option<Task<Result<BTreeMap<usize, f64>, String>>>,
+    opening: Option<Task<anyhow::Result<(QaDataset, Manifest, Option<Predictor>)>>>,
+    loading: Option<(usize, Task<anyhow::Result<QaSample>>)>,
+    evaluating: Option<Task<anyhow::Result<BTreeMap<usize, f64>>>>,
     requested: Option<usize>,
 }
 
@@ -145,26 +147,26 @@ impl Qa {
     }
 
     /// Flip the flag of the current sample and write the manifest (atomically).
-    pub fn toggle_flag(&mut self) -> Result<String, String> {
-        let (Some(ds), Some(pos)) = (&self.dataset, self.order.get(self.cursor).copied()) else { return Err("no sample".into()) };
+    pub fn toggle_flag(&mut self) -> anyhow::Result<String> {
+        let (Some(ds), Some(pos)) = (&self.dataset, self.order.get(self.cursor).copied()) else { anyhow::bail!("no sample") };
         let dir = ds.dir.clone();
-        let m = self.manifest.as_mut().ok_or("no dataset")?;
+        let m = self.manifest.as_mut().context("no dataset")?;
         // Re-read first: another process (a CLI run) may have changed the manifest since.
-        let mut fresh = Manifest::read(&dir).map_err(|e| e.to_string())?;
+        let mut fresh = Manifest::read(&dir)?;
         let index = m.samples[pos].index;
         let s =
-            fresh.samples.iter_mut().find(|s| s.index == index).ok_or_else(|| format!("sample {index} is no longer in the manifest"))?;
+            fresh.samples.iter_mut().find(|s| s.index == index).with_context(|| format!("sample {index} is no longer in the manifest"))?;
         s.flagged = !s.flagged;
         let flagged = s.flagged;
-        fresh.write(&dir).map_err(|e| e.to_string())?;
+        fresh.write(&dir)?;
         *m = fresh;
         let msg = format!("sample {index} {} in {}", if flagged { "flagged (training skips it)" } else { "unflagged" }, dir.display());
         self.reorder();
         Ok(msg)
     }
 
-    pub fn open(&mut self, dir: PathBuf, organ: &Organ, model: &ActiveModel) -> Result<(), String> {
-        let data = organ.data.clone().ok_or("load the organ the dataset was made from first")?;
+    pub fn open(&mut self, dir: PathBuf, organ: &Organ, model: &ActiveModel) -> anyhow::Result<()> {
+        let data = organ.data.clone().context("load the organ the dataset was made from first")?;
         let model = model.clone();
         self.opening = Some(AsyncComputeTaskPool::get().spawn(async move { open_dataset(&dir, &data.seg, Some(&model)) }));
         Ok(())
@@ -182,27 +184,23 @@ pub fn open_dataset(
     dir: &Path,
     seg: &umesh_core::segmentation::Segmentation,
     model: Option<&ActiveModel>,
-) -> Result<(QaDataset, Manifest, Option<Predictor>), String> {
-    let ds = umesh_core::dataset::Dataset::open(dir).map_err(|e| e.to_string())?;
+) -> anyhow::Result<(QaDataset, Manifest, Option<Predictor>)> {
+    let ds = umesh_core::dataset::Dataset::open(dir)?;
     let m = ds.manifest;
     let seg_hash = umesh_core::dataset::segmentation_hash(seg);
     if m.segmentation_hash != seg_hash {
-        return Err(format!(
-            "{}: made from another segmentation ({}); open that segmentation first (File > Open)",
-            dir.display(),
-            m.segmentation
-        ));
+        anyhow::bail!("{}: made from another segmentation ({}); open that segmentation first (File > Open)", dir.display(), m.segmentation);
     }
-    let dctx = DatasetContext::prepare(seg, &m.config, &umesh_core::Cancel::new()).map_err(|e| e.to_string())?;
+    let dctx = DatasetContext::prepare(seg, &m.config, &umesh_core::Cancel::new())?;
     if dctx.grid_hash() != m.grid_hash {
-        return Err(format!("{}: made on another grid than this program builds from its settings (grid hash differs)", dir.display()));
+        anyhow::bail!("{}: made on another grid than this program builds from its settings (grid hash differs)", dir.display());
     }
     let ctx = RegistrationContext::new(dctx, seg)?;
     let markers = virtual_markers(&ctx, 10, 0).iter().filter_map(|p| ctx.grid.embed(p)).collect();
     let predictor = match model {
         Some(am) => {
-            let p = Predictor::load_checkpoint(&am.dir, &am.checkpoint).map_err(|e| format!("{}: {e}", am.dir.display()))?;
-            p.info.check_grid(&m.grid_hash, m.padded_shape).map_err(|e| format!("model {}: {e}", am.dir.display()))?;
+            let p = Predictor::load_checkpoint(&am.dir, &am.checkpoint).with_context(|| am.dir.display().to_string())?;
+            p.info.check_grid(&m.grid_hash, m.padded_shape).with_context(|| format!("model {}", am.dir.display()))?;
             Some(p)
         }
         None => None,
@@ -210,24 +208,24 @@ pub fn open_dataset(
     Ok((QaDataset { dir: dir.into(), ctx, markers }, m, predictor))
 }
 
-fn f32s(npz: &Npz, name: &str, path: &Path) -> Result<Vec<f32>, String> {
-    match &npz.get(name).map_err(|e| e.to_string())?.data {
+fn f32s(npz: &Npz, name: &str, path: &Path) -> anyhow::Result<Vec<f32>> {
+    match &npz.get(name)?.data {
         ArrayData::F32(v) => Ok(v.clone()),
-        _ => Err(format!("{}: '{name}' is not float32", path.display())),
+        _ => Err(anyhow::anyhow!("{}: '{name}' is not float32", path.display())),
     }
 }
 
 /// (u_s, u_v, probes, forces) of sample `index` and its position among its shard's samples.
 #[allow(clippy::type_complexity)]
-fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, usize), String> {
-    let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
+fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> anyhow::Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, usize)> {
+    let rec = m.samples.iter().find(|s| s.index == index).with_context(|| format!("no sample {index}"))?;
     let path = ds.dir.join(&rec.shard);
-    let npz = Npz::read(&path).map_err(|e| e.to_string())?;
-    let idx: Vec<i64> = match &npz.get("index").map_err(|e| e.to_string())?.data {
+    let npz = Npz::read(&path)?;
+    let idx: Vec<i64> = match &npz.get("index")?.data {
         ArrayData::I64(v) => v.clone(),
-        _ => return Err(format!("{}: 'index' is not int64", path.display())),
+        _ => anyhow::bail!("{}: 'index' is not int64", path.display()),
     };
-    let k = idx.iter().position(|&i| i as usize == index).ok_or_else(|| format!("{}: sample {index} missing", path.display()))?;
+    let k = idx.iter().position(|&i| i as usize == index).with_context(|| format!("{}: sample {index} missing", path.display()))?;
     let a = idx.len();
     let (u_s, u_v, pr, fo) =
         (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?, f32s(&npz, "probes_mm", &path)?, f32s(&npz, "forces_n", &path)?);
@@ -250,21 +248,21 @@ fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {
 
 /// The network input of sample `index`, the `k`-th of its shard: its stored camera view
 /// encoded, or its u_s.
-fn model_input(ds: &QaDataset, m: &Manifest, index: usize, k: usize, p: &Predictor, u_s: &[f32]) -> Result<Vec<f32>, String> {
-    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface).map_err(|e| e.to_string())?;
+fn model_input(ds: &QaDataset, m: &Manifest, index: usize, k: usize, p: &Predictor, u_s: &[f32]) -> anyhow::Result<Vec<f32>> {
+    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface)?;
     if !enc.takes_points() {
-        return enc.input(None, Some(u_s)).map_err(|e| e.to_string());
+        return enc.input(None, Some(u_s)).map_err(anyhow::Error::from);
     }
-    let rec = m.samples.iter().find(|s| s.index == index).ok_or_else(|| format!("no sample {index}"))?;
-    let shard = m.shards.iter().find(|s| s.file == rec.shard).ok_or_else(|| format!("no shard {}", rec.shard))?;
+    let rec = m.samples.iter().find(|s| s.index == index).with_context(|| format!("no sample {index}"))?;
+    let shard = m.shards.iter().find(|s| s.file == rec.shard).with_context(|| format!("no shard {}", rec.shard))?;
     let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
     // The views come in the order of the shard's sample indices, as read_sample's `k`.
-    let views = data.load_views(shard).map_err(|e| e.to_string())?;
-    let view = views.get(k).ok_or_else(|| format!("{}: no camera view for sample {index}", shard.file))?;
-    enc.input(Some(view), None).map_err(|e| e.to_string())
+    let views = data.load_views(shard)?;
+    let view = views.get(k).with_context(|| format!("{}: no camera view for sample {index}", shard.file))?;
+    enc.input(Some(view), None).map_err(anyhow::Error::from)
 }
 
-pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> Result<QaSample, String> {
+pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> anyhow::Result<QaSample> {
     let (u_s, u_v, pr, fo, k) = read_sample(ds, m, index)?;
     let ctx = &ds.ctx;
     let g = &ctx.grid;
@@ -286,9 +284,9 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
     let truth_structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &u_v), s.color)).collect();
     let (predicted, tre_mm) = match predictor {
         Some(p) => {
-            let mut p = p.lock().map_err(|_| "the model is poisoned")?;
+            let mut p = p.lock().map_err(|_| anyhow::anyhow!("the model is poisoned"))?;
             let x = model_input(ds, m, index, k, &p, &u_s)?;
-            let pred = p.predict(&x, g.padded_shape()).map_err(|e| e.to_string())?.to_vec();
+            let pred = p.predict(&x, g.padded_shape())?.to_vec();
             let surface = ctx.deformed_surface(&pred);
             let err: Vec<f32> = surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
             let structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &pred), s.color)).collect();
@@ -312,19 +310,19 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
 }
 
 /// The network's TRE on every accepted sample (by sample index).
-pub fn evaluate_dataset(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> Result<BTreeMap<usize, f64>, String> {
+pub fn evaluate_dataset(ds: &QaDataset, m: &Manifest, p: &Mutex<Predictor>) -> anyhow::Result<BTreeMap<usize, f64>> {
     let mut out = BTreeMap::new();
-    let mut p = p.lock().map_err(|_| "the model is poisoned")?;
+    let mut p = p.lock().map_err(|_| anyhow::anyhow!("the model is poisoned"))?;
     let shape = ds.ctx.grid.padded_shape();
     let data = umesh_core::dataset::Dataset { dir: ds.dir.clone(), manifest: m.clone() };
-    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface).map_err(|e| e.to_string())?;
+    let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface)?;
     for shard in &m.shards {
-        let (idx, u_s, u_v) = data.load_shard(shard).map_err(|e| e.to_string())?;
-        let views = if enc.takes_points() { data.load_views(shard).map_err(|e| e.to_string())? } else { Vec::new() };
+        let (idx, u_s, u_v) = data.load_shard(shard)?;
+        let views = if enc.takes_points() { data.load_views(shard)? } else { Vec::new() };
         let n = u_s.len() / idx.len().max(1);
         for (k, &i) in idx.iter().enumerate() {
-            let x = enc.input(views.get(k).map(|v| v.as_slice()), Some(&u_s[k * n..(k + 1) * n])).map_err(|e| e.to_string())?;
-            let pred = p.predict(&x, shape).map_err(|e| e.to_string())?.to_vec();
+            let x = enc.input(views.get(k).map(|v| v.as_slice()), Some(&u_s[k * n..(k + 1) * n]))?;
+            let pred = p.predict(&x, shape)?.to_vec();
             out.insert(i, sample_tre(ds, &pred, &u_v[k * n..(k + 1) * n]));
         }
     }
@@ -357,7 +355,7 @@ fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
                 qa.order.clear();
                 qa.reorder();
             }
-            Err(e) => messages.error(e),
+            Err(e) => messages.error(format!("{e:#}")),
         }
     }
     if let Some(t) = &mut qa.evaluating
@@ -371,7 +369,7 @@ fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
                 qa.tre = tre;
                 qa.reorder();
             }
-            Err(e) => messages.error(format!("evaluation failed: {e}")),
+            Err(e) => messages.error(format!("evaluation failed: {e:#}")),
         }
     }
     if let Some((_, t)) = &mut qa.loading
@@ -386,7 +384,7 @@ fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
                 qa.sample = Some(Arc::new(s));
                 qa.generation += 1;
             }
-            Err(e) => messages.error(format!("sample: {e}")),
+            Err(e) => messages.error(format!("sample: {e:#}")),
         }
     }
     if qa.loading.is_none()

@@ -20,7 +20,7 @@ pub fn left_panel(ui: &mut egui::Ui, qa: &mut Qa, organ: &Organ, model: &ActiveM
         if ui.add_enabled(qa.busy().is_none(), egui::Button::new("Open dataset")).clicked()
             && let Err(e) = qa.open(PathBuf::from(qa.path_text.trim()), organ, model)
         {
-            messages.error(e);
+            messages.error(format!("{e:#}"));
         }
         if let Some(b) = qa.busy() {
             ui.spinner();
@@ -84,7 +84,7 @@ pub fn left_panel(ui: &mut egui::Ui, qa: &mut Qa, organ: &Organ, model: &ActiveM
         if ui.button(label).clicked() {
             match qa.toggle_flag() {
                 Ok(msg) => messages.info(msg),
-                Err(e) => messages.error(e),
+                Err(e) => messages.error(format!("{e:#}")),
             }
         }
     }

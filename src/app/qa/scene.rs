@@ -20,13 +20,13 @@ fn prediction_offset_mm(qa: &Qa) -> Vector3<f64> {
 fn sync(
     mut commands: Commands,
     qa: Res<Qa>,
-    mode: Res<Mode>,
+    mode: Res<State<Mode>>,
     mut shown: Local<(u64, bool, bool)>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
     old: Query<Entity, With<QaMesh>>,
 ) {
-    let want = (qa.generation, *mode == Mode::Qa, qa.show_prediction);
+    let want = (qa.generation, *mode.get() == Mode::Qa, qa.show_prediction);
     if *shown == want {
         return;
     }
@@ -97,6 +97,6 @@ pub struct QaViewPlugin;
 
 impl Plugin for QaViewPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(PostUpdate, sync).add_systems(Update, draw.run_if(resource_equals(Mode::Qa)));
+        app.add_systems(PostUpdate, sync).add_systems(Update, draw.run_if(in_state(Mode::Qa)));
     }
 }

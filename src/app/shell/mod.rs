@@ -7,3 +7,4 @@ pub mod screenshot;
 pub mod tasks;
 pub mod ui;
 pub mod view3d;
+pub mod views;

@@ -8,6 +8,7 @@ use crate::app::model::probes::{ProbeRay, ProbeSettings, Rehearsal, RehearsalMod
 use crate::app::shell::camera::OrbitCamera;
 use crate::app::shell::tasks::{self, JobOutput};
 use crate::app::state::*;
+use anyhow::Context;
 use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
 use bevy::prelude::*;
@@ -44,7 +45,7 @@ fn scene_cache(name: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!("umesh-scene-{name}-v{}", umesh_core::dataset::FORMAT_VERSION))
 }
 
-fn run(job: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String>) -> Result<JobOutput, String> {
+fn run(job: impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput>) -> anyhow::Result<JobOutput> {
     job(&Progress::none(), &Cancel::new())
 }
 
@@ -64,19 +65,19 @@ fn anterior_probes(organ: &OrganData, offsets: &[(f64, f64)]) -> Vec<Probe> {
 
 /// `samples` samples with the bundled model's configuration, in shards of 4, generated once
 /// into the temporary folder `name` (resumed when complete).
-fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> Result<std::path::PathBuf, String> {
-    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir).map_err(|e| e.to_string())?;
+fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> anyhow::Result<std::path::PathBuf> {
+    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir)?;
     let mut config = umesh_workflow::input::model_dataset_config(Some(&info), &organ.seg);
     config.samples = samples;
     config.shard_size = 4;
     let dir = scene_cache(name);
     let all = umesh_core::dataset::ShardSelection::all();
-    umesh_core::dataset::run_generate(&organ.seg, &dir, &config, all, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+    umesh_core::dataset::run_generate(&organ.seg, &dir, &config, all, &Progress::none(), &Cancel::new())?;
     Ok(dir)
 }
 
 /// Compute the state a scene shows (synchronously: a screenshot waits for nothing).
-pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
+pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
     let req = if scene == "ct" {
         // TotalSegmentator's CT and its segmentation: liver 5, vena cava 63, portal vein 64.
         let d = shared_data().join("totalsegmentator");
@@ -86,7 +87,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         OpenRequest::default()
     };
     let JobOutput::Loaded(organ) = run(compute::load_job(req))? else {
-        return Err("unexpected job output".into());
+        anyhow::bail!("unexpected job output");
     };
     world.resource_mut::<Organ>().set(organ.clone());
     let mut cam = OrbitCamera::default();
@@ -94,7 +95,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
     world.insert_resource(cam);
     let show_grid = scene == "grid";
     if scene != "phantom" {
-        let JobOutput::Grid(g, vox) = run(compute::grid_job(organ.seg.clone(), Default::default()))? else { return Err("grid".into()) };
+        let JobOutput::Grid(g, vox) = run(compute::grid_job(organ.seg.clone(), Default::default()))? else { anyhow::bail!("grid") };
         let mut gs = world.resource_mut::<GridState>();
         gs.stats = Some(g.stats());
         gs.grid = Some(g.clone());
@@ -113,7 +114,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         "rehearsal" => rehearsal_scene(world, &organ)?,
         "jobs" => {
             // The dashboard on the bundled model's training metrics.
-            world.insert_resource(Mode::Jobs);
+            world.resource_mut::<NextState<Mode>>().set(Mode::Jobs);
             let mut j = world.resource_mut::<crate::app::jobs::panel::JobsUi>();
             let dir = umesh_workflow::input::bundled_model();
             j.folder_text = short_path(&dir);
@@ -121,20 +122,21 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> Result<(), String> {
         }
         "qa" => qa_scene(world, &organ)?,
         "ar" => ar_scene(world, &organ)?,
-        other => return Err(format!("unknown scene {other:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", "))),
+        other => anyhow::bail!("unknown scene {other:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", ")),
     }
     Ok(())
 }
 
 /// The dataset camera's preview, seen from behind the laparoscope.
-fn camera_scene(world: &mut World) -> Result<(), String> {
+fn camera_scene(world: &mut World) -> anyhow::Result<()> {
     world.resource_scope(|world, mut setup: Mut<crate::app::setup::ObservationSetup>| {
         setup.camera = crate::app::setup::CameraChoice::Named("anterior-inferior".into());
         setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
     })?;
     // From behind the laparoscope and a little aside: the frustum opens toward the
     // organ, whose seen part faces the viewer.
-    let eye = world.resource::<crate::app::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).ok_or("no preview")?;
+    let eye =
+        world.resource::<crate::app::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).context("no preview")?;
     let eye = crate::app::shell::convert::bevy_from_world(&Vector3::from(eye));
     let mut cam = world.resource_mut::<OrbitCamera>();
     let v = (eye - cam.focus).normalize();
@@ -145,7 +147,7 @@ fn camera_scene(world: &mut World) -> Result<(), String> {
 }
 
 /// Three probes and their SVK solve (softer on the real liver of the `ct` scene).
-fn probes_scene(world: &mut World, organ: &OrganData, scene: &str) -> Result<(), String> {
+fn probes_scene(world: &mut World, organ: &OrganData, scene: &str) -> anyhow::Result<()> {
     let mut probes = anterior_probes(organ, &[(-0.2, 0.1), (0.05, 0.2), (0.2, -0.05)]);
     if scene == "ct" {
         // The real liver is softer under these forces: a deformation of the dataset's
@@ -157,10 +159,10 @@ fn probes_scene(world: &mut World, organ: &OrganData, scene: &str) -> Result<(),
         cam.pitch = -0.6;
         cam.distance *= 0.85;
     }
-    let grid = world.resource::<GridState>().grid.clone().ok_or("no grid")?;
+    let grid = world.resource::<GridState>().grid.clone().context("no grid")?;
     let fixed = FixedChoice::default();
     let JobOutput::Simulated(d) = run(compute::simulate_job(organ.clone(), grid, fixed, probes.clone()))? else {
-        return Err("simulate".into());
+        anyhow::bail!("simulate");
     };
     let mut pr = world.resource_mut::<Probes>();
     for p in probes {
@@ -172,7 +174,7 @@ fn probes_scene(world: &mut World, organ: &OrganData, scene: &str) -> Result<(),
 }
 
 /// One probe pulled, the bundled network predicting.
-fn rehearsal_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+fn rehearsal_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     let model = RehearsalModel::load(&umesh_workflow::input::bundled_model(), organ)?;
     let mut probes = anterior_probes(organ, &[(0.0, 0.1)]);
     // Pulled 15 mm inward and a little up, as a drag would.
@@ -192,15 +194,15 @@ fn rehearsal_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
 }
 
 /// The dataset browser on four samples made with the bundled model's configuration.
-fn qa_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+fn qa_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     // Four samples made with the bundled model's configuration, the model beside them.
     let model = ActiveModel::default();
     let dir = small_dataset(organ, "qa-dataset", 4)?;
     let (ds, m, p) = crate::app::qa::open_dataset(&dir, &organ.seg, Some(&model))?;
     let p = p.map(|p| Arc::new(Mutex::new(p)));
-    let first = m.accepted().next().map(|r| r.index).ok_or("no accepted sample")?;
+    let first = m.accepted().next().map(|r| r.index).context("no accepted sample")?;
     let sample = crate::app::qa::load_sample(&ds, &m, first, p.as_deref())?;
-    world.insert_resource(Mode::Qa);
+    world.resource_mut::<NextState<Mode>>().set(Mode::Qa);
     let mut qa = world.resource_mut::<crate::app::qa::Qa>();
     qa.path_text = dir.display().to_string();
     qa.dataset = Some(Arc::new(ds));
@@ -222,13 +224,13 @@ fn qa_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
 }
 
 /// The AR view on a synthetic recording, stepped through its frames.
-fn ar_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
+fn ar_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     let model = ActiveModel::default();
     let dir = scene_cache("ar-recording");
     if !dir.join("trajectory.log").is_file() {
         run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
     }
-    world.insert_resource(Mode::Ar);
+    world.resource_mut::<NextState<Mode>>().set(Mode::Ar);
     let mut ar = world.resource_mut::<crate::app::ar::Ar>();
     ar.source_text = dir.display().to_string();
     ar.show_points = true;
@@ -244,15 +246,15 @@ fn ar_scene(world: &mut World, organ: &OrganData) -> Result<(), String> {
 }
 
 #[derive(Resource, Default)]
-struct Captured(Arc<Mutex<Option<Result<(), String>>>>);
+struct Captured(Arc<Mutex<Option<anyhow::Result<()>>>>);
 
 /// Render `scene` at `width` x `height` into a PNG at `out`.
-pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_frames: u32) -> Result<(), String> {
+pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_frames: u32) -> anyhow::Result<()> {
     if !known(scene) {
-        return Err(format!("unknown scene {scene:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", ")));
+        anyhow::bail!("unknown scene {scene:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", "));
     }
     if !(16..=8192).contains(&width) || !(16..=8192).contains(&height) {
-        return Err(format!("size {width}x{height} must lie within 16..8192"));
+        anyhow::bail!("size {width}x{height} must lie within 16..8192");
     }
     let (mut app, handle) = headless_app(scene, width, height)?;
     for _ in 0..warmup_frames.max(4) {
@@ -262,11 +264,11 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     let t0 = std::time::Instant::now();
     while scene == "ar" && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
         if t0.elapsed().as_secs() > 60 {
-            return Err("the AR view showed no frame within 60 s".into());
+            anyhow::bail!("the AR view showed no frame within 60 s");
         }
         if app.world().resource::<crate::app::ar::Ar>().session.is_none() {
             let last = app.world().resource::<UiMessages>().last().map(|m| m.1.clone()).unwrap_or_default();
-            return Err(format!("the AR session stopped: {last}"));
+            anyhow::bail!("the AR session stopped: {last}");
         }
         std::thread::sleep(std::time::Duration::from_millis(20));
         app.update();
@@ -278,10 +280,10 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     let slot = captured.0.clone();
     let path = out.to_path_buf();
     app.world_mut().spawn(Screenshot::image(handle)).observe(move |ev: On<ScreenshotCaptured>| {
-        let r = ev.image.clone().try_into_dynamic().map_err(|e| e.to_string()).and_then(|img| {
+        let r = ev.image.clone().try_into_dynamic().map_err(anyhow::Error::from).and_then(|img| {
             let mut bytes = Vec::new();
-            img.to_rgba8().write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| e.to_string())?;
-            umesh_core::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))
+            img.to_rgba8().write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)?;
+            umesh_core::write_atomic(&path, &bytes).with_context(|| path.display().to_string())
         });
         if let Ok(mut s) = slot.lock() {
             *s = Some(r);
@@ -293,14 +295,14 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
             return r;
         }
         if let Some(exit) = app.should_exit() {
-            return Err(format!("the renderer stopped: {exit:?}"));
+            anyhow::bail!("the renderer stopped: {exit:?}");
         }
     }
-    Err("the screenshot was not captured within 30 frames (no usable GPU or EGL adapter?)".into())
+    Err(anyhow::anyhow!("the screenshot was not captured within 30 frames (no usable GPU or EGL adapter?)"))
 }
 
 /// An app rendering `scene` offscreen into an image of `width` x `height`.
-pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle<Image>), String> {
+pub fn headless_app(scene: &str, width: u32, height: u32) -> anyhow::Result<(App, Handle<Image>)> {
     let mut app = App::new();
     app.add_plugins(
         DefaultPlugins
@@ -315,7 +317,7 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
     app.finish();
     app.cleanup();
     // The adapter decides the quality and the organ's display surface: before the scene loads.
-    app.world_mut().run_system_cached(crate::app::shell::view3d::detect_adapter).map_err(|e| e.to_string())?;
+    app.world_mut().run_system_cached(crate::app::shell::view3d::detect_adapter)?;
     prepare_scene(app.world_mut(), scene)?;
     let mut target = Image::new_target_texture(width, height, TextureFormat::Rgba8UnormSrgb, None);
     target.asset_usage = RenderAssetUsages::RENDER_WORLD;
@@ -326,7 +328,7 @@ pub fn headless_app(scene: &str, width: u32, height: u32) -> Result<(App, Handle
 
 /// Frame times (ms) of the app, rendering offscreen, while an SVK solve runs in the
 /// background: the UI must stay responsive.
-pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Vec<f64>, f64), String> {
+pub fn frame_times_during_solve(width: u32, height: u32) -> anyhow::Result<(Vec<f64>, Vec<f64>, f64)> {
     let (mut app, _) = headless_app("probes", width, height)?;
     for _ in 0..5 {
         app.update();
@@ -338,8 +340,8 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();
-    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
-    let grid = app.world().resource::<GridState>().grid.clone().ok_or("no grid")?;
+    let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
+    let grid = app.world().resource::<GridState>().grid.clone().context("no grid")?;
     let probes = app.world().resource::<Probes>().list.clone();
     let t0 = std::time::Instant::now();
     app.world_mut().resource_mut::<tasks::Jobs>().spawn("simulate", compute::simulate_job(organ, grid, FixedChoice::default(), probes));
@@ -349,7 +351,7 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
         if t0.elapsed().as_secs() > 600 {
-            return Err("the solve did not finish within 10 minutes".into());
+            anyhow::bail!("the solve did not finish within 10 minutes");
         }
     }
     Ok((times, idle, t0.elapsed().as_secs_f64() * 1e3))
@@ -357,13 +359,13 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> Result<(Vec<f64>, Ve
 
 /// Frame times (ms) of the app in `mode` while a training job runs (3 epochs on a 12-sample
 /// dataset of the bundled configuration, generated once into the temporary folder).
-pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Result<(Vec<f64>, f64), String> {
+pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> anyhow::Result<(Vec<f64>, f64)> {
     let (mut app, _) = headless_app("phantom", width, height)?;
-    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
+    let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
     let data = small_dataset(&organ, "bench-dataset", 12)?;
     let model = scene_cache("bench-model");
     let _ = std::fs::remove_dir_all(&model);
-    app.world_mut().insert_resource(mode);
+    app.world_mut().resource_mut::<NextState<Mode>>().set(mode);
     let settings = umesh_net::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
     let id = app
         .world_mut()
@@ -383,13 +385,13 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
         app.update();
         times.push(t.elapsed().as_secs_f64() * 1e3);
         if t0.elapsed().as_secs() > 900 {
-            return Err("the training did not finish within 15 minutes".into());
+            anyhow::bail!("the training did not finish within 15 minutes");
         }
     }
     if let Some(crate::app::jobs::queue::WorkStatus::Failed(e)) =
         app.world().resource::<crate::app::jobs::queue::WorkQueue>().items.last().map(|i| i.status.clone())
     {
-        return Err(format!("training failed: {e}"));
+        anyhow::bail!("training failed: {e:#}");
     }
     Ok((times, t0.elapsed().as_secs_f64() * 1e3))
 }
@@ -399,15 +401,15 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> Resul
 /// `on_demand`: the UI updates as the desktop window does (when the worker wakes it with a
 /// frame, or after 100 ms); otherwise it renders continuously (the worst case: every UI frame
 /// competes with the registration for the cores).
-pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> Result<ArPlayback, String> {
+pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> anyhow::Result<ArPlayback> {
     let (mut app, _) = headless_app("phantom", width, height)?;
-    let organ = app.world().resource::<Organ>().data.clone().ok_or("no organ")?;
+    let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
     let model = ActiveModel::default();
     let dir = scene_cache("bench-recording");
     if !dir.join("trajectory.log").is_file() {
         run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }
-    app.world_mut().insert_resource(Mode::Ar);
+    app.world_mut().resource_mut::<NextState<Mode>>().set(Mode::Ar);
     let woken = std::sync::Arc::new((std::sync::Mutex::new(false), std::sync::Condvar::new()));
     let waker: Option<crate::app::ar::Waker> = on_demand.then(|| {
         let w = woken.clone();
@@ -431,7 +433,7 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> Result<ArPlaybac
     while app.world().resource::<crate::app::ar::Ar>().last.is_none() {
         app.update();
         if t0.elapsed().as_secs() > 120 || app.world().resource::<crate::app::ar::Ar>().session.is_none() {
-            return Err("the AR view showed no frame".into());
+            anyhow::bail!("the AR view showed no frame");
         }
     }
     let fps = app.world().resource::<crate::app::ar::Ar>().fps;
@@ -486,9 +488,9 @@ pub struct ArPlayback {
 
 /// Compare two images: the fraction of pixels whose largest channel difference exceeds
 /// `threshold` (0-255). Sizes must match.
-pub fn image_difference(a: &image::RgbaImage, b: &image::RgbaImage, threshold: u8) -> Result<f64, String> {
+pub fn image_difference(a: &image::RgbaImage, b: &image::RgbaImage, threshold: u8) -> anyhow::Result<f64> {
     if a.dimensions() != b.dimensions() {
-        return Err(format!("sizes differ: {:?} vs {:?}", a.dimensions(), b.dimensions()));
+        anyhow::bail!("sizes differ: {:?} vs {:?}", a.dimensions(), b.dimensions());
     }
     let bad =
         a.pixels().zip(b.pixels()).filter(|(p, q)| (0..3).any(|c| (p[c] as i16 - q[c] as i16).unsigned_abs() > threshold as u16)).count();

@@ -4,6 +4,7 @@
 //! (`JobOutput::Apply`) that the view wrote, so this runner depends on no view.
 
 use crate::app::state::*;
+use anyhow::Context;
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, futures::check_ready};
 use std::sync::{Arc, Mutex};
@@ -12,7 +13,7 @@ use umesh_core::grid::ImmersedGrid;
 use umesh_core::{Cancel, Progress};
 
 /// A view's result: applied to the world on the main thread, returning the message to show.
-pub type Apply = Box<dyn FnOnce(&mut World) -> Result<String, String> + Send>;
+pub type Apply = Box<dyn FnOnce(&mut World) -> anyhow::Result<String> + Send>;
 
 pub enum JobOutput {
     Loaded(OrganData),
@@ -47,7 +48,7 @@ pub struct Job {
     pub progress: Arc<Mutex<JobProgress>>,
     pub cancel: Cancel,
     pub started: Instant,
-    task: Task<Result<JobOutput, String>>,
+    task: Task<anyhow::Result<JobOutput>>,
 }
 
 #[derive(Resource, Default)]
@@ -63,7 +64,7 @@ impl Jobs {
     pub fn spawn(
         &mut self,
         label: impl Into<String>,
-        work: impl FnOnce(&Progress, &Cancel) -> Result<JobOutput, String> + Send + 'static,
+        work: impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static,
     ) -> u64 {
         let progress = Arc::new(Mutex::new(JobProgress::default()));
         let cancel = Cancel::new();
@@ -127,7 +128,7 @@ pub fn poll_jobs(world: &mut World) {
                 msg
             }
             Err(e) => {
-                let msg = format!("{} failed: {e}", job.label);
+                let msg = format!("{} failed: {e:#}", job.label);
                 world.resource_mut::<UiMessages>().error(msg.clone());
                 msg
             }
@@ -137,7 +138,7 @@ pub fn poll_jobs(world: &mut World) {
 }
 
 /// Apply one result; `Ok(None)`: nothing to say (the labels of a file wait for a choice).
-pub fn apply(world: &mut World, out: JobOutput) -> Result<Option<String>, String> {
+pub fn apply(world: &mut World, out: JobOutput) -> anyhow::Result<Option<String>> {
     Ok(Some(match out {
         JobOutput::Loaded(data) => set_organ(world, data),
         JobOutput::Grid(g, voxel_volume) => {
@@ -169,7 +170,7 @@ pub fn apply(world: &mut World, out: JobOutput) -> Result<Option<String>, String
         }
         JobOutput::Ct(ct) => {
             let mut organ = world.resource_mut::<Organ>();
-            let d = organ.data.as_mut().ok_or("open a segmentation before its scan")?;
+            let d = organ.data.as_mut().context("open a segmentation before its scan")?;
             let msg = format!("scan {} under the organ ({:?} voxels)", ct.source.display(), ct.volume.dims);
             d.ct = Some(ct);
             msg

@@ -1,8 +1,10 @@
-//! The window's layout: the menu bar, the bottom bar (status and jobs), the help and error
-//! windows, and the active view's panels (each view's own `panel` module) around the 3-D view.
+//! The window's layout: the menu bar (with a tab per registered view), the bottom bar (status
+//! and jobs), the help and error windows; the active view's panels (its registry entry,
+//! `shell::views`) around the 3-D view, which gets what they leave.
 
 use crate::app::model::compute::{inspect_job, load_job};
-use crate::app::model::panel::{AppState, left_panel, right_panel, start_simulation};
+use crate::app::model::panel::AppState;
+use crate::app::shell::views::ViewRegistry;
 use crate::app::state::*;
 use bevy::prelude::*;
 use bevy::tasks::{IoTaskPool, Task, futures::check_ready};
@@ -68,21 +70,76 @@ impl UiState {
     }
 }
 
-/// The state of the jobs, QA and AR views.
+/// The session's files and the recent list, which the File menu and its dialogs edit.
 #[derive(bevy::ecs::system::SystemParam)]
 pub struct Views<'w> {
-    mode: ResMut<'w, Mode>,
-    jobs_ui: ResMut<'w, crate::app::jobs::panel::JobsUi>,
-    queue: ResMut<'w, crate::app::jobs::queue::WorkQueue>,
-    qa: ResMut<'w, crate::app::qa::Qa>,
-    ar: ResMut<'w, crate::app::ar::Ar>,
-    active: ResMut<'w, ActiveModel>,
-    patient: ResMut<'w, OpenPatient>,
-    proxy: Option<Res<'w, bevy::winit::EventLoopProxyWrapper>>,
     recent: ResMut<'w, crate::app::model::session::Recent>,
     session_file: Res<'w, crate::app::model::session::SessionFile>,
     save: ResMut<'w, crate::app::model::session::SaveRequest>,
     export: ResMut<'w, crate::app::model::session::PendingExport>,
+}
+
+/// The File menu: organs, patients, scans and sessions.
+fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
+    if ui.button("Open segmentation or mesh...").clicked() {
+        uis.open(Dialog::Segmentation);
+    }
+    if ui.button("Open patient folder...").on_hover_text("a folder made by umesh prepare (or New patient in Jobs)").clicked() {
+        uis.open(Dialog::Patient);
+    }
+    let has_organ = st.organ.data.is_some();
+    if ui
+        .add_enabled(has_organ, egui::Button::new("Open CT image..."))
+        .on_hover_text("the scan of the loaded segmentation: slices under the model")
+        .on_disabled_hover_text("open a segmentation first")
+        .clicked()
+    {
+        uis.open(Dialog::Scan);
+    }
+    if ui.button("Bundled phantom").clicked() {
+        st.jobs.spawn("load phantom", load_job(OpenRequest::default()));
+    }
+    ui.separator();
+    if ui.button("Open session...").clicked() {
+        uis.open(Dialog::OpenSession);
+    }
+    let current = views.session_file.0.clone();
+    let label = match &current {
+        Some(p) => format!("Save session (Ctrl+S): {}", p.file_name().map(|n| n.to_string_lossy()).unwrap_or_default()),
+        None => "Save session (Ctrl+S)...".into(),
+    };
+    if ui.add_enabled(has_organ, egui::Button::new(label)).clicked() {
+        match current {
+            Some(p) => views.save.0 = Some(p),
+            None => uis.open(Dialog::SaveSession),
+        }
+    }
+    if ui.add_enabled(has_organ, egui::Button::new("Save session as...")).clicked() {
+        uis.open(Dialog::SaveSession);
+    }
+    if ui.button("Export view as PNG...").clicked() {
+        uis.open(Dialog::ExportPng);
+    }
+    ui.separator();
+    ui.menu_button("Recent", |ui| {
+        if views.recent.list.is_empty() {
+            ui.weak("nothing yet");
+        }
+        let mut open = None;
+        for (p, kind) in &views.recent.list {
+            let what = match kind {
+                crate::app::model::session::RecentKind::Session => "session",
+                crate::app::model::session::RecentKind::Patient => "patient",
+                crate::app::model::session::RecentKind::Segmentation => "segmentation",
+            };
+            if ui.button(format!("{} ({what})", p.display())).clicked() {
+                open = Some((p.clone(), *kind));
+            }
+        }
+        if let Some((p, kind)) = open {
+            open_recent(st, p, kind);
+        }
+    });
 }
 
 fn menu_bar(
@@ -91,70 +148,10 @@ fn menu_bar(
     uis: &mut UiState,
     view: &mut crate::app::shell::view3d::View3d,
     views: &mut Views,
-    mode: &mut Mode,
+    tabs: (&ViewRegistry, &mut Mode),
 ) {
     egui::MenuBar::new().ui(ui, |ui| {
-        ui.menu_button("File", |ui| {
-            if ui.button("Open segmentation or mesh...").clicked() {
-                uis.open(Dialog::Segmentation);
-            }
-            if ui.button("Open patient folder...").on_hover_text("a folder made by umesh prepare (or New patient in Jobs)").clicked() {
-                uis.open(Dialog::Patient);
-            }
-            let has_organ = st.organ.data.is_some();
-            if ui
-                .add_enabled(has_organ, egui::Button::new("Open CT image..."))
-                .on_hover_text("the scan of the loaded segmentation: slices under the model")
-                .on_disabled_hover_text("open a segmentation first")
-                .clicked()
-            {
-                uis.open(Dialog::Scan);
-            }
-            if ui.button("Bundled phantom").clicked() {
-                st.jobs.spawn("load phantom", load_job(OpenRequest::default()));
-            }
-            ui.separator();
-            if ui.button("Open session...").clicked() {
-                uis.open(Dialog::OpenSession);
-            }
-            let current = views.session_file.0.clone();
-            let label = match &current {
-                Some(p) => format!("Save session (Ctrl+S): {}", p.file_name().map(|n| n.to_string_lossy()).unwrap_or_default()),
-                None => "Save session (Ctrl+S)...".into(),
-            };
-            if ui.add_enabled(has_organ, egui::Button::new(label)).clicked() {
-                match current {
-                    Some(p) => views.save.0 = Some(p),
-                    None => uis.open(Dialog::SaveSession),
-                }
-            }
-            if ui.add_enabled(has_organ, egui::Button::new("Save session as...")).clicked() {
-                uis.open(Dialog::SaveSession);
-            }
-            if ui.button("Export view as PNG...").clicked() {
-                uis.open(Dialog::ExportPng);
-            }
-            ui.separator();
-            ui.menu_button("Recent", |ui| {
-                if views.recent.list.is_empty() {
-                    ui.weak("nothing yet");
-                }
-                let mut open = None;
-                for (p, kind) in &views.recent.list {
-                    let what = match kind {
-                        crate::app::model::session::RecentKind::Session => "session",
-                        crate::app::model::session::RecentKind::Patient => "patient",
-                        crate::app::model::session::RecentKind::Segmentation => "segmentation",
-                    };
-                    if ui.button(format!("{} ({what})", p.display())).clicked() {
-                        open = Some((p.clone(), *kind));
-                    }
-                }
-                if let Some((p, kind)) = open {
-                    open_recent(st, p, kind);
-                }
-            });
-        });
+        ui.menu_button("File", |ui| file_menu(ui, st, uis, views));
         ui.menu_button("View", |ui| {
             ui.checkbox(&mut st.grid.show, "Grid (G)");
             if ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)").changed() {
@@ -179,8 +176,9 @@ fn menu_bar(
             uis.show_help = !uis.show_help;
         }
         ui.separator();
-        for (m, name) in Mode::ALL {
-            ui.selectable_value(mode, m, name);
+        let (registry, mode) = tabs;
+        for v in registry.iter() {
+            ui.selectable_value(mode, v.mode, v.name);
         }
     });
 }
@@ -281,38 +279,97 @@ fn open_window(ctx: &egui::Context, st: &mut AppState) {
     }
 }
 
-pub fn ui_system(
-    mut contexts: EguiContexts,
-    mut st: AppState,
-    mut uis: ResMut<UiState>,
-    keys: Res<ButtonInput<KeyCode>>,
-    time: Res<Time>,
-    mut view: ResMut<crate::app::shell::view3d::View3d>,
-    mut views: Views,
-    mut ar_texture: Local<Option<egui::TextureHandle>>,
-) -> Result {
-    uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
-    answer_dialogs(&mut uis, &mut st, &mut views);
-    let ctx = contexts.ctx_mut()?.clone();
-    let mode = *views.mode;
-    if !ctx.egui_wants_keyboard_input() {
-        shortcuts(&keys, mode, &mut st, &mut uis, &mut views);
+/// The frame's layout: the shell's bars, then the active view's shortcuts and panels (its
+/// registry entry's systems), then the 3-D view in what they leave and the windows on top.
+pub fn ui_system(world: &mut World) -> Result {
+    // No context before egui's first pass: nothing to draw yet.
+    let Some(ctx) = world.run_system_cached(egui_context)? else { return Ok(()) };
+    let wants_keyboard = ctx.egui_wants_keyboard_input();
+    let mode = *world.resource::<State<Mode>>().get();
+    let entry = world.resource::<ViewRegistry>().get(mode).cloned();
+    world.run_system_cached_with(shell_input, wants_keyboard)?;
+    if let Some(shortcuts) = entry.as_ref().and_then(|e| e.shortcuts).filter(|_| !wants_keyboard) {
+        world.run_system(shortcuts)?;
     }
     let mut root = egui::Ui::new(
         ctx.clone(),
         "root".into(),
         egui::UiBuilder::new().layer_id(egui::LayerId::background()).max_rect(ctx.viewport_rect()),
     );
-    let mut new_mode = mode;
-    egui::Panel::top("menu").show(&mut root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut views, &mut new_mode));
-    egui::Panel::bottom("status").show(&mut root, |ui| bottom_panel(ui, &mut st, &uis));
-    view_panels(&mut root, mode, &mut st, &mut views, &mut ar_texture);
-    if new_mode != mode {
-        *views.mode = new_mode;
+    world.run_system_cached_with(shell_bars, &mut root)?;
+    let mut frame = CentralFrame { root, shows_3d: false, scale: None };
+    if let Some(e) = &entry {
+        world.run_system_with(e.panels, &mut frame.root)?;
+        frame.shows_3d = e.shows_3d;
+        if let Some(scale) = e.scale {
+            frame.scale = world.run_system(scale)?;
+        }
     }
-    // The 3-D view gets what the panels leave (only where the mode shows it).
-    view.active = mode.shows_3d();
-    if mode.shows_3d() {
+    world.run_system_cached_with(shell_central, &mut frame)?;
+    Ok(())
+}
+
+fn egui_context(mut contexts: EguiContexts) -> Option<egui::Context> {
+    contexts.ctx_mut().ok().cloned()
+}
+
+/// What the active view leaves to the 3-D view, and its colour scale.
+pub struct CentralFrame {
+    root: egui::Ui,
+    shows_3d: bool,
+    scale: Option<(f64, String)>,
+}
+
+/// The frame time, the file dialogs' answers and the shell's keys.
+fn shell_input(
+    In(wants_keyboard): In<bool>,
+    mut st: AppState,
+    mut uis: ResMut<UiState>,
+    keys: Res<ButtonInput<KeyCode>>,
+    time: Res<Time>,
+    mut views: Views,
+) {
+    uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
+    answer_dialogs(&mut uis, &mut st, &mut views);
+    if !wants_keyboard {
+        shortcuts(&keys, &mut st, &mut uis, &mut views);
+    }
+}
+
+/// The menu bar (a tab per view) and the status bar.
+fn shell_bars(
+    InMut(root): InMut<egui::Ui>,
+    mut st: AppState,
+    mut uis: ResMut<UiState>,
+    mut view: ResMut<crate::app::shell::view3d::View3d>,
+    mut views: Views,
+    registry: Res<ViewRegistry>,
+    mode: Res<State<Mode>>,
+    mut next_mode: ResMut<NextState<Mode>>,
+) {
+    let mut new_mode = *mode.get();
+    egui::Panel::top("menu").show(root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut views, (&registry, &mut new_mode)));
+    egui::Panel::bottom("status").show(root, |ui| bottom_panel(ui, &mut st, &uis));
+    if new_mode != *mode.get() {
+        next_mode.set(new_mode);
+        // The new view shows from the next frame: ask for it now.
+        root.ctx().request_repaint();
+    }
+}
+
+/// The 3-D view in what the panels left (when the view shows it), then the windows.
+fn shell_central(
+    InMut(frame): InMut<CentralFrame>,
+    mut st: AppState,
+    mut uis: ResMut<UiState>,
+    mut view: ResMut<crate::app::shell::view3d::View3d>,
+    registry: Res<ViewRegistry>,
+    mode: Res<State<Mode>>,
+) {
+    let root = &mut frame.root;
+    let ctx = root.ctx().clone();
+    view.active = frame.shows_3d;
+    if frame.shows_3d {
         let rect = root.available_rect_before_wrap();
         view.rect = Some(rect);
         view.pixels_per_point = ctx.pixels_per_point();
@@ -320,20 +377,19 @@ pub fn ui_system(
             let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
             root.painter().image(tex, rect, uv, egui::Color32::WHITE);
         }
-        let scale = match mode {
-            Mode::Model => {
-                st.sim.result.as_ref().filter(|_| st.sim.show_deformed).map(|d| (d.max_mm, format!("{} displacement", d.source)))
-            }
-            Mode::Qa => views.qa.sample.as_ref().map(|s| (s.max_mm as f64, "FE displacement; prediction: error".to_string())),
-            _ => None,
-        };
-        if let Some((max_mm, what)) = scale {
-            scale_bar(root.painter(), rect, max_mm, &what);
+        if let Some((max_mm, what)) = &frame.scale {
+            scale_bar(root.painter(), rect, *max_mm, what);
         }
     }
     open_window(&ctx, &mut st);
-    help_and_error_windows(&ctx, &mut uis, &mut st);
-    Ok(())
+    let view_keys = registry.get(*mode.get()).map(|e| e.keys).unwrap_or_default();
+    help_and_error_windows(&ctx, &mut uis, &mut st, view_keys);
+}
+
+/// Held, or pressed and released within this frame (a fast chord, a slow frame).
+pub fn ctrl_held(keys: &ButtonInput<KeyCode>) -> bool {
+    let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
+    keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys)
 }
 
 /// Apply the answers of the file dialogs closed since the last frame.
@@ -362,72 +418,34 @@ fn answer_dialogs(uis: &mut UiState, st: &mut AppState, views: &mut Views) {
     }
 }
 
-/// The keyboard shortcuts (when egui does not want the keyboard).
-fn shortcuts(keys: &ButtonInput<KeyCode>, mode: Mode, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
+/// The shell's keyboard shortcuts (when egui does not want the keyboard); a view's own are
+/// its registry entry's.
+fn shortcuts(keys: &ButtonInput<KeyCode>, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
     if keys.just_pressed(KeyCode::F1) {
         uis.show_help = !uis.show_help;
     }
-    // Held, or pressed and released within this frame (a fast chord, a slow frame).
-    let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
-    let ctrl = keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys);
-    if ctrl && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
+    if ctrl_held(keys) && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
         match views.session_file.0.clone() {
             Some(p) => views.save.0 = Some(p),
             None => uis.open(Dialog::SaveSession),
         }
     }
-    if mode == Mode::Model && !ctrl && keys.just_pressed(KeyCode::KeyS) {
-        start_simulation(st);
-    }
-    if mode == Mode::Model {
-        if keys.just_pressed(KeyCode::KeyG) {
-            st.grid.show = !st.grid.show;
-        }
-        if keys.just_pressed(KeyCode::KeyD) {
-            st.sim.show_deformed = !st.sim.show_deformed;
-            st.sim.generation += 1;
-        }
-        if keys.just_pressed(KeyCode::Delete)
-            && let Some(i) = st.probes.selected
-        {
-            st.probes.remove(i);
-        }
-    }
-    if mode == Mode::Qa {
-        if keys.just_pressed(KeyCode::ArrowRight) {
-            views.qa.step(1);
-        }
-        if keys.just_pressed(KeyCode::ArrowLeft) {
-            views.qa.step(-1);
-        }
-        if keys.just_pressed(KeyCode::KeyR) {
-            match views.qa.toggle_flag() {
-                Ok(m) => st.messages.info(m),
-                Err(e) => st.messages.error(e),
-            }
-        }
-    }
 }
 
 /// The help window (F1) and the window that shows errors not yet acknowledged.
-fn help_and_error_windows(ctx: &egui::Context, uis: &mut UiState, st: &mut AppState) {
+fn help_and_error_windows(ctx: &egui::Context, uis: &mut UiState, st: &mut AppState, view_keys: &[(&str, &str)]) {
     if uis.show_help {
         egui::Window::new("Keyboard and mouse").open(&mut uis.show_help).show(ctx, |ui| {
             egui::Grid::new("keys").show(ui, |ui| {
-                for (k, what) in [
-                    ("left click", "place a force probe on the organ"),
-                    ("left drag", "pull the probe: direction and magnitude"),
+                let shell_keys = [
                     ("right drag", "rotate the view"),
                     ("middle drag / shift + right drag", "pan"),
                     ("wheel", "zoom"),
                     ("F", "frame the organ"),
-                    ("G", "show or hide the grid"),
-                    ("D", "show the rest or deformed organ"),
-                    ("S", "simulate the probes' forces (SVK)"),
                     ("Ctrl+S", "save the session (organ, probes, fixed region, camera, model, slices)"),
-                    ("Delete", "delete the selected probe"),
                     ("F1", "this window"),
-                ] {
+                ];
+                for &(k, what) in view_keys.iter().chain(shell_keys.iter()) {
                     ui.strong(k);
                     ui.label(what);
                     ui.end_row();
@@ -454,87 +472,6 @@ fn help_and_error_windows(ctx: &egui::Context, uis: &mut UiState, st: &mut AppSt
         });
         if dismiss {
             st.messages.unread_errors = 0;
-        }
-    }
-}
-
-/// The active view's panels around the 3-D view (or instead of it).
-fn view_panels(root: &mut egui::Ui, mode: Mode, st: &mut AppState, views: &mut Views, ar_texture: &mut Option<egui::TextureHandle>) {
-    let waker = views.proxy.as_ref().map(|p| {
-        let p = (**p).clone();
-        Box::new(move || {
-            let _ = p.send_event(bevy::winit::WinitUserEvent::WakeUp);
-        }) as crate::app::ar::Waker
-    });
-    let Views { jobs_ui, queue, qa, ar, active, patient, .. } = views;
-    match mode {
-        Mode::Model => {
-            egui::Panel::left("left").default_size(260.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| left_panel(ui, st));
-            });
-            egui::Panel::right("right").default_size(280.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| right_panel(ui, st));
-            });
-        }
-        Mode::Jobs => {
-            egui::Panel::left("jobs_left").default_size(300.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| {
-                    crate::app::jobs::panel::forms_panel(ui, jobs_ui, queue, &st.organ, &st.setup, &st.sim.fixed, &mut st.messages)
-                });
-            });
-            let load = egui::CentralPanel::default()
-                .show(root, |ui| crate::app::jobs::panel::queue_and_dashboard(ui, jobs_ui, queue, active, patient))
-                .inner;
-            if let Some((dir, file)) = load {
-                **active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
-                if let Some(d) = &st.organ.data {
-                    st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir, file, d.clone()));
-                }
-            }
-        }
-        Mode::Qa => {
-            egui::Panel::left("qa_left").default_size(280.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| crate::app::qa::panel::left_panel(ui, qa, &st.organ, active, &mut st.messages));
-            });
-            egui::Panel::right("qa_right").default_size(280.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| {
-                    crate::app::qa::panel::right_panel(ui, qa);
-                    if st.organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
-                        ui.separator();
-                        ui.heading("Scan");
-                        ui.weak("yellow: the organ at rest; cyan: the sample's FE deformation");
-                        crate::app::model::ct::ct_ui(ui, &mut st.ct, &st.organ);
-                    }
-                });
-            });
-        }
-        Mode::Ar => {
-            let mut synth = false;
-            egui::Panel::left("ar_left").default_size(290.0).show(root, |ui| {
-                egui::ScrollArea::vertical()
-                    .show(ui, |ui| synth = crate::app::ar::panel::left_panel(ui, ar, &st.organ, active, &mut st.messages, waker));
-            });
-            egui::Panel::right("ar_right").default_size(250.0).show(root, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| crate::app::ar::panel::right_panel(ui, ar));
-            });
-            egui::CentralPanel::default().show(root, |ui| crate::app::ar::panel::central(ui, ar, ar_texture));
-            if synth {
-                match &st.organ.data {
-                    Some(d) if !st.jobs.is_running("synthetic") => {
-                        st.jobs.spawn(
-                            "synthetic recording",
-                            crate::app::ar::panel::synth_job(
-                                d.clone(),
-                                active.dir.clone(),
-                                crate::app::ar::panel::synthetic_recording_dir(),
-                                20,
-                            ),
-                        );
-                    }
-                    Some(_) => {}
-                    None => st.messages.error("load an organ first"),
-                }
-            }
         }
     }
 }

@@ -154,7 +154,7 @@ impl DatasetContext {
             return Ok(f64::INFINITY);
         }
         use rayon::prelude::*;
-        let settings = SolverSettings { max_total_iterations: Some(80), max_halvings: 8, ..config.solver.clone() };
+        let settings = SolverSettings { max_total_iterations: Some(80), max_halvings: 8, ..config.solver.sequential() };
         let mut reference = config.clone();
         reference.forces.target_spread = 0.0;
         // Patterns differ a lot in how much they soften (on the phantom D spans 4-15 mm), so

@@ -4,7 +4,7 @@
 use super::calibrate::{Rejection, SampleResult, generate_sample};
 use super::config::CALIBRATION_TOLERANCE;
 use super::config::DatasetConfig;
-use super::context::{DatasetContext, SequentialFaer};
+use super::context::DatasetContext;
 use super::error::DatasetError;
 use super::error::invalid;
 use super::preflight::{Preflight, PreflightSettings};
@@ -115,7 +115,7 @@ pub(super) fn preflight_with(
                         o.push(r);
                     }
                 };
-                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.clone()) {
+                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential()) {
                     Ok(s) => s,
                     Err(e) => return push(Err(invalid(&std::path::PathBuf::from("pre-flight"), e.to_string()))),
                 };
@@ -189,7 +189,6 @@ impl DatasetContext {
         cancel: &Cancel,
     ) -> Result<Preflight, DatasetError> {
         let started = Instant::now();
-        let _seq = SequentialFaer::new();
         let softening = self.reference_softening_mm(config, cancel)?;
         preflight_with(self, config, settings, softening, started, progress, cancel)
     }

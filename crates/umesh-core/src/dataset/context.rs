@@ -243,21 +243,3 @@ impl DatasetContext {
         Ok((forces, target * load_scale))
     }
 }
-
-/// Sets faer's process-wide parallelism to sequential while alive (each sample's solve runs
-/// on one core, the samples in parallel, so results do not depend on scheduling).
-pub(super) struct SequentialFaer(faer::Par);
-
-impl SequentialFaer {
-    pub(super) fn new() -> Self {
-        let previous = faer::get_global_parallelism();
-        faer::set_global_parallelism(faer::Par::Seq);
-        Self(previous)
-    }
-}
-
-impl Drop for SequentialFaer {
-    fn drop(&mut self) {
-        faer::set_global_parallelism(self.0);
-    }
-}

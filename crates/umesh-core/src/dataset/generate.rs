@@ -3,7 +3,7 @@
 use super::calibrate::{Rejection, SampleResult, generate_sample};
 use super::check::{PreflightCheck, preflight_with};
 use super::config::{DatasetConfig, FORMAT, FORMAT_VERSION, fnv_hex, recorded_family, recorded_material};
-use super::context::{DatasetContext, SequentialFaer};
+use super::context::DatasetContext;
 use super::error::{DatasetError, invalid};
 use super::preflight::Preflight;
 use super::store::{Manifest, SampleRecord, ShardRecord, encode_shard, read_shard_records, shard_file_name};
@@ -107,7 +107,6 @@ pub fn run_generate_checked(
     let start = Instant::now();
     let ctx = DatasetContext::prepare(seg, config, cancel)?;
     let fresh = !out.join("manifest.json").exists();
-    let _seq = SequentialFaer::new();
     // Each reference solve single-threaded like the samples, so every machine finds the same factor.
     progress.report(0, config.samples as u64, "calibrating the load");
     let mut softening: Option<f64> = None;
@@ -204,7 +203,7 @@ pub fn run_generate_checked(
     let manifest = Mutex::new(manifest);
     let first_error: Mutex<Option<DatasetError>> = Mutex::new(None);
     let shards_written = std::sync::atomic::AtomicUsize::new(0);
-    // Parallel over samples; each solve single-threaded (`_seq`) so results do not depend on scheduling.
+    // Parallel over samples; each solve single-threaded (`sequential()`) so results do not depend on scheduling.
     let softening = match softening {
         Some(d) => d,
         None if todo.is_empty() => f64::INFINITY,
@@ -214,7 +213,7 @@ pub fn run_generate_checked(
     std::thread::scope(|scope| {
         for _ in 0..threads {
             scope.spawn(|| {
-                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.clone()) {
+                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential()) {
                     Ok(s) => s,
                     Err(e) => {
                         record_error(&first_error, invalid(out, e.to_string()));

@@ -10,11 +10,10 @@ use crate::grid::ImmersedGrid;
 use crate::progress::{Cancel, Progress};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::linalg::solvers::Solve;
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
-use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
-use faer::{Mat, Side};
+use faer::sparse::linalg::lu::{LuRef, NumericLu, SymbolicLu, factorize_symbolic_lu};
+use faer::{Mat, Par, Side};
 use nalgebra::Vector3;
 use std::time::Instant;
 
@@ -29,6 +28,28 @@ pub enum SolveMethod {
     Linear,
     /// Co-rotational linear elasticity, iterated to equilibrium.
     Corotational,
+}
+
+/// How many threads one solve's factorisations and triangular solves use. Carried in the
+/// settings and passed to faer with every call, never set process-wide: dataset generation
+/// solves its samples in parallel, each on one core, while an app solve next to it keeps
+/// every core.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Parallelism {
+    /// rayon's threads (faer's own default).
+    #[default]
+    Threads,
+    /// One thread: results independent of scheduling and of the machine's core count.
+    Sequential,
+}
+
+impl Parallelism {
+    pub fn par(self) -> Par {
+        match self {
+            Self::Threads => Par::rayon(0),
+            Self::Sequential => Par::Seq,
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -56,6 +77,10 @@ pub struct SolverSettings {
     /// generation rejects such a load in a few iterations rather than grinding for a minute.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub reject_indefinite: bool,
+    /// Threads for this solve's linear algebra; not part of a dataset's configuration (the
+    /// result does not depend on it beyond rounding).
+    #[serde(skip)]
+    pub parallelism: Parallelism,
 }
 
 impl Default for SolverSettings {
@@ -71,7 +96,15 @@ impl Default for SolverSettings {
             stabilization: 1e-2,
             max_total_iterations: None,
             reject_indefinite: false,
+            parallelism: Parallelism::Threads,
         }
+    }
+}
+
+impl SolverSettings {
+    /// The same settings on one thread (each dataset sample: the samples run in parallel).
+    pub fn sequential(&self) -> Self {
+        Self { parallelism: Parallelism::Sequential, ..self.clone() }
     }
 }
 
@@ -173,10 +206,27 @@ pub enum FemError {
     NotConverged { reason: String, history: Vec<IterationRecord> },
     #[error("invalid problem: {0}")]
     InvalidInput(String),
-    #[error("the linear system could not be factorised: {0}")]
-    Factorization(String),
+    #[error("the linear system could not be factorised ({stage})")]
+    Factorization {
+        stage: &'static str,
+        #[source]
+        source: FactorizationError,
+    },
+    #[error("the solution is not finite (singular stiffness)")]
+    Singular,
     #[error(transparent)]
     Cancelled(#[from] crate::Cancelled),
+}
+
+/// faer's error, kept as the source of `FemError::Factorization`.
+#[derive(Debug, thiserror::Error)]
+pub enum FactorizationError {
+    #[error(transparent)]
+    Faer(#[from] faer::sparse::FaerError),
+    #[error(transparent)]
+    Lu(#[from] faer::sparse::linalg::LuError),
+    #[error("out of memory for the factorisation's workspace")]
+    Memory(#[from] faer::dyn_stack::mem::AllocError),
 }
 
 /// Cached factorisations for one sparsity pattern: Cholesky with a nested-dissection
@@ -189,6 +239,8 @@ struct Factorizer {
     l_values: Vec<f64>,
     mem: Option<MemBuffer>,
     lu_symbolic: Option<SymbolicLu<usize>>,
+    lu_values: NumericLu<usize, f64>,
+    lu_mem: Option<MemBuffer>,
     current: Option<Factor>,
     /// Cholesky values of the stiffness at rest (u = 0), the same for every load on this
     /// grid, material and constraints: the first iteration of each solve reuses it.
@@ -209,7 +261,7 @@ enum Factor {
     Llt,
     Llt32,
     Rest,
-    Lu(Box<Lu<usize, f64>>),
+    Lu,
 }
 
 /// Geometric nested dissection of the node lattice: split the longest axis at a plane of
@@ -252,16 +304,21 @@ pub fn nested_dissection(node_ijk: &[[usize; 3]]) -> Vec<usize> {
     out
 }
 
-/// Numeric Cholesky into `values` on the shared symbolic factorisation; false when the matrix
-/// is not positive definite.
+/// Numeric Cholesky into `values` on the shared symbolic factorisation; faer's error when the
+/// matrix is not positive definite (the caller then falls back to LU).
 fn numeric_llt<T: faer::traits::ComplexField>(
     sym: &SymbolicCholesky<usize>,
     values: &mut [T],
     mat: faer::sparse::SparseColMatRef<'_, usize, T>,
     mem: &mut MemBuffer,
-) -> bool {
-    let par = faer::get_global_parallelism();
-    sym.factorize_numeric_llt(values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default()).is_ok()
+    par: Par,
+) -> Result<(), faer::linalg::solvers::LltError> {
+    sym.factorize_numeric_llt(values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default())
+        .map(|_| ())
+}
+
+fn factorization_error(stage: &'static str) -> impl Fn(FactorizationError) -> FemError {
+    move |source| FemError::Factorization { stage, source }
 }
 
 impl Factorizer {
@@ -286,6 +343,8 @@ impl Factorizer {
             l_values: Vec::new(),
             mem: None,
             lu_symbolic: None,
+            lu_values: NumericLu::new(),
+            lu_mem: None,
             current: None,
             rest_values: None,
             l32: Vec::new(),
@@ -294,29 +353,27 @@ impl Factorizer {
     }
 
     /// Factorise the assembled matrix; `at_rest` says it is the stiffness at u = 0.
-    fn factorize(&mut self, asm: &Assembler, at_rest: bool) -> Result<FactorKind, FemError> {
+    fn factorize(&mut self, asm: &Assembler, at_rest: bool, par: Par) -> Result<FactorKind, FemError> {
         if at_rest && self.rest_values.is_some() {
             self.current = Some(Factor::Rest);
             return Ok(FactorKind::Llt);
         }
         let mat = asm.matrix();
-        let par = faer::get_global_parallelism();
-        let err = |e: &dyn std::fmt::Debug| FemError::Factorization(format!("{e:?}"));
         if self.llt_symbolic.is_none() {
             let perm = PermRef::new_checked(&self.perm_fwd, &self.perm_inv, self.perm_fwd.len());
             let sym = factorize_symbolic_cholesky(mat.symbolic(), Side::Lower, SymmetricOrdering::Custom(perm), Default::default())
-                .map_err(|e| err(&e))?;
+                .map_err(|e| factorization_error("symbolic Cholesky")(e.into()))?;
             let req = sym
                 .factorize_numeric_llt_scratch::<f64>(par, Default::default())
                 .or(sym.solve_in_place_scratch::<f64>(1, par))
                 .or(sym.factorize_numeric_llt_scratch::<f32>(par, Default::default()))
                 .or(sym.solve_in_place_scratch::<f32>(1, par));
-            self.mem = Some(MemBuffer::try_new(req).map_err(|e| err(&e))?);
+            self.mem = Some(MemBuffer::try_new(req).map_err(|e| factorization_error("Cholesky workspace")(e.into()))?);
             self.l_values = vec![0.0; sym.len_val()];
             self.llt_symbolic = Some(sym);
         }
         if let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem)
-            && numeric_llt(sym, &mut self.l_values, mat, mem)
+            && numeric_llt(sym, &mut self.l_values, mat, mem, par).is_ok()
         {
             if at_rest {
                 self.rest_values = Some(self.l_values.clone());
@@ -326,18 +383,25 @@ impl Factorizer {
             }
             return Ok(FactorKind::Llt);
         }
+        // Not positive definite: LU, its symbolic part also computed once.
         if self.lu_symbolic.is_none() {
-            self.lu_symbolic = Some(SymbolicLu::try_new(mat.symbolic()).map_err(|e| err(&e))?);
+            let sym =
+                factorize_symbolic_lu(mat.symbolic(), Default::default()).map_err(|e| factorization_error("symbolic LU")(e.into()))?;
+            let req = sym.factorize_numeric_lu_scratch::<f64>(par, Default::default()).or(sym.solve_in_place_scratch::<f64>(1, par));
+            self.lu_mem = Some(MemBuffer::try_new(req).map_err(|e| factorization_error("LU workspace")(e.into()))?);
+            self.lu_symbolic = Some(sym);
         }
-        let sym = self.lu_symbolic.clone().ok_or_else(|| FemError::Factorization("no symbolic LU".into()))?;
-        let lu = Lu::try_new_with_symbolic(sym, mat).map_err(|e| err(&e))?;
-        self.current = Some(Factor::Lu(Box::new(lu)));
+        if let (Some(sym), Some(mem)) = (&self.lu_symbolic, &mut self.lu_mem) {
+            sym.factorize_numeric_lu(&mut self.lu_values, mat, par, MemStack::new(mem), Default::default())
+                .map_err(|e| factorization_error("numeric LU")(e.into()))?;
+        }
+        self.current = Some(Factor::Lu);
         Ok(FactorKind::Lu)
     }
 
     /// Single-precision Cholesky of the assembled matrix, for preconditioning. False when the
     /// matrix is not positive definite (or the symbolic factorisation is not there yet).
-    fn factorize32(&mut self, asm: &Assembler) -> bool {
+    fn factorize32(&mut self, asm: &Assembler, par: Par) -> bool {
         let (Some(sym), Some(mem)) = (&self.llt_symbolic, &mut self.mem) else { return false };
         let mat = asm.matrix();
         let (symbolic, vals) = mat.parts();
@@ -345,7 +409,7 @@ impl Factorizer {
         self.a32.extend(vals.iter().map(|&v| v as f32));
         self.l32.resize(sym.len_val(), 0.0);
         let a32 = faer::sparse::SparseColMatRef::new(symbolic, &self.a32);
-        let ok = numeric_llt(sym, &mut self.l32, a32, mem);
+        let ok = numeric_llt(sym, &mut self.l32, a32, mem, par).is_ok();
         if ok {
             self.current = Some(Factor::Llt32);
         }
@@ -353,8 +417,7 @@ impl Factorizer {
     }
 
     /// Solve with the last factorisation, in place.
-    fn solve(&mut self, rhs: &mut Mat<f64>) {
-        let par = faer::get_global_parallelism();
+    fn solve(&mut self, rhs: &mut Mat<f64>, par: Par) {
         match (&self.current, &self.llt_symbolic, &mut self.mem) {
             (Some(Factor::Llt), Some(sym), Some(mem)) => {
                 LltRef::new(sym, &self.l_values).solve_in_place_with_conj(faer::Conj::No, rhs.as_mut(), par, MemStack::new(mem));
@@ -371,7 +434,16 @@ impl Factorizer {
                     LltRef::new(sym, v).solve_in_place_with_conj(faer::Conj::No, rhs.as_mut(), par, MemStack::new(mem));
                 }
             }
-            (Some(Factor::Lu(lu)), _, _) => lu.solve_in_place(rhs.as_mut()),
+            (Some(Factor::Lu), _, _) => {
+                if let (Some(sym), Some(mem)) = (&self.lu_symbolic, &mut self.lu_mem) {
+                    LuRef::new_unchecked(sym, &self.lu_values).solve_in_place_with_conj(
+                        faer::Conj::No,
+                        rhs.as_mut(),
+                        par,
+                        MemStack::new(mem),
+                    );
+                }
+            }
             _ => {}
         }
     }
@@ -465,9 +537,9 @@ impl<'g> FeSolver<'g> {
     /// Newton step.
     pub fn time_factorization(&mut self, u_mm: &[Vector3<f64>]) -> Result<f64, FemError> {
         self.asm.assemble(ElementModel::Hyperelastic(self.material.material()), u_mm, true);
-        self.fact.factorize(&self.asm, false)?;
+        self.fact.factorize(&self.asm, false, self.settings.parallelism.par())?;
         let t = Instant::now();
-        self.fact.factorize(&self.asm, false)?;
+        self.fact.factorize(&self.asm, false, self.settings.parallelism.par())?;
         Ok(ms(t))
     }
 
@@ -560,14 +632,14 @@ impl<'g> FeSolver<'g> {
         let (r, refn) = self.residual(&a, &bc.forces_n, 1.0);
         let t = Instant::now();
         // The small-strain stiffness equals the stiffness at rest, whatever u.
-        let fac = self.fact.factorize(&self.asm, true)?;
+        let fac = self.fact.factorize(&self.asm, true, self.settings.parallelism.par())?;
         let factorization_ms = ms(t);
         let t = Instant::now();
         let mut rhs = Mat::from_fn(r.len(), 1, |i, _| r[i]);
-        self.fact.solve(&mut rhs);
+        self.fact.solve(&mut rhs, self.settings.parallelism.par());
         let solve_ms = ms(t);
         if !(0..rhs.nrows()).all(|i| rhs[(i, 0)].is_finite()) {
-            return Err(FemError::Factorization("the solution is not finite (singular stiffness)".into()));
+            return Err(FemError::Singular);
         }
         self.add_free(&mut u, &rhs, 1.0);
         let rec = IterationRecord {
@@ -619,7 +691,7 @@ impl<'g> FeSolver<'g> {
         // A refreshed tangent: factorise in single precision and solve by CG on top of it.
         if !at_rest && self.settings.reuse_factorization && self.fact.llt_symbolic.is_some() {
             let t = Instant::now();
-            if self.fact.factorize32(&self.asm) {
+            if self.fact.factorize32(&self.asm, self.settings.parallelism.par()) {
                 let factorization_ms = ms(t);
                 let t = Instant::now();
                 let tol = rel.clamp(1e-3, 0.1) * 0.5;
@@ -629,11 +701,11 @@ impl<'g> FeSolver<'g> {
             }
         }
         let t = Instant::now();
-        let kind = self.fact.factorize(&self.asm, at_rest)?;
+        let kind = self.fact.factorize(&self.asm, at_rest, self.settings.parallelism.par())?;
         let factorization_ms = ms(t);
         let t = Instant::now();
         let mut du = Mat::from_fn(r.len(), 1, |i, _| r[i]);
-        self.fact.solve(&mut du);
+        self.fact.solve(&mut du, self.settings.parallelism.par());
         Ok((du, kind.name(), factorization_ms, ms(t)))
     }
 
@@ -645,7 +717,7 @@ impl<'g> FeSolver<'g> {
         let mut x = vec![0.0; n];
         let mut r = b.to_vec();
         let mut z = Mat::from_fn(n, 1, |i, _| r[i]);
-        self.fact.solve(&mut z);
+        self.fact.solve(&mut z, self.settings.parallelism.par());
         let mut p: Vec<f64> = (0..n).map(|i| z[(i, 0)]).collect();
         let mut rz: f64 = (0..n).map(|i| r[i] * z[(i, 0)]).sum();
         let mut ap = vec![0.0; n];
@@ -666,7 +738,7 @@ impl<'g> FeSolver<'g> {
             for i in 0..n {
                 z[(i, 0)] = r[i];
             }
-            self.fact.solve(&mut z);
+            self.fact.solve(&mut z, self.settings.parallelism.par());
             let rz_new: f64 = (0..n).map(|i| r[i] * z[(i, 0)]).sum();
             let beta = rz_new / rz;
             rz = rz_new;

@@ -178,9 +178,9 @@ impl<'g> PointFit<'g> {
                 }
             }
         }
-        solver.fact.factorize(&solver.asm, false)?;
+        solver.fact.factorize(&solver.asm, false, solver.settings.parallelism.par())?;
         // Only ever a preconditioner: single precision halves every triangular solve.
-        solver.fact.factorize32(&solver.asm);
+        solver.fact.factorize32(&solver.asm, solver.settings.parallelism.par());
         Ok(Self { solver, samples, rest_mm, normals, k_n_per_mm, settings, buckets: Buckets::default() })
     }
 
@@ -391,7 +391,7 @@ impl<'g> PointFit<'g> {
             let mut v = r.to_vec();
             turn(&mut v, true);
             let mut z = Mat::from_fn(n, 1, |i, _| v[i]);
-            fit.solver.fact.solve(&mut z);
+            fit.solver.fact.solve(&mut z, fit.solver.settings.parallelism.par());
             let mut z: Vec<f64> = (0..n).map(|i| z[(i, 0)]).collect();
             turn(&mut z, false);
             z

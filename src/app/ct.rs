@@ -22,8 +22,8 @@ const DEFORMED_RGB: [u8; 3] = [40, 230, 255];
 const MAX_SIDE_PX: usize = 512;
 
 /// Read a scan and check that it lies where the organ is (`organ_bounds`, world mm).
-pub fn read_ct(path: &Path, organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>) -> Result<CtImage, String> {
-    let volume = slices::read_scan(path, organ_bounds).map_err(|e| e.to_string())?;
+pub fn read_ct(path: &Path, organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>) -> anyhow::Result<CtImage> {
+    let volume = slices::read_scan(path, organ_bounds)?;
     let (lo_mm, hi_mm) = slices::world_bounds(&volume);
     let hounsfield = volume.data.iter().copied().filter(|v| v.is_finite()).fold(f32::INFINITY, f32::min) < -500.0;
     Ok(CtImage { volume, source: path.to_path_buf(), lo_mm, hi_mm, hounsfield })
@@ -177,7 +177,7 @@ fn sync(
     organ: Res<Organ>,
     sim: Res<Simulation>,
     qa: Res<QaTruth>,
-    mode: Res<Mode>,
+    mode: Res<State<Mode>>,
     mut shown: Local<[Option<(SliceKey, Entity)>; 3]>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut images: ResMut<Assets<Image>>,
@@ -190,8 +190,9 @@ fn sync(
         view.reset(ct, centre);
         view.seen = seen;
     }
-    let in_view = matches!(*mode, Mode::Model | Mode::Qa);
-    let deformed = deformed_surface(*mode, &sim, &qa);
+    let mode = *mode.get();
+    let in_view = matches!(mode, Mode::Model | Mode::Qa);
+    let deformed = deformed_surface(mode, &sim, &qa);
     for (i, axis) in SliceAxis::ALL.iter().enumerate() {
         let want = ct.as_ref().filter(|_| in_view && view.show[i]).map(|_| SliceKey {
             organ: organ.generation,
@@ -209,7 +210,7 @@ fn sync(
         let mut s = match slices::slice(&ct.volume, *axis, view.position_mm[i], view.window, MAX_SIDE_PX) {
             Ok(s) => s,
             Err(e) => {
-                warn!("{} slice: {e}", axis.name());
+                warn!("{} slice: {e:#}", axis.name());
                 continue;
             }
         };

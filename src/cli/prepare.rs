@@ -24,9 +24,15 @@ pub struct Args {
     pub seed: u64,
     #[arg(long, default_value_t = 50)]
     pub shard_size: usize,
-    /// Training epochs.
+    /// Training epochs (at most: see --time-budget-min).
     #[arg(long, default_value_t = 20)]
     pub epochs: usize,
+    /// The whole job's time budget in minutes (0: none): training stops before an epoch that
+    /// would leave too little of it for the evaluation and the check; the best epoch is the model.
+    #[arg(long, default_value_t = 60.0)]
+    pub time_budget_min: f64,
+    #[command(flatten)]
+    pub schedule: super::train::ScheduleArgs,
     /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
@@ -80,6 +86,13 @@ pub fn run(a: Args) -> Result<()> {
         p => anyhow::bail!("--preset {p:?}: cpu or paper"),
     };
     settings.train.observation = super::train::parse_input(&a.network_input)?;
+    a.schedule.apply(&mut settings.train, 0.0, "--time-budget-min")?;
+    anyhow::ensure!(
+        a.time_budget_min.is_finite() && a.time_budget_min >= 0.0,
+        "--time-budget-min {}: a number of minutes >= 0",
+        a.time_budget_min
+    );
+    settings.time_budget_s = a.time_budget_min * 60.0;
     anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
     settings.check.frames = a.check_frames;
     anyhow::ensure!(
@@ -143,6 +156,9 @@ pub fn run(a: Args) -> Result<()> {
         d.mean_displacement_mm.as_ref().map(|m| format!("{:.2} mm mean, {:.2}-{:.2} p5-p95", m.mean, m.p5, m.p95)).unwrap_or_default(),
         d.target_displacement_mm
     );
+    if let Some(why) = &r.training_stopped_early {
+        println!("training {why}");
+    }
     println!(
         "validation TRE {:.2} +/- {:.2} mm (max {:.2}) at {:.2} mm mean marker displacement",
         r.eval.tre_mean_mm, r.eval.tre_std_mm, r.eval.tre_max_mm, r.eval.marker_displacement_mean_mm

@@ -50,8 +50,39 @@ pub struct Args {
     /// input and grid).
     #[arg(long)]
     pub init_from: Option<PathBuf>,
+    /// Stop before an epoch that would end after this many minutes of training (0: no limit);
+    /// the best epoch's weights are the model either way.
+    #[arg(long, default_value_t = 0.0)]
+    pub time_budget_min: f64,
+    #[command(flatten)]
+    pub schedule: ScheduleArgs,
     #[arg(long)]
     pub json: bool,
+}
+
+/// When training stops and how its learning rate moves (shared by `train` and `prepare`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct ScheduleArgs {
+    /// The learning rate over the epochs: "constant", or "cosine" (down to 5 % of it at the
+    /// last planned epoch: the epochs asked, or the last that fits the time budget).
+    #[arg(long, default_value = "constant")]
+    pub lr_schedule: String,
+    /// Stop when the validation loss has not improved for this many epochs (0: never).
+    #[arg(long, default_value_t = 0)]
+    pub patience: usize,
+}
+
+impl ScheduleArgs {
+    /// Into `settings`, with a training time budget in minutes (0: none).
+    pub fn apply(&self, settings: &mut TrainSettings, budget_min: f64, option: &str) -> Result<()> {
+        settings.lr_schedule = umesh_net::LrSchedule::parse(&self.lr_schedule).context("--lr-schedule")?;
+        settings.patience = self.patience;
+        if !(budget_min.is_finite() && budget_min >= 0.0) {
+            anyhow::bail!("{option}: {budget_min} is not a number of minutes >= 0");
+        }
+        settings.time_budget_s = budget_min * 60.0;
+        Ok(())
+    }
 }
 
 #[derive(clap::Args, Debug)]
@@ -99,7 +130,7 @@ pub fn run(a: Args) -> Result<()> {
         model.steps = s;
     }
     let observation = parse_input(&a.input)?;
-    let settings = TrainSettings {
+    let mut settings = TrainSettings {
         model,
         epochs: a.epochs,
         batch_size: a.batch_size.max(1),
@@ -111,6 +142,7 @@ pub fn run(a: Args) -> Result<()> {
         init_from: a.init_from.clone(),
         ..Default::default()
     };
+    a.schedule.apply(&mut settings, a.time_budget_min, "--time-budget-min")?;
     let (pb, progress) = super::output::progress_bar("training");
     let quiet = a.json;
     let pb2 = pb.clone();
@@ -135,6 +167,9 @@ pub fn run(a: Args) -> Result<()> {
             report.train_samples,
             report.val_samples
         );
+        if let Some(why) = &report.stopped_early {
+            println!("stopped early: {why}");
+        }
     }
     Ok(())
 }

@@ -85,6 +85,11 @@ fn bad_inputs_fail_with_one_clear_error_and_a_nonzero_exit() {
     std::fs::write(&forces, r#"[{"point_mm": [1000, 0, 0], "force_n": [0, 0, -0.1]}]"#).unwrap();
     let (ok, _, err) = umesh(&["simulate", "--forces", forces.to_str().unwrap(), "--out", tmp("far-force").to_str().unwrap()]);
     assert!(!ok && err.contains("outside the organ"), "{err}");
+    // Training's schedule and budget, refused before the dataset is read.
+    let (ok, _, err) = umesh(&["train", "--dataset", "/nonexistent/ds", "--time-budget-min", "nan"]);
+    assert!(!ok && err.contains("--time-budget-min") && !err.contains("/nonexistent/ds"), "{err}");
+    let (ok, _, err) = umesh(&["train", "--dataset", "/nonexistent/ds", "--lr-schedule", "step"]);
+    assert!(!ok && err.contains("--lr-schedule") && err.contains("cosine"), "{err}");
 }
 
 #[test]
@@ -902,6 +907,8 @@ fn prepare_refuses_bad_input_before_writing_anything() {
         // The phantom's vena cava as the organ; cells larger than the organ.
         (vec!["--organ-label", "2"], "named as vessels or structures"),
         (vec!["--cell-size-mm", "500"], "use a smaller --cell-size-mm"),
+        (vec!["--time-budget-min", "inf"], "--time-budget-min inf"),
+        (vec!["--lr-schedule", "zigzag"], "--lr-schedule"),
     ];
     for (extra, needle) in cases {
         let out = tmp(&format!("bad-patient-{}", needle.len()));

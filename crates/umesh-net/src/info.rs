@@ -32,6 +32,62 @@ pub struct TrainSettings {
     /// instead of random weights: fine-tuning.
     #[serde(default)]
     pub init_from: Option<PathBuf>,
+    /// How the learning rate moves over the epochs.
+    #[serde(default, skip_serializing_if = "LrSchedule::is_constant")]
+    pub lr_schedule: LrSchedule,
+    /// Stop when the validation loss has not improved for this many epochs (0: never).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub patience: usize,
+    /// Stop before an epoch that would end after this many seconds of training (0: no limit).
+    /// The cosine schedule then ends at the last epoch that fits.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub time_budget_s: f64,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+fn is_zero_f64(x: &f64) -> bool {
+    *x == 0.0
+}
+
+/// The learning rate over the epochs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LrSchedule {
+    /// `learning_rate` throughout (the paper's protocol).
+    #[default]
+    Constant,
+    /// From `learning_rate` down to 5 % of it at the last planned epoch (the epochs asked, or
+    /// fewer when the time budget will stop the run earlier), along half a cosine.
+    Cosine,
+}
+
+impl LrSchedule {
+    pub fn is_constant(&self) -> bool {
+        *self == Self::Constant
+    }
+
+    pub fn parse(s: &str) -> Result<Self, umesh_core::Invalid> {
+        match s {
+            "constant" => Ok(Self::Constant),
+            "cosine" => Ok(Self::Cosine),
+            other => Err(umesh_core::Invalid(format!("learning-rate schedule {other:?}: constant or cosine"))),
+        }
+    }
+
+    /// The rate of `epoch` (1-based) of a run planned to end at `last_epoch`.
+    pub fn rate(self, base: f64, epoch: usize, last_epoch: usize) -> f64 {
+        match self {
+            Self::Constant => base,
+            Self::Cosine => {
+                let t = if last_epoch > 1 { ((epoch.saturating_sub(1)) as f64 / (last_epoch - 1) as f64).min(1.0) } else { 1.0 };
+                let floor = 0.05 * base;
+                floor + (base - floor) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+            }
+        }
+    }
 }
 
 impl Default for TrainSettings {
@@ -47,6 +103,9 @@ impl Default for TrainSettings {
             fresh_views: true,
             rest_views: 0.05,
             init_from: None,
+            lr_schedule: LrSchedule::Constant,
+            patience: 0,
+            time_budget_s: 0.0,
         }
     }
 }

@@ -13,5 +13,5 @@ pub mod tre;
 
 pub use burn;
 pub use error::NetError;
-pub use info::{ModelInfo, TrainSettings};
+pub use info::{LrSchedule, ModelInfo, TrainSettings};
 pub use model::{UNet, UNetConfig};

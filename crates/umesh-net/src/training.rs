@@ -1,5 +1,6 @@
 //! Training with Adam on the mean squared error of Eq. 1, per-epoch validation loss and TRE,
-//! safetensors checkpoints, resume, metrics as JSON lines.
+//! safetensors checkpoints, resume, metrics as JSON lines; optionally a cosine learning rate,
+//! a stop on a validation plateau and a time budget (the epochs that fit, planned after each).
 
 use crate::data::{Normalization, SampleSet};
 use crate::info::{ModelInfo, TrainSettings};
@@ -31,6 +32,53 @@ pub struct TrainReport {
     pub train_samples: usize,
     pub val_samples: usize,
     pub best_epoch: usize,
+    /// Why training ended before the epochs asked (a plateau, the time budget), if it did.
+    pub stopped_early: Option<String>,
+}
+
+/// When to stop before the epochs asked, and how far the learning-rate schedule plans.
+struct EpochPlan {
+    asked: usize,
+    patience: usize,
+    budget_s: f64,
+    /// Training seconds of this run so far, and its epochs.
+    spent_s: f64,
+    run_epochs: usize,
+}
+
+impl EpochPlan {
+    /// The last epoch this run will reach: the epochs asked, or fewer when the budget stops it
+    /// (each epoch taken to cost the mean of this run's so far).
+    fn last_epoch(&self, done: usize) -> usize {
+        if self.budget_s <= 0.0 || self.run_epochs == 0 {
+            return self.asked;
+        }
+        let per_epoch = self.spent_s / self.run_epochs as f64;
+        let more = ((self.budget_s - self.spent_s) / per_epoch).floor().max(0.0) as usize;
+        (done + more).min(self.asked)
+    }
+
+    /// Why to stop after epoch `done` (`best_epoch` the best so far), if so.
+    fn stop(&self, done: usize, best_epoch: usize) -> Option<String> {
+        if done >= self.asked {
+            return None;
+        }
+        if self.patience > 0 && done >= best_epoch + self.patience {
+            return Some(format!(
+                "validation plateau: no better validation loss in the {} epochs after epoch {best_epoch}; stopped after epoch {done} of {}",
+                self.patience, self.asked
+            ));
+        }
+        if self.last_epoch(done) <= done {
+            return Some(format!(
+                "time budget: another epoch (about {:.0} s) would end after {:.0} s of training; stopped after epoch {done} of {}",
+                self.spent_s / self.run_epochs.max(1) as f64,
+                self.budget_s,
+                self.asked
+            ));
+        }
+        None
+    }
 }
 
 pub(crate) fn batch(set: &[Vec<f32>], ids: &[usize], shape: [usize; 3], scale: f32, device: &Device) -> Tensor<5> {
@@ -110,6 +158,9 @@ pub fn run_train(
 ) -> Result<TrainReport, NetError> {
     if !(settings.rest_views.is_finite() && (0.0..=0.5).contains(&settings.rest_views)) {
         return Err(NetError::Invalid(format!("rest_views must be in [0, 0.5], got {}", settings.rest_views)));
+    }
+    if !(settings.time_budget_s.is_finite() && settings.time_budget_s >= 0.0) {
+        return Err(NetError::Invalid(format!("the time budget must be a finite number of seconds >= 0, got {}", settings.time_budget_s)));
     }
     let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
     let mut rest = vec![false; set.len()];
@@ -220,8 +271,15 @@ pub fn run_train(
     let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
     let total_batches = settings.epochs * train.len().div_ceil(settings.batch_size.max(1));
     let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
+    let mut plan =
+        EpochPlan { asked: settings.epochs, patience: settings.patience, budget_s: settings.time_budget_s, spent_s: 0.0, run_epochs: 0 };
+    let mut stopped_early = epochs.last().and_then(|e| plan.stop(e.epoch, best_epoch));
     for epoch in epochs.len() + 1..=settings.epochs {
+        if stopped_early.is_some() {
+            break;
+        }
         let t = Instant::now();
+        let learning_rate = settings.lr_schedule.rate(settings.learning_rate, epoch, plan.last_epoch(epoch - 1));
         let mut order = train.clone();
         let mut rng = SplitMix64(settings.seed.wrapping_add(epoch as u64));
         for i in (1..order.len()).rev() {
@@ -243,7 +301,7 @@ pub fn run_train(
             let loss = (model.forward(x) - y).square().mean();
             train_loss += loss.clone().into_scalar::<f32>() as f64;
             let grads = GradientsParams::from_grads(loss.backward(), &model);
-            model = optim.step(settings.learning_rate, model, grads);
+            model = optim.step(learning_rate, model, grads);
             done_batches += 1;
             progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}", settings.epochs));
         }
@@ -275,6 +333,9 @@ pub fn run_train(
             .open(&metrics_path)
             .and_then(|mut f| f.write_all(line.as_bytes()))
             .map_err(|e| NetError::Io { path: metrics_path.to_path_buf(), source: e })?;
+        plan.spent_s += m.seconds;
+        plan.run_epochs += 1;
+        stopped_early = plan.stop(epoch, best_epoch);
         on_epoch(&m);
         epochs.push(m);
     }
@@ -284,5 +345,40 @@ pub fn run_train(
         crate::eval::write_confidence(out, &r)?;
     }
     staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
-    Ok(TrainReport { out: final_out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch })
+    Ok(TrainReport { out: final_out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch, stopped_early })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::EpochPlan;
+    use crate::LrSchedule;
+
+    #[test]
+    fn the_cosine_rate_starts_at_the_base_and_ends_at_five_percent_of_it_on_the_last_planned_epoch() {
+        let s = LrSchedule::Cosine;
+        assert!((s.rate(1e-3, 1, 20) - 1e-3).abs() < 1e-15);
+        assert!((s.rate(1e-3, 20, 20) - 5e-5).abs() < 1e-15);
+        // Halfway: the mean of both ends (tolerance 1e-15).
+        assert!((s.rate(1e-3, 11, 21) - 0.5 * (1e-3 + 5e-5)).abs() < 1e-15);
+        // Past the plan (a budget that shrank the plan after the rate was set): the floor.
+        assert!((s.rate(1e-3, 30, 20) - 5e-5).abs() < 1e-15);
+        assert_eq!(LrSchedule::Constant.rate(1e-3, 20, 20), 1e-3);
+    }
+
+    #[test]
+    fn a_plan_stops_on_a_plateau_or_before_an_epoch_the_budget_cannot_hold() {
+        let mut p = EpochPlan { asked: 20, patience: 3, budget_s: 0.0, spent_s: 0.0, run_epochs: 0 };
+        assert_eq!(p.last_epoch(0), 20);
+        assert!(p.stop(5, 3).is_none(), "2 epochs without improvement, patience 3");
+        assert!(p.stop(6, 3).unwrap().contains("plateau"));
+        assert!(p.stop(20, 3).is_none(), "the last epoch asked is not an early stop");
+        // 100 s a mean epoch, 350 s budget: after 3 epochs (300 s), a 4th would end at 400 s.
+        p = EpochPlan { asked: 20, patience: 0, budget_s: 350.0, spent_s: 300.0, run_epochs: 3 };
+        assert_eq!(p.last_epoch(3), 3);
+        assert!(p.stop(3, 3).unwrap().contains("time budget"));
+        p.spent_s = 200.0;
+        p.run_epochs = 2;
+        assert_eq!(p.last_epoch(2), 3);
+        assert!(p.stop(2, 2).is_none());
+    }
 }

@@ -91,11 +91,13 @@ pub struct PatientForm {
     pub samples: usize,
     pub epochs: usize,
     pub paper_preset: bool,
+    /// The whole job's time budget (min; 0: none), as `umesh prepare --time-budget-min`.
+    pub time_budget_min: f64,
 }
 
 impl Default for PatientForm {
     fn default() -> Self {
-        Self { out: "patients/new".into(), samples: 1000, epochs: 20, paper_preset: false }
+        Self { out: "patients/new".into(), samples: 1000, epochs: 20, paper_preset: false, time_budget_min: 60.0 }
     }
 }
 
@@ -112,6 +114,7 @@ impl PatientForm {
         let mut s = PrepareSettings::paper(config, fixed.describe(seg).1);
         s.train.epochs = self.epochs.max(1);
         s.train.model = if self.paper_preset { UNetConfig::paper() } else { UNetConfig::cpu() };
+        s.time_budget_s = self.time_budget_min.max(0.0) * 60.0;
         Ok(s)
     }
 }

@@ -24,6 +24,10 @@ pub struct PrepareSettings {
     pub eval_markers: usize,
     /// The registration check's synthetic recording.
     pub check: SynthSettings,
+    /// The whole job's time budget (s; 0: none): training stops before an epoch that would
+    /// leave too little of it for the stages after it.
+    #[serde(default)]
+    pub time_budget_s: f64,
 }
 
 impl PrepareSettings {
@@ -35,6 +39,7 @@ impl PrepareSettings {
             train: TrainSettings { epochs: 20, ..TrainSettings::default() },
             eval_markers: 10,
             check: SynthSettings::default(),
+            time_budget_s: 0.0,
         }
     }
 }
@@ -77,6 +82,9 @@ pub struct StageRecord {
     pub done: bool,
     /// Wall time spent in this stage, summed over runs (s).
     pub seconds: f64,
+    /// What the stage says of how it ended (training stopped early by its time budget).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 /// `patient.json`.
@@ -153,6 +161,8 @@ pub struct PrepareReport {
     pub dataset: DatasetStats,
     pub dataset_samples_per_minute: Option<f64>,
     pub final_epoch: Option<EpochMetrics>,
+    /// Why training ended before its epochs (the time budget), if it did.
+    pub training_stopped_early: Option<String>,
     pub eval: eval::EvalReport,
     pub check_recording: Option<SynthReport>,
     pub check: CheckReport,
@@ -225,10 +235,11 @@ pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
 /// Whether `settings` are the `stored` ones read back from `patient.json`: compared as stored,
 /// since JSON's float parsing is not always exact (a camera coordinate with decimals came back
 /// one ulp off, and a folder refused to resume with two identical hashes in its message).
+/// The time budget is not compared: a resumed job may be given another.
 pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> Result<bool, NetError> {
     let text = serde_json::to_string(settings).map_err(|e| NetError::Invalid(e.to_string()))?;
     let now: PrepareSettings = serde_json::from_str(&text).map_err(|e| NetError::Invalid(e.to_string()))?;
-    Ok(*stored == now)
+    Ok(PrepareSettings { time_budget_s: now.time_budget_s, ..stored.clone() } == now)
 }
 
 /// The settings that differ, as `path: stored -> now` (at most 6), for a refusal that names them.

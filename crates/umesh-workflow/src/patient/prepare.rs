@@ -119,6 +119,8 @@ pub fn run_prepare(
             )));
         }
         patient.stages = old.stages;
+        // A resumed job's budget counts the time its earlier runs spent.
+        patient.settings.time_budget_s = settings.time_budget_s;
     } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
         return Err(NetError::Invalid(format!(
             "{}: the folder is not empty and holds no patient.json; choose an empty folder",
@@ -151,6 +153,8 @@ pub fn run_prepare(
     }
     patient.write(out)?;
 
+    // What earlier runs of this job spent (a resumed job's time budget counts it).
+    let earlier_s: f64 = patient.stages.values().map(|r| r.seconds).sum();
     let weights = stage_weights(settings);
     let total: u64 = weights.iter().sum();
     let offset = |s: Stage| weights[..Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)].iter().sum::<u64>();
@@ -184,7 +188,25 @@ pub fn run_prepare(
         Ok(())
     })?;
     let stats = run_stats(&ds_dir)?;
-    run_stage(&mut patient, Stage::Train, &mut |p| run_train(&ds_dir, &model, &settings.train, true, p, &|_| {}, cancel).map(|_| ()))?;
+    // The job's time budget: training gets what the stages before it left, less what the
+    // stages after it take (an estimate: the evaluation and the check's frames).
+    let mut train_settings = settings.train.clone();
+    if settings.time_budget_s > 0.0 {
+        let spent = earlier_s + start.elapsed().as_secs_f64();
+        let after = 60.0 + 5.0 * settings.check.frames as f64;
+        // At least one epoch runs whatever the budget: a model is the job's point.
+        train_settings.time_budget_s = (settings.time_budget_s - spent - after).max(1e-3);
+    }
+    let mut stopped_early = None;
+    run_stage(&mut patient, Stage::Train, &mut |p| {
+        let r = run_train(&ds_dir, &model, &train_settings, true, p, &|_| {}, cancel)?;
+        stopped_early = r.stopped_early;
+        Ok(())
+    })?;
+    if let Some(why) = stopped_early {
+        patient.stages.entry(Stage::Train).or_default().note = Some(why);
+        patient.write(out)?;
+    }
     let eval_path = out.join("eval.json");
     run_stage(&mut patient, Stage::Eval, &mut |p| {
         p.report(0, 1, "validation TRE");
@@ -253,6 +275,7 @@ pub fn run_prepare(
         dataset: stats,
         dataset_samples_per_minute: samples_per_minute,
         final_epoch: metrics.last().cloned(),
+        training_stopped_early: patient.stages.get(&Stage::Train).and_then(|r| r.note.clone()),
         eval,
         check_recording: synth,
         check,

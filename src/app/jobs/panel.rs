@@ -310,6 +310,9 @@ fn patient_form(
         ui.label("epochs");
         ui.add(egui::DragValue::new(&mut pf.epochs).range(1..=10_000));
         ui.end_row();
+        ui.label("time budget (min)").on_hover_text("the whole job; training stops before an epoch that would not fit (0: none)");
+        ui.add(egui::DragValue::new(&mut pf.time_budget_min).range(0.0..=10_000.0));
+        ui.end_row();
         ui.label("network");
         ui.horizontal(|ui| {
             ui.radio_value(&mut pf.paper_preset, false, "cpu");

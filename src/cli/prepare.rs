@@ -135,7 +135,7 @@ pub fn run(a: Args) -> Result<()> {
             "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
             "target_displacement_mm": r.dataset.target_displacement_mm,
             "mean_displacement_mm": r.dataset.mean_displacement_mm, "achieved_over_target": r.dataset.achieved_over_target,
-            "dataset_samples_per_minute": r.dataset_samples_per_minute,
+            "dataset_samples_per_minute": r.dataset_samples_per_minute, "training_stopped_early": r.training_stopped_early,
             "val_tre_mean_mm": r.eval.tre_mean_mm, "val_tre_max_mm": r.eval.tre_max_mm,
             "val_marker_displacement_mean_mm": r.eval.marker_displacement_mean_mm,
             "check": r.check, "check_recording": r.check_recording,

@@ -86,13 +86,8 @@ pub fn run(a: Args) -> Result<()> {
         p => anyhow::bail!("--preset {p:?}: cpu or paper"),
     };
     settings.train.observation = super::train::parse_input(&a.network_input)?;
-    a.schedule.apply(&mut settings.train, 0.0, "--time-budget-min")?;
-    anyhow::ensure!(
-        a.time_budget_min.is_finite() && a.time_budget_min >= 0.0,
-        "--time-budget-min {}: a number of minutes >= 0",
-        a.time_budget_min
-    );
-    settings.time_budget_s = a.time_budget_min * 60.0;
+    a.schedule.apply(&mut settings.train)?;
+    settings.time_budget_s = super::train::budget_seconds(a.time_budget_min)?;
     anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
     settings.check.frames = a.check_frames;
     anyhow::ensure!(

@@ -73,16 +73,17 @@ pub struct ScheduleArgs {
 }
 
 impl ScheduleArgs {
-    /// Into `settings`, with a training time budget in minutes (0: none).
-    pub fn apply(&self, settings: &mut TrainSettings, budget_min: f64, option: &str) -> Result<()> {
+    pub fn apply(&self, settings: &mut TrainSettings) -> Result<()> {
         settings.lr_schedule = umesh_net::LrSchedule::parse(&self.lr_schedule).context("--lr-schedule")?;
         settings.patience = self.patience;
-        if !(budget_min.is_finite() && budget_min >= 0.0) {
-            anyhow::bail!("{option}: {budget_min} is not a number of minutes >= 0");
-        }
-        settings.time_budget_s = budget_min * 60.0;
         Ok(())
     }
+}
+
+/// `--time-budget-min` (of `train` and `prepare`) in seconds; 0: none.
+pub fn budget_seconds(minutes: f64) -> Result<f64> {
+    anyhow::ensure!(minutes.is_finite() && minutes >= 0.0, "--time-budget-min {minutes}: a number of minutes >= 0");
+    Ok(minutes * 60.0)
 }
 
 #[derive(clap::Args, Debug)]
@@ -142,7 +143,8 @@ pub fn run(a: Args) -> Result<()> {
         init_from: a.init_from.clone(),
         ..Default::default()
     };
-    a.schedule.apply(&mut settings, a.time_budget_min, "--time-budget-min")?;
+    a.schedule.apply(&mut settings)?;
+    settings.time_budget_s = budget_seconds(a.time_budget_min)?;
     let (pb, progress) = super::output::progress_bar("training");
     let quiet = a.json;
     let pb2 = pb.clone();

@@ -72,7 +72,7 @@ impl UiState {
 
 /// The session's files and the recent list, which the File menu and its dialogs edit.
 #[derive(bevy::ecs::system::SystemParam)]
-pub struct Views<'w> {
+pub struct SessionFiles<'w> {
     recent: ResMut<'w, crate::app::model::session::Recent>,
     session_file: Res<'w, crate::app::model::session::SessionFile>,
     save: ResMut<'w, crate::app::model::session::SaveRequest>,
@@ -80,7 +80,7 @@ pub struct Views<'w> {
 }
 
 /// The File menu: organs, patients, scans and sessions.
-fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
+fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, files: &mut SessionFiles) {
     if ui.button("Open segmentation or mesh...").clicked() {
         uis.open(Dialog::Segmentation);
     }
@@ -103,14 +103,14 @@ fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, views: &mu
     if ui.button("Open session...").clicked() {
         uis.open(Dialog::OpenSession);
     }
-    let current = views.session_file.0.clone();
+    let current = files.session_file.0.clone();
     let label = match &current {
         Some(p) => format!("Save session (Ctrl+S): {}", p.file_name().map(|n| n.to_string_lossy()).unwrap_or_default()),
         None => "Save session (Ctrl+S)...".into(),
     };
     if ui.add_enabled(has_organ, egui::Button::new(label)).clicked() {
         match current {
-            Some(p) => views.save.0 = Some(p),
+            Some(p) => files.save.0 = Some(p),
             None => uis.open(Dialog::SaveSession),
         }
     }
@@ -122,11 +122,11 @@ fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, views: &mu
     }
     ui.separator();
     ui.menu_button("Recent", |ui| {
-        if views.recent.list.is_empty() {
+        if files.recent.list.is_empty() {
             ui.weak("nothing yet");
         }
         let mut open = None;
-        for (p, kind) in &views.recent.list {
+        for (p, kind) in &files.recent.list {
             let what = match kind {
                 crate::app::model::session::RecentKind::Session => "session",
                 crate::app::model::session::RecentKind::Patient => "patient",
@@ -147,11 +147,11 @@ fn menu_bar(
     st: &mut AppState,
     uis: &mut UiState,
     view: &mut crate::app::shell::view3d::View3d,
-    views: &mut Views,
+    files: &mut SessionFiles,
     tabs: (&ViewRegistry, &mut Mode),
 ) {
     egui::MenuBar::new().ui(ui, |ui| {
-        ui.menu_button("File", |ui| file_menu(ui, st, uis, views));
+        ui.menu_button("File", |ui| file_menu(ui, st, uis, files));
         ui.menu_button("View", |ui| {
             ui.checkbox(&mut st.grid.show, "Grid (G)");
             if ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)").changed() {
@@ -327,12 +327,12 @@ fn shell_input(
     mut uis: ResMut<UiState>,
     keys: Res<ButtonInput<KeyCode>>,
     time: Res<Time>,
-    mut views: Views,
+    mut files: SessionFiles,
 ) {
     uis.frame_ms = 0.9 * uis.frame_ms + 0.1 * time.delta_secs() * 1e3;
-    answer_dialogs(&mut uis, &mut st, &mut views);
+    answer_dialogs(&mut uis, &mut st, &mut files);
     if !wants_keyboard {
-        shortcuts(&keys, &mut st, &mut uis, &mut views);
+        shortcuts(&keys, &mut st, &mut uis, &mut files);
     }
 }
 
@@ -342,13 +342,13 @@ fn shell_bars(
     mut st: AppState,
     mut uis: ResMut<UiState>,
     mut view: ResMut<crate::app::shell::view3d::View3d>,
-    mut views: Views,
+    mut files: SessionFiles,
     registry: Res<ViewRegistry>,
     mode: Res<State<Mode>>,
     mut next_mode: ResMut<NextState<Mode>>,
 ) {
     let mut new_mode = *mode.get();
-    egui::Panel::top("menu").show(root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut views, (&registry, &mut new_mode)));
+    egui::Panel::top("menu").show(root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut files, (&registry, &mut new_mode)));
     egui::Panel::bottom("status").show(root, |ui| bottom_panel(ui, &mut st, &uis));
     if new_mode != *mode.get() {
         next_mode.set(new_mode);
@@ -393,15 +393,15 @@ pub fn ctrl_held(keys: &ButtonInput<KeyCode>) -> bool {
 }
 
 /// Apply the answers of the file dialogs closed since the last frame.
-fn answer_dialogs(uis: &mut UiState, st: &mut AppState, views: &mut Views) {
+fn answer_dialogs(uis: &mut UiState, st: &mut AppState, files: &mut SessionFiles) {
     for (purpose, picked) in uis.answered() {
         match (purpose, picked) {
             (Dialog::Segmentation, Some(path)) => {
-                views.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
+                files.recent.push(&path, crate::app::model::session::RecentKind::Segmentation);
                 st.jobs.spawn("inspect", inspect_job(path));
             }
             (Dialog::Patient, Some(dir)) => {
-                views.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
+                files.recent.push(&dir, crate::app::model::session::RecentKind::Patient);
                 st.jobs.spawn("open patient", crate::app::model::compute::open_patient_job(dir));
             }
             (Dialog::Scan, Some(path)) => {
@@ -411,8 +411,8 @@ fn answer_dialogs(uis: &mut UiState, st: &mut AppState, views: &mut Views) {
             (Dialog::OpenSession, Some(path)) => {
                 st.jobs.spawn("open session", crate::app::model::session::open_job(path));
             }
-            (Dialog::SaveSession, picked) => views.save.0 = picked,
-            (Dialog::ExportPng, picked) => views.export.0 = picked,
+            (Dialog::SaveSession, picked) => files.save.0 = picked,
+            (Dialog::ExportPng, picked) => files.export.0 = picked,
             (_, None) => {}
         }
     }
@@ -420,13 +420,13 @@ fn answer_dialogs(uis: &mut UiState, st: &mut AppState, views: &mut Views) {
 
 /// The shell's keyboard shortcuts (when egui does not want the keyboard); a view's own are
 /// its registry entry's.
-fn shortcuts(keys: &ButtonInput<KeyCode>, st: &mut AppState, uis: &mut UiState, views: &mut Views) {
+fn shortcuts(keys: &ButtonInput<KeyCode>, st: &mut AppState, uis: &mut UiState, files: &mut SessionFiles) {
     if keys.just_pressed(KeyCode::F1) {
         uis.show_help = !uis.show_help;
     }
     if ctrl_held(keys) && keys.just_pressed(KeyCode::KeyS) && st.organ.data.is_some() {
-        match views.session_file.0.clone() {
-            Some(p) => views.save.0 = Some(p),
+        match files.session_file.0.clone() {
+            Some(p) => files.save.0 = Some(p),
             None => uis.open(Dialog::SaveSession),
         }
     }

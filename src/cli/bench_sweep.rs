@@ -162,6 +162,8 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
         "acceptance": r.accepted as f64 / r.samples_computed.max(1) as f64,
         "rejected": r.rejected,
         "below_target": st.below_target,
+        "strain_limited": st.strain_limited,
+        "strain_limited_factor_median": st.strain_limited_factor.as_ref().map(|d| d.median),
         "achieved_over_target_mean": st.achieved_over_target.as_ref().map(|d| d.mean),
         "achieved_over_target_min": st.achieved_over_target.as_ref().map(|d| d.min),
         "samples_per_minute": r.samples_computed as f64 * 60.0 / secs,

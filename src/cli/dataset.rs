@@ -148,6 +148,14 @@ pub fn run(a: Args) -> Result<()> {
                     st.materials.iter().map(|(k, n, a, lo, hi)| format!("{} {a}/{n} (Poisson {lo:.3}-{hi:.3})", k.name())).collect();
                 println!("  materials (accepted/samples): {}", f.join(", "));
             }
+            if let (n @ 1.., Some(f)) = (st.strain_limited, &st.strain_limited_factor) {
+                println!(
+                    "  targets lowered by the strain limit ({} % at the 95th percentile of the linear solution): {n}, to {:.2} of the drawn target in the median (min {:.2})",
+                    st.max_strain * 100.0,
+                    f.median,
+                    f.min
+                );
+            }
             if st.below_target > 0 {
                 println!("  accepted below their target (the converged state nearest an unreachable target): {}", st.below_target);
             }

@@ -31,6 +31,13 @@ pub struct DatasetOptions {
     /// (0: point loads, as datasets made before).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = DatasetOptions::default().probe_radius_mm))]
     pub probe_radius_mm: f64,
+    /// Strain limit: a sample whose calibrated linear solution strains the organ beyond this
+    /// (95th percentile over its volume of the largest principal strain) has its target
+    /// lowered to it; an organ held at its core or pressed against its hold otherwise collapses
+    /// (SVK) before its target. 0: no limit.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DatasetOptions::default().max_strain))]
+    #[serde(default = "default_max_strain")]
+    pub max_strain: f64,
     /// Load families the samples are drawn from, each sample one of them: `mixture` (all four)
     /// or a comma-separated list of pressing (many probes), instrument (1-3 local contacts),
     /// grasp (1-2 contacts pulled) and gravity (a body force in a random direction).
@@ -85,6 +92,10 @@ pub struct DatasetOptions {
     pub max_newton_iterations: usize,
 }
 
+fn default_max_strain() -> f64 {
+    umesh_core::loads::DEFAULT_MAX_STRAIN
+}
+
 impl Default for DatasetOptions {
     /// The defaults of `umesh dataset generate` with no option (the command line's defaults are these).
     fn default() -> Self {
@@ -93,6 +104,7 @@ impl Default for DatasetOptions {
             target_displacement_mm: ForceSettings::default().target_displacement_mm,
             target_spread: ForceSettings::default().target_spread,
             probe_radius_mm: ForceSettings::default().patch_radius_mm,
+            max_strain: default_max_strain(),
             loads: "mixture".into(),
             calibration: "mean-displacement".into(),
             visible_fraction: 0.5,
@@ -108,7 +120,7 @@ impl Default for DatasetOptions {
             camera_from: Vec::new(),
             camera_to: Vec::new(),
             fov_deg: 50.0,
-            max_newton_iterations: DatasetConfig::paper(FixedRegion::Nodes { nodes: vec![] }).solver.max_total_iterations.unwrap_or(24),
+            max_newton_iterations: DatasetConfig::paper(FixedRegion::Nodes { nodes: vec![] }).solver.max_total_iterations.unwrap_or(40),
         }
     }
 }
@@ -128,6 +140,7 @@ impl DatasetOptions {
         opt("target-displacement-mm", self.target_displacement_mm != d.target_displacement_mm, self.target_displacement_mm.to_string());
         opt("target-spread", self.target_spread != d.target_spread, self.target_spread.to_string());
         opt("probe-radius-mm", self.probe_radius_mm != d.probe_radius_mm, self.probe_radius_mm.to_string());
+        opt("max-strain", self.max_strain != d.max_strain, self.max_strain.to_string());
         opt("loads", self.loads != d.loads, self.loads.clone());
         opt("calibration", self.calibration != d.calibration, self.calibration.clone());
         opt("visible-fraction", self.visible_fraction != d.visible_fraction, self.visible_fraction.to_string());
@@ -229,10 +242,14 @@ impl DatasetOptions {
                 ForceSettings::parse_families(&self.loads)
                     .map_err(|e| WorkflowError::option_message(format!("--loads {}: {e}", self.loads)))?
             },
+            // The uncalibrated scale has no linear solution to limit (and its hash stays).
+            max_strain: if self.calibration == "energy-scale" { 0.0 } else { self.max_strain },
             ..Default::default()
         };
         c.forces.validate().map_err(|e| {
-            WorkflowError::option_message(format!("--probes/--target-displacement-mm/--target-spread/--probe-radius-mm/--loads: {e}"))
+            WorkflowError::option_message(format!(
+                "--probes/--target-displacement-mm/--target-spread/--probe-radius-mm/--max-strain/--loads: {e}"
+            ))
         })?;
         ensure!(
             self.visible_fraction > 0.0 && self.visible_fraction <= 1.0,

@@ -28,6 +28,8 @@ pub struct SampleResult {
     pub forces: Vec<PointForce>,
     /// The mean nodal displacement the forces were calibrated for (mm).
     pub target_mm: f64,
+    /// The target drawn, when the strain limit lowered it to `target_mm`.
+    pub drawn_target_mm: Option<f64>,
     pub displacement_mm: Option<Vec<Vector3<f64>>>,
     /// The simulated camera view of the deformed organ (accepted samples).
     pub observed_mm: Vec<[f32; 3]>,
@@ -54,6 +56,8 @@ impl SampleResult {
 pub struct SolvedLoad {
     pub forces: Vec<PointForce>,
     pub target_mm: f64,
+    /// The target drawn, when the strain limit (`ForceSettings::max_strain`) lowered it.
+    pub drawn_target_mm: Option<f64>,
     /// The factor applied to the linearly calibrated forces (1 for `energy-scale`).
     pub load_factor: f64,
     pub solution: Result<crate::fem::solver::Solution, (Rejection, String)>,
@@ -77,18 +81,25 @@ impl DatasetContext {
     ) -> SolvedLoad {
         if let Err(e) = solver.set_material(self.sample_material(config, index)) {
             let (forces, target_mm) = self.sample_forces(config, index);
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e.to_string())) };
+            return SolvedLoad {
+                forces,
+                target_mm,
+                drawn_target_mm: None,
+                load_factor: 1.0,
+                solution: Err((Rejection::Failed, e.to_string())),
+            };
         }
-        let (forces, target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
+        let (forces, target_mm, drawn_target_mm) = match self.calibrated_forces(solver, config, index, load_scale) {
             Ok(x) => x,
             Err(e) => {
                 let (forces, _) = self.sample_forces(config, index);
                 let target_mm = config.forces.target_displacement_mm * load_scale;
                 let solution = Err((Rejection::Failed, format!("load calibration: {e}")));
-                return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+                return SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: 1.0, solution };
             }
         };
-        self.solve_calibrated(solver, config, forces, target_mm, self.sample_family(config, index), first_lambda, cancel)
+        let solved = self.solve_calibrated(solver, config, forces, target_mm, self.sample_family(config, index), first_lambda, cancel);
+        SolvedLoad { drawn_target_mm, ..solved }
     }
 
     /// Solve calibrated forces (`calibrate_forces`) on the SVK model: the load factor that
@@ -113,20 +124,20 @@ impl DatasetContext {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         if let Err(e) = self.apply_load(&mut bc, config, &forces, family) {
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution: Err((Rejection::Failed, e.into())) };
+            return SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: 1.0, solution: Err((Rejection::Failed, e.into())) };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
-            return SolvedLoad { forces, target_mm, load_factor: 1.0, solution };
+            return SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: 1.0, solution };
         }
         let over = config.forces.mean_over;
         match solver.solve_to_mean_displacement(&bc, target_mm, CALIBRATION_TOLERANCE, first_lambda, over, cancel) {
             // A state kept below an unreachable target shows in the manifest as achieved / target.
             Ok(MeanSolve { solution, lambda, .. }) => {
                 let _ = loads::scale_forces(&mut forces, 1.0, lambda);
-                SolvedLoad { forces, target_mm, load_factor: lambda, solution: Ok(solution) }
+                SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: lambda, solution: Ok(solution) }
             }
-            Err(e) => SolvedLoad { forces, target_mm, load_factor: first_lambda, solution: Err(classify(e)) },
+            Err(e) => SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: first_lambda, solution: Err(classify(e)) },
         }
     }
 
@@ -206,7 +217,7 @@ pub fn generate_sample(
     let t = Instant::now();
     let r = ctx.solve_sample_softening(solver, config, index, 1.0, softening_mm, cancel);
     cancel.check()?;
-    let (forces, target_mm) = (r.forces, r.target_mm);
+    let (forces, target_mm, drawn_target_mm) = (r.forces, r.target_mm, r.drawn_target_mm);
     // What the camera sees of this deformation: decided on the deformed shape, with its own
     // random stream so that the loads do not depend on the view settings.
     let solution = r.solution.and_then(|sol| {
@@ -224,6 +235,7 @@ pub fn generate_sample(
             index,
             forces,
             target_mm,
+            drawn_target_mm,
             newton_iterations: sol.iterations,
             displacement_mm: Some(sol.displacement_mm),
             observed_mm: view.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect(),
@@ -234,6 +246,7 @@ pub fn generate_sample(
             index,
             forces,
             target_mm,
+            drawn_target_mm,
             displacement_mm: None,
             observed_mm: Vec::new(),
             rejection: Some(r),

@@ -77,10 +77,16 @@ fn likely_cause(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
     } else {
         format!("the accepted samples moved {:.1} mm on average", reached.iter().sum::<f64>() / reached.len() as f64)
     };
+    // With the strain limit off, the first thing to say is that it exists.
+    let limit = if config.forces.max_strain > 0.0 {
+        String::new()
+    } else {
+        format!(", or limit the strain (--max-strain {}, the default)", crate::loads::DEFAULT_MAX_STRAIN)
+    };
     format!(
         "the target mean displacement of {} mm (up to x{:.1}) is beyond what this organ, held as it is, takes without collapsing \
          ({inverted} inverted, {} not converged; {reached}); lower --target-displacement-mm or hold the organ elsewhere \
-         (--fix-label, --fix-box, --fix-plane)",
+         (--fix-label, --fix-box, --fix-plane){limit}",
         config.forces.target_displacement_mm,
         1.0 + config.forces.target_spread,
         results.iter().filter(|r| matches!(r.rejection, Some((Rejection::NotConverged, _)))).count()
@@ -146,6 +152,8 @@ pub(super) fn preflight_with(
     let accepted: Vec<&SampleResult> = results.iter().filter(|r| r.rejection.is_none()).collect();
     let ratios: Vec<f64> = accepted.iter().filter(|r| r.target_mm > 0.0).map(|r| r.max_mean(ctx, config).1 / r.target_mm).collect();
     let below_target = ratios.iter().filter(|&&q| q < 1.0 - CALIBRATION_TOLERANCE).count();
+    let mut limited: Vec<f64> = results.iter().filter_map(|r| Some(r.target_mm / r.drawn_target_mm.filter(|d| *d > 0.0)?)).collect();
+    limited.sort_by(f64::total_cmp);
     let mut rejected = BTreeMap::new();
     for r in &results {
         if let Some((why, _)) = &r.rejection {
@@ -163,6 +171,8 @@ pub(super) fn preflight_with(
         samples: results.len(),
         accepted: accepted.len(),
         below_target,
+        strain_limited: limited.len(),
+        strain_limited_factor: limited.get(limited.len() / 2).copied(),
         rejected,
         acceptance,
         achieved_over_target: (!ratios.is_empty()).then(|| ratios.iter().sum::<f64>() / ratios.len() as f64),

@@ -55,11 +55,14 @@ impl DatasetConfig {
             grid: GridSettings::default(),
             material: MaterialParams::default(),
             // A sample that needs many load cuts is going to invert: it is rejected after a
-            // budget of Newton iterations (about two plain solves) rather than ground through.
+            // budget of Newton iterations (about three plain solves) rather than ground through.
+            // 24 rejected an organ swinging about a small hold (its first probes overshoot and
+            // Newton creeps through the rotation): 22/24 on the phantom held by a small box
+            // or patch, 24/24 at 40, at the same samples/min.
             solver: SolverSettings {
                 max_iterations: 15,
                 max_halvings: 3,
-                max_total_iterations: Some(24),
+                max_total_iterations: Some(40),
                 reject_indefinite: true,
                 ..SolverSettings::default()
             },

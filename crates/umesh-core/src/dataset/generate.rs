@@ -324,6 +324,7 @@ pub(super) fn write_shard(
             max_displacement_mm: max,
             mean_displacement_mm: mean,
             target_displacement_mm: Some(r.target_mm),
+            drawn_target_mm: r.drawn_target_mm,
             family: recorded_family(config, r.index),
             material: recorded_material(config, r.index),
             newton_iterations: r.newton_iterations,

@@ -43,6 +43,9 @@ pub struct Preflight {
     pub accepted: usize,
     /// Accepted samples kept below their target (the converged state nearest an unreachable one).
     pub below_target: usize,
+    /// Samples whose target the strain limit lowered, and the median lowered / drawn.
+    pub strain_limited: usize,
+    pub strain_limited_factor: Option<f64>,
     pub rejected: BTreeMap<String, usize>,
     /// accepted / samples: the projected acceptance of the job.
     pub acceptance: f64,
@@ -72,8 +75,14 @@ impl Preflight {
         } else {
             format!(" (rejected: {})", self.rejected.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "))
         };
+        let limited = match self.strain_limited_factor {
+            Some(f) if self.strain_limited > 0 => {
+                format!(" ({} targets lowered by the strain limit, to {:.2} of the drawn one in the median)", self.strain_limited, f)
+            }
+            _ => String::new(),
+        };
         format!(
-            "pre-flight: {}/{} samples accepted ({:.0} %){rejected}, achieved / target {}, {:.1} s a sample: about {:.0} min for the dataset on {} threads",
+            "pre-flight: {}/{} samples accepted ({:.0} %){rejected}, achieved / target {}{limited}, {:.1} s a sample: about {:.0} min for the dataset on {} threads",
             self.accepted,
             self.samples,
             self.acceptance * 100.0,

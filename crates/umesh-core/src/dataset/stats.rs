@@ -56,6 +56,12 @@ pub struct DatasetStats {
     /// was kept (achieved / target below 1 - `CALIBRATION_TOLERANCE`, at least
     /// `fem::solver::MIN_REACHED_FRACTION`).
     pub below_target: usize,
+    /// Samples whose drawn target the strain limit lowered (`ForceSettings::max_strain`), and
+    /// the distribution of lowered / drawn over them.
+    pub strain_limited: usize,
+    pub strain_limited_factor: Option<Distribution>,
+    /// The configuration's strain limit (0: none).
+    pub max_strain: f64,
     /// Per load family (datasets of more than one): (family, samples, accepted).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub families: Vec<(LoadFamily, usize, usize)>,
@@ -139,6 +145,11 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
             .iter()
             .filter(|s| s.target_displacement_mm.is_some_and(|t| s.mean_displacement_mm < (1.0 - CALIBRATION_TOLERANCE) * t * (1.0 - 1e-9)))
             .count(),
+        max_strain: m.config.forces.max_strain,
+        strain_limited: m.samples.iter().filter(|s| s.drawn_target_mm.is_some()).count(),
+        strain_limited_factor: Distribution::of(
+            m.samples.iter().filter_map(|s| Some(s.target_displacement_mm? / s.drawn_target_mm.filter(|d| *d > 0.0)?)).collect(),
+        ),
         outliers,
     })
 }

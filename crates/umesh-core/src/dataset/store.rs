@@ -22,6 +22,10 @@ pub struct SampleRecord {
     /// The mean displacement the sample's forces were calibrated for (mm).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_displacement_mm: Option<f64>,
+    /// The target drawn, when the strain limit (`ForceSettings::max_strain`) lowered it to
+    /// `target_displacement_mm`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drawn_target_mm: Option<f64>,
     /// The sample's load family (datasets of more than one family).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub family: Option<LoadFamily>,
@@ -205,6 +209,8 @@ pub fn read_shard_records(
             max_displacement_mm: mx[k],
             mean_displacement_mm: mean[k],
             target_displacement_mm: target.as_ref().map(|t| t[k]),
+            // Kept by the manifest (`known` in `run_generate`), not by the shard.
+            drawn_target_mm: None,
             family: recorded_family(config, range.start + k),
             material: recorded_material(config, range.start + k),
             newton_iterations: it[k] as usize,

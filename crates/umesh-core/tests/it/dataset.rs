@@ -587,8 +587,10 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     use umesh_core::dataset::{DatasetError, PreflightCheck, PreflightSettings, run_generate_checked};
     let seg = phantom();
     // Held by a tube through the organ's middle (the portal vein), every pressing pattern
-    // squeezes the tissue against it: SVK collapses long before a 10 mm mean displacement.
+    // squeezes the tissue against it: SVK collapses long before a 10 mm mean displacement
+    // when nothing limits the strain (the default limit makes this set-up work: the next test).
     let mut config = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
+    config.forces.max_strain = 0.0;
     config.samples = 1000;
     let dir = tmp("doomed");
     let seen = std::sync::Mutex::new(Vec::new());
@@ -600,6 +602,7 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     let DatasetError::Refused { message, preflight } = e else { panic!("not refused: {e}") };
     assert!(preflight.acceptance < 0.9 && preflight.samples == 6, "{preflight:?}");
     assert!(message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"), "{message}");
+    assert!(message.contains("--max-strain 0.12"), "the limit that makes this set-up work is not named: {message}");
     assert!(!dir.exists(), "a refused job wrote {}", dir.display());
     assert_eq!(seen.lock().unwrap().len(), 1);
     // Forced, the job runs (a short one here, still longer than the check).
@@ -608,6 +611,48 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     let forced = PreflightCheck { force: true, ..check };
     let r = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&forced), &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.complete && r.samples_computed == 7 && r.preflight.is_some(), "{r:?}");
+}
+
+#[test]
+fn an_organ_held_at_its_core_has_its_targets_lowered_to_the_strain_limit_and_its_samples_converge() {
+    use umesh_core::dataset::{DatasetContext, LOCAL_STRAIN_FACTOR, run_stats};
+    use umesh_core::fem::solver::FeSolver;
+    let seg = phantom();
+    let mut config = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
+    assert_eq!(config.forces.max_strain, umesh_core::loads::DEFAULT_MAX_STRAIN);
+    config.samples = 6;
+    config.shard_size = 6;
+    // The lowered forces compress the organ as far as the limit allows and no further: the
+    // linear solution of a lowered sample sits at the limit (over the organ or at its most
+    // compressed cell), to 1e-9.
+    let ctx = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
+    let mut solver = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential()).unwrap();
+    let mut lowered = 0;
+    for i in 0..config.samples {
+        let (mut forces, target, drawn) = ctx.calibrated_forces(&mut solver, &config, i, 1.0).unwrap();
+        let family = ctx.sample_family(&config, i);
+        let strain = ctx.calibrate_forces(&mut solver, &config, &mut forces, target, family).unwrap();
+        let limit = config.forces.max_strain;
+        match drawn {
+            Some(d) => {
+                lowered += 1;
+                assert!(target < d, "sample {i}: lowered {target} from {d}");
+                let at_limit = (strain.p95 - limit).abs().min((strain.max - LOCAL_STRAIN_FACTOR * limit).abs());
+                assert!(at_limit < 1e-9 && strain.p95 <= limit + 1e-9, "sample {i}: {strain:?}");
+            }
+            None => assert!(strain.limit_factor(limit) == 1.0, "sample {i}: {strain:?} unlowered"),
+        }
+    }
+    assert!(lowered >= 4, "only {lowered} of 6 lowered on an organ held at its core");
+    // Generated: every sample converges and the manifest keeps the drawn target beside the one solved.
+    let dir = tmp("core_held");
+    let r = run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    assert_eq!(r.accepted, 6, "{r:?}");
+    let m = umesh_core::dataset::Manifest::read(&dir).unwrap();
+    assert_eq!(m.samples.iter().filter(|s| s.drawn_target_mm.is_some()).count(), lowered);
+    let st = run_stats(&dir).unwrap();
+    assert_eq!(st.strain_limited, lowered);
+    assert!(st.strain_limited_factor.as_ref().is_some_and(|f| f.max < 1.0), "{:?}", st.strain_limited_factor);
 }
 
 #[test]

@@ -405,3 +405,24 @@ fn a_problem_file_with_bad_quadrature_data_is_refused_with_the_array_named() {
     let e = read_problem(&path).unwrap_err().to_string();
     assert!(e.contains("more than the cell's volume"), "{e}");
 }
+
+#[test]
+fn compression_quantile_reads_a_uniform_strain_exactly_and_a_translation_or_a_stretch_as_zero() {
+    let g = box_grid(Vector3::zeros(), Vector3::new(40.0, 30.0, 20.0), 5.0, 1);
+    let pos = g.node_positions();
+    let q_of = |u: &[Vector3<f64>], q: f64| umesh_core::fem::element::compression_quantile(&g, u, q);
+    // u = diag(0.03, -0.01, 0.005) x: every cell is compressed by 0.01 (along y).
+    let mixed: Vec<Vector3<f64>> = pos.iter().map(|p| Vector3::new(0.03 * p.x, -0.01 * p.y, 0.005 * p.z)).collect();
+    for q in [0.05, 0.5, 0.95, 1.0] {
+        assert!((q_of(&mixed, q) - 0.01).abs() < 1e-12, "q {q}: {}", q_of(&mixed, q));
+    }
+    let shift = vec![Vector3::new(4.0, -2.0, 7.0); pos.len()];
+    assert!(q_of(&shift, 0.95).abs() < 1e-12);
+    let stretch: Vec<Vector3<f64>> = pos.iter().map(|p| Vector3::new(0.05 * p.x, 0.0, 0.0)).collect();
+    assert!(q_of(&stretch, 1.0).abs() < 1e-12);
+    // Half the box squeezed by 0.08 along z, the other half at rest: the median is at the
+    // boundary, the 95th percentile and the maximum read the squeeze.
+    let half: Vec<Vector3<f64>> = pos.iter().map(|p| Vector3::new(0.0, 0.0, -0.08 * (p.z - 10.0).max(0.0))).collect();
+    assert!((q_of(&half, 0.95) - 0.08).abs() < 1e-12 && (q_of(&half, 1.0) - 0.08).abs() < 1e-12);
+    assert!(q_of(&half, 0.25).abs() < 1e-12);
+}

@@ -148,6 +148,12 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
         Err(e) => return Ok(serde_json::json!({ "config": name, "error": format!("{e:#}") })),
     };
     let st = run_stats(dir)?;
+    // One reason per kind of rejection, so that a row that fails says why.
+    let mut reasons = serde_json::Map::new();
+    for s in umesh_core::dataset::Manifest::read(dir)?.samples.iter().filter(|s| !s.accepted) {
+        let kind = s.rejection.map(|r| format!("{r:?}").to_lowercase()).unwrap_or_default();
+        reasons.entry(kind).or_insert_with(|| serde_json::json!(format!("sample {}: {}", s.index, s.reason.clone().unwrap_or_default())));
+    }
     let ctx = umesh_core::dataset::DatasetContext::prepare(seg, config, &Cancel::new())?;
     let _ = std::fs::remove_dir_all(dir);
     let fixed = ctx.fixed.iter().filter(|&&f| f).count();
@@ -161,6 +167,7 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
         "accepted": r.accepted,
         "acceptance": r.accepted as f64 / r.samples_computed.max(1) as f64,
         "rejected": r.rejected,
+        "rejection_reasons": reasons,
         "below_target": st.below_target,
         "strain_limited": st.strain_limited,
         "strain_limited_factor_median": st.strain_limited_factor.as_ref().map(|d| d.median),

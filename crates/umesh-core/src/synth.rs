@@ -378,7 +378,7 @@ pub fn run_rgbd_synth(
             let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
             let pts = crate::visible::sample_points(
                 &ctx.surface,
-                &ctx.visible.visible,
+                &ctx.pressable,
                 crate::loads::family_points(settings.loads, &config.forces),
                 &mut rng,
             );

@@ -25,6 +25,9 @@ pub struct DatasetContext {
     /// Grid nodes whose displacement the camera observes (u_s is non-zero there).
     pub visible_nodes: Vec<usize>,
     pub fixed: Vec<bool>,
+    /// Per surface triangle: visible and not held (each corner and its centre lie in a cell
+    /// with a free node). Probes land only here: one that presses a held part moves nothing.
+    pub pressable: Vec<bool>,
     pub grid_npz: Vec<u8>,
     pub segmentation_hash: String,
     /// The material the samples are solved with (registration's physics correction uses it).
@@ -146,12 +149,21 @@ impl DatasetContext {
             Array::new(vec![surface.triangles.len()], ArrayData::U8(visible.visible.iter().map(|&v| v as u8).collect())),
         ));
         let grid_npz = encode_npz_with(&grid_arrays, true).map_err(|e| DatasetError::Io { path: "grid.npz".into(), source: e })?;
+        let pressable = pressable_triangles(&grid, &surface, &visible.visible, &fixed);
+        if !pressable.contains(&true) {
+            return Err(invalid(
+                &seg.source,
+                "every surface triangle the camera sees is held by the fixed region: no probe could move the organ; \
+                 hold less of it or choose another camera",
+            ));
+        }
         Ok(Self {
             grid,
             surface,
             visible,
             visible_nodes,
             fixed,
+            pressable,
             grid_npz,
             segmentation_hash: segmentation_hash(seg),
             material: config.material,
@@ -209,7 +221,7 @@ impl DatasetContext {
         let mut rng = SplitMix64(config.seed ^ (index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
         rng.next_u64();
         let family = self.sample_family(config, index);
-        let pts = sample_points(&self.surface, &self.visible.visible, loads::family_points(family, &config.forces), &mut rng);
+        let pts = sample_points(&self.surface, &self.pressable, loads::family_points(family, &config.forces), &mut rng);
         let forces = loads::family_forces(family, &pts, &self.grid, &config.material, &config.forces, &mut rng);
         (forces, config.forces.sample_target_mm(&mut rng) * family.target_factor())
     }
@@ -255,6 +267,26 @@ impl DatasetContext {
         }
         Ok((forces, drawn, None))
     }
+}
+
+/// The visible triangles free nodes move: each corner and the centre embed in a cell with a
+/// free node (a non-zero weight); a triangle on the edge of the hold is left out, so that a
+/// point inside it cannot land in a held cell.
+fn pressable_triangles(grid: &ImmersedGrid, surface: &TriMesh, visible: &[bool], fixed: &[bool]) -> Vec<bool> {
+    surface
+        .triangles
+        .iter()
+        .zip(visible)
+        .map(|(tri, &seen)| {
+            seen && {
+                let c = tri.iter().map(|&i| surface.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
+                tri.iter()
+                    .map(|&i| surface.positions[i as usize])
+                    .chain([c])
+                    .all(|p| grid.embed(&p).is_none_or(|e| e.nodes.iter().zip(e.weights).any(|(n, w)| w > 1e-9 && !fixed[*n as usize])))
+            }
+        })
+        .collect()
 }
 
 /// How hard a calibrated linear solution compresses the organ (`element::compression_quantile`):

@@ -656,6 +656,35 @@ fn an_organ_held_at_its_core_has_its_targets_lowered_to_the_strain_limit_and_its
 }
 
 #[test]
+fn probes_land_only_where_the_fixed_region_lets_the_surface_move() {
+    use umesh_core::dataset::DatasetContext;
+    let seg = phantom();
+    // The right 30 % of the organ held (the sweep's box-30%): part of what the camera sees is held.
+    let (lo, hi) = seg.organ_mask().world_bounds().unwrap();
+    let e = hi - lo;
+    let region = FixedRegion::Box { min_mm: [hi.x - 0.3 * e.x, lo.y - 1.0, lo.z - 1.0], max_mm: [hi.x + 1.0, hi.y + 1.0, hi.z + 1.0] };
+    let mut config = DatasetConfig::paper(region);
+    config.samples = 40;
+    let ctx = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
+    let seen = ctx.visible.visible.iter().filter(|&&v| v).count();
+    let pressable = ctx.pressable.iter().filter(|&&v| v).count();
+    assert!(ctx.pressable.iter().zip(&ctx.visible.visible).all(|(p, v)| !p || *v), "a pressable triangle the camera does not see");
+    assert!(pressable < seen && pressable > seen / 4, "{pressable} of {seen} visible triangles pressable");
+    // Every probe of every family moves some free node (within 1e-9 of a weight).
+    for i in 0..config.samples {
+        let (forces, _) = ctx.sample_forces(&config, i);
+        for f in forces.iter().filter(|f| ctx.sample_family(&config, i) != umesh_core::loads::LoadFamily::Gravity) {
+            let emb = ctx.grid.embed(&Vector3::from(f.point_mm)).expect("a probe off the grid");
+            assert!(
+                emb.nodes.iter().zip(emb.weights).any(|(n, w)| w > 1e-9 && !ctx.fixed[*n as usize]),
+                "sample {i}: a probe at {:?} presses only held nodes",
+                f.point_mm
+            );
+        }
+    }
+}
+
+#[test]
 fn a_mixture_dataset_records_each_samples_family_and_pressing_only_configs_keep_their_hash() {
     use umesh_core::loads::{ForceSettings, LoadFamily};
     // Datasets made before families existed read as pressing only, and such a configuration

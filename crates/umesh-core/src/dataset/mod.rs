@@ -30,6 +30,6 @@ pub use context::{DatasetContext, LOCAL_STRAIN_FACTOR, LinearStrain, Observation
 pub use error::DatasetError;
 pub use generate::{GenerateReport, ShardSelection, run_generate, run_generate_checked};
 pub use merge::{MergeReport, run_merge};
-pub use preflight::{Preflight, PreflightSettings};
+pub use preflight::{Preflight, PreflightSettings, wilson_upper};
 pub use stats::{DatasetStats, Distribution, run_stats};
 pub use store::{Dataset, Manifest, SampleRecord, ShardRecord, read_grid_npz, read_shard_records, shard_file_name};

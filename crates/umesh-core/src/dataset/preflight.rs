@@ -93,16 +93,39 @@ impl Preflight {
         )
     }
 
-    /// The refusal message, when the projected acceptance is below `min_acceptance`.
+    /// The largest acceptance the check's samples leave plausible: the upper end of the
+    /// one-sided 95 % Wilson interval of accepted / samples. 16 samples are few: 13 of them
+    /// (81 %) came from a configuration that accepted 97 of 100.
+    pub fn acceptance_upper_bound(&self) -> f64 {
+        wilson_upper(self.accepted, self.samples, 1.645)
+    }
+
+    /// The refusal message, when even the upper bound of the acceptance is below
+    /// `min_acceptance` (16 samples: 12 accepted or fewer).
     pub fn refusal(&self, min_acceptance: f64) -> Option<String> {
-        (self.acceptance < min_acceptance).then(|| {
+        (self.acceptance_upper_bound() < min_acceptance).then(|| {
             format!(
-                "{}; the job would store {:.0} % of its samples (at least {:.0} % needed). Likely cause: {} (--force runs it anyway)",
+                "{}; the job would store {:.0} % of its samples (at most {:.0} % at 95 % confidence; at least {:.0} % needed). \
+                 Likely cause: {} (--force runs it anyway)",
                 self.summary(),
                 self.acceptance * 100.0,
+                self.acceptance_upper_bound() * 100.0,
                 min_acceptance * 100.0,
                 self.cause.as_deref().unwrap_or("unknown")
             )
         })
     }
+}
+
+/// Upper end of the Wilson score interval for `k` successes in `n` trials at normal quantile
+/// `z` (1 for no trial).
+pub fn wilson_upper(k: usize, n: usize, z: f64) -> f64 {
+    if n == 0 {
+        return 1.0;
+    }
+    let (n, p) = (n as f64, k as f64 / n as f64);
+    let z2 = z * z;
+    let centre = p + z2 / (2.0 * n);
+    let margin = z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt();
+    ((centre + margin) / (1.0 + z2 / n)).min(1.0)
 }

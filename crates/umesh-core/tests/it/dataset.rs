@@ -614,6 +614,21 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
 }
 
 #[test]
+fn the_preflight_refuses_only_when_its_samples_rule_out_the_acceptance_needed() {
+    use umesh_core::dataset::wilson_upper;
+    let z = 1.645;
+    // Reference values of the one-sided 95 % Wilson bound (to 1e-3).
+    for (k, n, upper) in [(13, 16, 0.922), (12, 16, 0.883), (4, 6, 0.883), (5, 6, 0.962), (4, 16, 0.455)] {
+        assert!((wilson_upper(k, n, z) - upper).abs() < 1e-3, "{k}/{n}: {}", wilson_upper(k, n, z));
+    }
+    assert!((wilson_upper(16, 16, z) - 1.0).abs() < 1e-12);
+    assert_eq!(wilson_upper(0, 0, z), 1.0);
+    // At 90 % needed, 16 samples refuse at 12 accepted or fewer, 6 at 4 or fewer.
+    assert!((0..=16).all(|k| (wilson_upper(k, 16, z) < 0.9) == (k <= 12)));
+    assert!((0..=6).all(|k| (wilson_upper(k, 6, z) < 0.9) == (k <= 4)));
+}
+
+#[test]
 fn an_organ_held_at_its_core_has_its_targets_lowered_to_the_strain_limit_and_its_samples_converge() {
     use umesh_core::dataset::{DatasetContext, LOCAL_STRAIN_FACTOR, run_stats};
     use umesh_core::fem::solver::FeSolver;

@@ -659,6 +659,12 @@ fn an_organ_held_at_its_core_has_its_targets_lowered_to_the_strain_limit_and_its
         }
     }
     assert!(lowered >= 4, "only {lowered} of 6 lowered on an organ held at its core");
+    // A contact alone, on an organ within the limit, is not limited.
+    let contact_only = umesh_core::dataset::LinearStrain { p95: 0.05, max: 0.9 };
+    assert_eq!(contact_only.limit_factor(0.12), 1.0);
+    let both = umesh_core::dataset::LinearStrain { p95: 0.24, max: 0.9 };
+    assert!((both.limit_factor(0.12) - 0.3 / 0.9).abs() < 1e-12);
+    assert_eq!(both.limit_factor(0.0), 1.0);
     // Generated: every sample converges and the manifest keeps the drawn target beside the one solved.
     let dir = tmp("core_held");
     let r = run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();

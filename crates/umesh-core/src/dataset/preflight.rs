@@ -95,7 +95,7 @@ impl Preflight {
 
     /// The largest acceptance the check's samples leave plausible: the upper end of the
     /// one-sided 95 % Wilson interval of accepted / samples. 16 samples are few: 13 of them
-    /// (81 %) came from a configuration that accepted 97 of 100.
+    /// (81 %) came from a configuration that accepted 95 of 100.
     pub fn acceptance_upper_bound(&self) -> f64 {
         wilson_upper(self.accepted, self.samples, 1.645)
     }

@@ -298,9 +298,13 @@ pub fn run_rgbd_synth(
     let bad = |r: String| crate::rgbd::invalid(out, r);
     // A pressing recording is one of the dataset's pressing patterns, whatever families the
     // dataset mixes (its sample index would otherwise draw any of them).
-    let mut pressing = config.clone();
+    // A recording presses as hard as it is asked: the strain limit shapes training data only
+    // (a check recording at 50x the target would otherwise be lowered and still say 50x).
+    let mut own = config.clone();
+    own.forces.max_strain = 0.0;
+    let mut pressing = own.clone();
     pressing.forces.families = vec![LoadFamily::Pressing];
-    let config = if settings.loads == LoadFamily::Pressing { &pressing } else { config };
+    let config = if settings.loads == LoadFamily::Pressing { &pressing } else { &own };
     if settings.frames == 0 || settings.frames > 100_000 {
         return Err(bad(format!("{} frames: between 1 and 100000", settings.frames)));
     }

@@ -175,6 +175,8 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
         "achieved_over_target_min": st.achieved_over_target.as_ref().map(|d| d.min),
         "samples_per_minute": r.samples_computed as f64 * 60.0 / secs,
         "solve_s_median": st.solve_ms.as_ref().map(|d| d.median / 1e3),
+        "solve_s_max": st.solve_ms.as_ref().map(|d| d.max / 1e3),
+        "rejected_solve_s_max": st.rejected_solve_ms.as_ref().map(|d| d.max / 1e3),
     }))
 }
 

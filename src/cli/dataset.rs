@@ -172,6 +172,7 @@ pub fn run(a: Args) -> Result<()> {
                 ("achieved / target", &st.achieved_over_target),
                 ("Newton iterations", &st.newton_iterations),
                 ("solve time (ms)", &st.solve_ms),
+                ("rejected: solve (ms)", &st.rejected_solve_ms),
             ] {
                 if let Some(d) = d {
                     println!("  {name:24} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}", d.min, d.p5, d.median, d.mean, d.p95, d.max);

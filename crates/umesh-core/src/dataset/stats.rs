@@ -71,6 +71,9 @@ pub struct DatasetStats {
     pub materials: Vec<(crate::fem::MaterialKind, usize, usize, f64, f64)>,
     pub newton_iterations: Option<Distribution>,
     pub solve_ms: Option<Distribution>,
+    /// The rejected samples' solve time (ms): the work a rejection wastes, against `solve_ms`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rejected_solve_ms: Option<Distribution>,
     /// (index, why) of samples far from the rest.
     pub outliers: Vec<(usize, String)>,
 }
@@ -140,6 +143,7 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
         ),
         newton_iterations: its,
         solve_ms: Distribution::of(acc.iter().filter_map(|s| s.solve_ms).collect()),
+        rejected_solve_ms: Distribution::of(m.samples.iter().filter(|s| !s.accepted).filter_map(|s| s.solve_ms).collect()),
         mean_over: m.config.forces.mean_over,
         below_target: acc
             .iter()

@@ -197,8 +197,14 @@ pub struct MeanSolve {
 }
 
 /// A calibrated solve that cannot reach its target keeps its converged state nearest the target
-/// when that lies within this fraction of it (0.5: 0.5-1.5 x); otherwise the sample is rejected.
-pub const MIN_REACHED_FRACTION: f64 = 0.5;
+/// when that moves at least this fraction of it (and at most `MAX_REACHED_FRACTION`); otherwise
+/// the sample is rejected. A state short of its target is still an equilibrium of the forces
+/// stored with it: the work is kept rather than redrawn (0.5 rejected 8 of the MR liver's 1000
+/// samples at 0.35-0.46 of their targets and instruments on stiffly held tissue).
+pub const MIN_REACHED_FRACTION: f64 = 0.25;
+/// The largest multiple of the target a kept state may move (probes past twice the target are
+/// abandoned as heading for a collapse).
+pub const MAX_REACHED_FRACTION: f64 = 1.5;
 
 #[derive(Debug, thiserror::Error)]
 pub enum FemError {
@@ -874,8 +880,11 @@ impl<'g> FeSolver<'g> {
                         {
                             return Ok(kept);
                         }
+                        let largest = states.iter().map(|x| x.1).fold(0.0, f64::max);
                         return Err(FemError::NotConverged {
-                            reason: format!("{reason}; the load factor failed {failures} times short of the target ({target_mm:.2} mm)"),
+                            reason: format!(
+                                "{reason}; the load factor failed {failures} times short of the target ({target_mm:.2} mm; the largest converged state moved {largest:.2} mm)"
+                            ),
                             history,
                         });
                     }
@@ -929,7 +938,7 @@ impl<'g> FeSolver<'g> {
         let best = states
             .iter()
             .enumerate()
-            .filter(|(_, x)| x.0 > 0.0 && x.1 >= MIN_REACHED_FRACTION * target_mm && x.1 <= (2.0 - MIN_REACHED_FRACTION) * target_mm)
+            .filter(|(_, x)| x.0 > 0.0 && x.1 >= MIN_REACHED_FRACTION * target_mm && x.1 <= MAX_REACHED_FRACTION * target_mm)
             .min_by(|a, b| (a.1.1 - target_mm).abs().total_cmp(&(b.1.1 - target_mm).abs()))
             .map(|(k, _)| k);
         let Some(k) = best else { return Ok(None) };

@@ -426,3 +426,51 @@ fn compression_quantile_reads_a_uniform_strain_exactly_and_a_translation_or_a_st
     assert!((q_of(&half, 0.95) - 0.08).abs() < 1e-12 && (q_of(&half, 1.0) - 0.08).abs() < 1e-12);
     assert!(q_of(&half, 0.25).abs() < 1e-12);
 }
+
+/// A cube held at its base and pushed down on its top face: SVK collapses in compression, so a
+/// target beyond the collapse has no equilibrium. The calibrated solve
+/// keeps its converged state nearest the target when that moves at least a quarter of it (and
+/// flags it as not reached), and reports an error, never a state, when nothing got that far.
+#[test]
+fn an_unreachable_target_keeps_the_largest_converged_state_of_at_least_a_quarter_of_it() {
+    use umesh_core::fem::solver::{MIN_REACHED_FRACTION, MeanOver};
+    let side = 20.0;
+    let g = box_grid(Vector3::zeros(), Vector3::new(side, side, side), 5.0, 1);
+    let fixed: Vec<bool> = (0..g.node_count()).map(|n| g.node_position(n).z < 1e-9).collect();
+    let settings = SolverSettings { max_total_iterations: Some(40), max_halvings: 3, reject_indefinite: true, ..SolverSettings::default() };
+    let material = MaterialParams { kind: MaterialKind::StVenantKirchhoff, young_pa: 4500.0, poisson: 0.45 };
+    let mut bc = BoundaryConditions::new(g.node_count());
+    bc.fixed = fixed.clone();
+    let top = face_nodes(&g, 2, side);
+    for &n in &top {
+        bc.forces_n[n] = Vector3::new(0.0, 0.0, -0.01 / top.len() as f64);
+    }
+    let cancel = Cancel::new();
+    // Reachable: met to the tolerance asked (5 %).
+    let mut solver = FeSolver::new(&g, material, &fixed, settings.clone()).unwrap();
+    let ok = solver.solve_to_mean_displacement(&bc, 1.0, 0.05, 0.1, MeanOver::Free, &cancel).unwrap();
+    assert!(ok.reached && (ok.mean_mm - 1.0).abs() <= 0.05, "reachable target: mean {} mm", ok.mean_mm);
+    // The cube bulges and collapses at a mean displacement of its free nodes near 1.8 mm: 5 mm
+    // is out of reach, yet the states converged on the way there move more than a quarter of it.
+    let mut solver = FeSolver::new(&g, material, &fixed, settings.clone()).unwrap();
+    let kept = solver.solve_to_mean_displacement(&bc, 5.0, 0.05, 0.1, MeanOver::Free, &cancel).unwrap();
+    assert!(!kept.reached, "5 mm should be out of reach, got {} mm", kept.mean_mm);
+    assert!(kept.mean_mm >= MIN_REACHED_FRACTION * 5.0 && kept.mean_mm < 5.0 * 0.95, "kept state moves {} mm", kept.mean_mm);
+    assert!(kept.solution.displacement_mm.iter().flat_map(|u| u.iter()).all(|v| v.is_finite()));
+    // Its forces are in equilibrium with it: a plain Newton solve of lambda x forces from rest
+    // lands on the same state (to 1 % of its mean displacement).
+    let mut scaled = bc.clone();
+    for f in &mut scaled.forces_n {
+        *f *= kept.lambda;
+    }
+    let direct = solve(&g, &material, &scaled, SolveMethod::Newton, &SolverSettings::default(), &Progress::none(), &cancel).unwrap();
+    let diff = direct.displacement_mm.iter().zip(&kept.solution.displacement_mm).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+    assert!(diff <= 0.01 * kept.mean_mm, "kept state differs from the direct solve by {diff} mm");
+    // Four times what was reached: nothing converged within a quarter of it, so no state.
+    let far = 4.0 * kept.mean_mm / MIN_REACHED_FRACTION;
+    let mut solver = FeSolver::new(&g, material, &fixed, settings).unwrap();
+    match solver.solve_to_mean_displacement(&bc, far, 0.05, 0.1, MeanOver::Free, &cancel) {
+        Err(FemError::NotConverged { reason, .. }) => assert!(reason.contains("mm"), "{reason}"),
+        other => panic!("expected NotConverged for {far} mm, got {:?}", other.map(|m| m.mean_mm)),
+    }
+}

@@ -327,6 +327,7 @@ pub fn patient_html(
                 ("achieved / calibrated target", &stats.achieved_over_target),
                 ("Newton iterations", &stats.newton_iterations),
                 ("solve time (ms)", &stats.solve_ms),
+                ("rejected samples' solve time (ms)", &stats.rejected_solve_ms),
             ]
             .map(|(n, d)| dist_row(n, d)),
         ))

@@ -54,6 +54,11 @@ pub struct Args {
     /// Conjugate-gradient iterations per correction update at most.
     #[arg(long, default_value_t = CorrectionSettings::default().cg_iterations)]
     pub correction_cg: usize,
+    /// Solve each correction update in a basis of the organ's responses to smooth loads on this
+    /// many patches of the seen surface (3 vectors each, built at the first frame) instead of
+    /// by conjugate gradients (0).
+    #[arg(long, default_value_t = CorrectionSettings::default().subspace_patches)]
+    pub correction_subspace: usize,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -142,7 +147,11 @@ pub fn run(a: Args) -> Result<()> {
         pose_bound_mm: a.pose_bound_mm,
         min_coverage: a.min_coverage,
         overlay: !a.no_overlay,
-        correction: CorrectionSettings { updates: a.correction_updates, cg_iterations: a.correction_cg },
+        correction: CorrectionSettings {
+            updates: a.correction_updates,
+            cg_iterations: a.correction_cg,
+            subspace_patches: a.correction_subspace,
+        },
         ..Default::default()
     };
     settings.validate()?;

@@ -18,11 +18,16 @@ pub struct CorrectionSettings {
     pub updates: usize,
     /// Conjugate-gradient iterations per update at most (each one pair of triangular solves).
     pub cg_iterations: usize,
+    /// When above 0: each update solved in a basis of the organ's responses to smooth loads on
+    /// this many patches of the seen surface (x 3 axes), built once (`PointFit::use_subspace`),
+    /// instead of by conjugate gradients.
+    #[serde(default)]
+    pub subspace_patches: usize,
 }
 
 impl Default for CorrectionSettings {
     fn default() -> Self {
-        Self { updates: 1, cg_iterations: 6 }
+        Self { updates: 1, cg_iterations: 6, subspace_patches: 64 }
     }
 }
 
@@ -38,11 +43,14 @@ impl CorrectionSettings {
                 self.updates, self.cg_iterations
             )));
         }
+        if self.subspace_patches > 1000 {
+            return Err(crate::Invalid(format!("correction: {} subspace patches (at most 1000)", self.subspace_patches)));
+        }
         Ok(())
     }
 
     pub fn work(&self) -> FitWork {
-        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None }
+        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: true }
     }
 }
 
@@ -108,6 +116,11 @@ impl<'c> SurfaceFit<'c> {
                 out[c * cells + d] = u[c] as f32;
             }
         }
+    }
+
+    /// Solve the updates in a basis of `patches` x 3 surface-load responses (0: by CG).
+    pub fn use_subspace(&mut self, patches: usize) -> Result<(), crate::Invalid> {
+        Ok(self.fit.use_subspace(patches).map_err(|e| e.to_string())?)
     }
 
     /// `work` updates toward the points (world, mm), correspondences searched at each.

@@ -207,7 +207,9 @@ impl RegisterSettings {
             return Err(crate::Invalid(format!("--iterations {}: between 1 and 100", self.iterations)));
         }
         self.icp.validate()?;
-        self.correction.validate().map_err(|e| crate::Invalid(format!("--correction-updates / --correction-cg: {e}")))
+        self.correction
+            .validate()
+            .map_err(|e| crate::Invalid(format!("--correction-updates / --correction-cg / --correction-subspace: {e}")))
     }
 
     /// The ICP the pose policy runs.
@@ -524,7 +526,9 @@ impl<'c> Registrar<'c> {
         if self.settings.correction.updates > 0 && !fe_fit {
             let t = Instant::now();
             if self.corrector.is_none() {
-                self.corrector = Some(SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?);
+                let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
+                fit.use_subspace(self.settings.correction.subspace_patches)?;
+                self.corrector = Some(fit);
             }
             let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction)).transpose();
             correction = c.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;

@@ -269,6 +269,11 @@ impl<'g> PointFit<'g> {
         if u.len() != grid.node_count() {
             return Err(FemError::InvalidInput(format!("point fit: {} displacements for {} nodes", u.len(), grid.node_count())));
         }
+        if from_start && let Some(sub) = self.subspace.take() {
+            let r = self.subspace_updates(&sub, points_mm, u, iterations, freeze);
+            self.subspace = Some(sub);
+            return Ok(r);
+        }
         let band = self.settings.band_mm;
         let ns = self.samples.len();
         let free = self.solver.asm.dofs.free_of.clone();
@@ -306,7 +311,6 @@ impl<'g> PointFit<'g> {
             // Gradient of the co-rotational energy plus the matched springs.
             let t = Instant::now();
             let a = self.solver.asm.assemble(ElementModel::Corotational, u, false);
-            report.assembly_ms += ms(t);
             // The elastic part: the co-rotational forces from rest, or, from the start, the
             // co-rotational stiffness (rotations of this assembly) times the displacement since.
             let (mut g, e_elastic, kd) = if from_start {
@@ -320,7 +324,10 @@ impl<'g> PointFit<'g> {
                     }
                 }
                 let mut kd = vec![0.0; nf];
-                self.solver.asm.corotational_matvec(&d, &mut kd);
+                // The first update starts where it measures from: nothing to multiply.
+                if d.iter().any(|&v| v != 0.0) {
+                    self.solver.asm.corotational_matvec(&d, &mut kd);
+                }
                 let e = 0.5 * d.iter().zip(&kd).map(|(a, b)| a * b).sum::<f64>();
                 let mut g = vec![Vector3::zeros(); u.len()];
                 for (n, gn) in g.iter_mut().enumerate() {
@@ -335,6 +342,7 @@ impl<'g> PointFit<'g> {
             } else {
                 (a.f_int, a.energy, None)
             };
+            report.assembly_ms += ms(t);
             let metrics: Vec<Option<Matrix3<f64>>> = (0..ns).map(|s| matched[s].then(|| self.spring_metric(s))).collect();
             for s in 0..ns {
                 if let Some(m) = metrics[s] {
@@ -355,10 +363,7 @@ impl<'g> PointFit<'g> {
                 }
             }
             let t = Instant::now();
-            let (du, iters) = match &self.subspace {
-                Some(sub) => (self.subspace_step(sub, &b, &metrics, &free), 0),
-                None => self.pcg(&b, &metrics, &free, cg_iterations, cg_tol),
-            };
+            let (du, iters) = self.pcg(&b, &metrics, &free, cg_iterations, cg_tol);
             report.solve_ms += ms(t);
             report.cg_iterations += iters;
             // The step comes from the rest stiffness: under large rotations it can overshoot,
@@ -367,6 +372,7 @@ impl<'g> PointFit<'g> {
                 (0..ns).map(|s| metrics[s].map(|m| (acc[s] / count[s] as f64, m))).collect();
             // From the start the elastic energy along the step is a quadratic: its slope and
             // curvature (one more product), no assembly per trial.
+            let t = Instant::now();
             let quad = kd.as_ref().map(|kd| {
                 let mut kdu = vec![0.0; nf];
                 self.solver.asm.corotational_matvec(&du, &mut kdu);
@@ -377,7 +383,6 @@ impl<'g> PointFit<'g> {
             let e0 = e_elastic + self.spring_energy(u, &targets);
             let mut step = 1.0;
             let mut trial = u.to_vec();
-            let t = Instant::now();
             for _ in 0..4 {
                 for (n, (tn, un)) in trial.iter_mut().zip(u.iter()).enumerate() {
                     for c in 0..3 {
@@ -526,50 +531,123 @@ impl<'g> PointFit<'g> {
         self.subspace.as_ref().map_or(0, |s| s.k_r.nrows())
     }
 
-    /// One update's step in the subspace: (Phi^T K Phi + sum over matched samples of
-    /// k (L W Phi)^T (L W Phi)) q = Phi^T b, du = Phi q, with L L^T the spring's metric.
-    fn subspace_step(&self, sub: &Subspace, b: &[f64], metrics: &[Option<Matrix3<f64>>], free: &[u32]) -> Vec<f64> {
+    /// The correction's updates in the subspace, the elastic energy measured from the start
+    /// (see `FitWork::from_start`) and linearised there: the increment's stiffness is the
+    /// projected rest stiffness (the increment is a fraction of the prediction; the prediction
+    /// keeps its rotations), the springs point-to-plane along the sample normals turned by
+    /// their cells' rotations. The model is then quadratic in the step, so each update is one
+    /// m x m solve, exact for its correspondences, with no assembly of the grid and no line
+    /// search: (K_r + G G^T) q = -G rho - K_r q_sum, du = Phi q, where G's column of a matched
+    /// sample is sqrt(k) (n^T W Phi)^T and rho its distance to its points along n.
+    fn subspace_updates(
+        &mut self,
+        sub: &Subspace,
+        points_mm: &[Vector3<f64>],
+        u: &mut [Vector3<f64>],
+        updates: usize,
+        freeze: bool,
+    ) -> PointFitReport {
         use faer::linalg::solvers::Solve;
+        let grid = self.solver.grid;
+        let band = self.settings.band_mm;
+        let ns = self.samples.len();
+        let free = &self.solver.asm.dofs.free_of;
+        let nf = self.solver.asm.dofs.n_free;
         let m = sub.k_r.nrows();
-        let nf = b.len();
-        let bm = Mat::from_fn(nf, 1, |i, _| b[i]);
-        let b_r = &sub.phit * &bm;
-        let matched: Vec<usize> = (0..metrics.len()).filter(|&s| metrics[s].is_some()).collect();
-        let sw = self.settings.tangential_weight.sqrt();
+        let par = self.solver.settings.parallelism.par();
         let sk = self.k_n_per_mm.sqrt();
-        let mut g = Mat::<f64>::zeros(3 * matched.len(), m);
-        for (row, &s) in matched.iter().enumerate() {
-            let e = &self.samples[s];
-            // W Phi: the sample's interpolation of the basis (3 x m).
-            let mut wphi = Mat::<f64>::zeros(3, m);
-            for k in 0..8 {
-                for c in 0..3 {
-                    let f = free[3 * e.nodes[k] as usize + c];
-                    if f != NONE {
-                        let col = sub.phit.col(f as usize);
-                        for i in 0..m {
-                            wphi[(c, i)] += e.weights[k] * col[i];
+        let g0 = crate::fem::element::gradients([0.0; 3], grid.cell_size_mm);
+        let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+        let mut report = PointFitReport::default();
+        let mut q_sum = Mat::<f64>::zeros(m, 1);
+        let mut nearest: Vec<u32> = Vec::new();
+        let mut pos = self.deformed(u);
+        for it in 0..updates {
+            let t = Instant::now();
+            if it == 0 || !freeze {
+                self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
+                let buckets = &self.buckets;
+                nearest = points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect();
+            }
+            let mut acc = vec![Vector3::zeros(); ns];
+            let mut count = vec![0u32; ns];
+            for (p, &s) in points_mm.iter().zip(&nearest) {
+                if s != u32::MAX {
+                    acc[s as usize] += p;
+                    count[s as usize] += 1;
+                }
+            }
+            let matched: Vec<usize> = (0..ns).filter(|&s| count[s] > 0).collect();
+            report.points_matched = nearest.iter().filter(|&&s| s != u32::MAX).count();
+            report.samples_matched = matched.len();
+            report.search_ms += ms(t);
+            if matched.is_empty() {
+                return report;
+            }
+            // Each matched sample's normal, turned by its cell's rotation in `u`.
+            let t = Instant::now();
+            let normals: Vec<Vector3<f64>> = matched
+                .par_iter()
+                .map(|&s| {
+                    let e = &self.samples[s];
+                    let ue: [Vector3<f64>; 8] = e.nodes.map(|n| u[n as usize]);
+                    let f = crate::fem::element::deformation_gradient(&ue, &g0);
+                    (crate::fem::assembly::rotation_of(&f) * self.normals[s]).normalize()
+                })
+                .collect();
+            report.assembly_ms += ms(t);
+            let t = Instant::now();
+            // G (m x matched) and the distances along the normals.
+            let mut g = Mat::<f64>::zeros(m, matched.len());
+            let mut rho = Mat::<f64>::zeros(matched.len(), 1);
+            for (j, (&s, n)) in matched.iter().zip(&normals).enumerate() {
+                let e = &self.samples[s];
+                rho[(j, 0)] = sk * n.dot(&(pos[s] - acc[s] / count[s] as f64));
+                let mut col = g.col_mut(j);
+                for k in 0..8 {
+                    for c in 0..3 {
+                        let f = free[3 * e.nodes[k] as usize + c];
+                        let coef = sk * e.weights[k] * n[c];
+                        if f != NONE && coef != 0.0 {
+                            let basis = sub.phit.col(f as usize);
+                            for i in 0..m {
+                                col[i] += coef * basis[i];
+                            }
                         }
                     }
                 }
             }
-            // L = n n^T + sqrt(w) (I - n n^T), the square root of the metric.
-            let n = (self.solver.asm.cell_rotation(e.cell as usize) * self.normals[s]).normalize();
-            let nn = n * n.transpose();
-            let l = (nn + (Matrix3::identity() - nn) * sw) * sk;
-            for r in 0..3 {
-                for i in 0..m {
-                    g[(3 * row + r, i)] = l[(r, 0)] * wphi[(0, i)] + l[(r, 1)] * wphi[(1, i)] + l[(r, 2)] * wphi[(2, i)];
+            let mut a_r = sub.k_r.clone();
+            faer::linalg::matmul::matmul(a_r.as_mut(), faer::Accum::Add, g.as_ref(), g.transpose(), 1.0, par);
+            let mut b_r = Mat::<f64>::zeros(m, 1);
+            faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Replace, g.as_ref(), rho.as_ref(), -1.0, par);
+            faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Add, sub.k_r.as_ref(), q_sum.as_ref(), -1.0, par);
+            let Ok(llt) = a_r.llt(faer::Side::Lower) else { break };
+            let q = llt.solve(&b_r);
+            let mut du = Mat::<f64>::zeros(nf, 1);
+            faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q.as_ref(), 1.0, par);
+            for (nd, un) in u.iter_mut().enumerate() {
+                for c in 0..3 {
+                    let f = free[3 * nd + c];
+                    if f != NONE {
+                        un[c] += du[(f as usize, 0)];
+                    }
                 }
             }
+            q_sum += &q;
+            report.updates += 1;
+            report.solve_ms += ms(t);
+            pos = self.deformed(u);
         }
-        let a_r = &sub.k_r + g.transpose() * &g;
-        let q = match a_r.llt(faer::Side::Lower) {
-            Ok(llt) => llt.solve(&b_r),
-            Err(_) => return vec![0.0; nf],
-        };
-        let du = sub.phit.transpose() * &q;
-        (0..nf).map(|i| du[(i, 0)]).collect()
+        let (mut sq, mut n) = (0.0, 0usize);
+        for (p, &s) in points_mm.iter().zip(&nearest) {
+            if s != u32::MAX {
+                sq += (pos[s as usize] - p).norm_squared();
+                n += 1;
+            }
+        }
+        report.rms_mm = if n > 0 { (sq / n as f64).sqrt() } else { 0.0 };
+        report
     }
 
     /// CG on A = K_corot + k sum over matched samples of W^T M W (M the spring's metric), with K_corot the cells' rest

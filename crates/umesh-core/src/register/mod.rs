@@ -160,8 +160,9 @@ impl RegistrationContext {
             .collect();
         let spacing = surface.area_mm2().sqrt() / (surface.positions.len().max(1) as f64).sqrt();
         let icp_target = IcpTarget::new(surface.positions.clone(), surface_normals.clone(), spacing);
-        let gate_grid =
-            nn::PointGrid::new(surface.positions.clone(), confidence::COVERAGE_RADIUS_MAX_MM + confidence::DEFORMATION_ALLOWANCE_MM);
+        // Cells of a few vertex spacings: the shell search stops after a shell or two for a
+        // point near the surface (cells of the whole reach held thousands of vertices each).
+        let gate_grid = nn::PointGrid::new(surface.positions.clone(), (4.0 * spacing).max(2.0));
         Ok(Self {
             grid,
             surface,

@@ -30,23 +30,40 @@ impl PointGrid {
         self.nearest_except(q, radius_mm, usize::MAX)
     }
 
-    /// As `nearest`, leaving out point `skip` (a point's nearest other point).
+    /// As `nearest`, leaving out point `skip` (a point's nearest other point). The cells are
+    /// scanned in shells of growing Chebyshev distance, stopping once the nearest found is
+    /// closer than anything the next shell can hold: the same answer as scanning the whole
+    /// cube of `radius_mm`, which cost the registration's coverage gate 16 ms a frame (500
+    /// queries of a 35 mm reach on 5 mm cells: 3375 cells each).
     pub fn nearest_except(&self, q: &Vector3<f64>, radius_mm: f64, skip: usize) -> Option<(usize, f64)> {
         let r = (radius_mm / self.cell_mm).ceil() as i32;
         let k = Self::key(q, self.cell_mm);
         let mut best: Option<(usize, f64)> = None;
         let r2 = radius_mm * radius_mm;
-        for dz in -r..=r {
-            for dy in -r..=r {
-                for dx in -r..=r {
-                    let Some(ids) = self.cells.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) else { continue };
-                    for &i in ids {
-                        let d2 = (self.points[i as usize] - q).norm_squared();
-                        if d2 <= r2 && i as usize != skip && best.is_none_or(|(_, b)| d2 < b) {
-                            best = Some((i as usize, d2));
-                        }
+        let visit = |cell: [i32; 3], best: &mut Option<(usize, f64)>| {
+            let Some(ids) = self.cells.get(&cell) else { return };
+            for &i in ids {
+                let d2 = (self.points[i as usize] - q).norm_squared();
+                if d2 <= r2 && i as usize != skip && best.is_none_or(|(_, b)| d2 < b) {
+                    *best = Some((i as usize, d2));
+                }
+            }
+        };
+        for shell in 0..=r {
+            for dz in -shell..=shell {
+                for dy in -shell..=shell {
+                    let edge = dz.abs() == shell || dy.abs() == shell;
+                    // Inside the shell's cube only its two x faces are new.
+                    let stride = if edge { 1 } else { 2 * shell as usize };
+                    for dx in (-shell..=shell).step_by(stride) {
+                        visit([k[0] + dx, k[1] + dy, k[2] + dz], &mut best);
                     }
                 }
+            }
+            // Every point of the next shell lies at least `shell` whole cells away.
+            let reach = shell as f64 * self.cell_mm;
+            if best.is_some_and(|(_, b)| b <= reach * reach) {
+                break;
             }
         }
         best.map(|(i, d2)| (i, d2.sqrt()))

@@ -597,30 +597,39 @@ impl<'g> PointFit<'g> {
                 .collect();
             report.assembly_ms += ms(t);
             let t = Instant::now();
-            // G (m x matched) and the distances along the normals.
-            let mut g = Mat::<f64>::zeros(m, matched.len());
-            let mut rho = Mat::<f64>::zeros(matched.len(), 1);
-            for (j, (&s, n)) in matched.iter().zip(&normals).enumerate() {
+            // G (m x matched, column-major: one sample's column after another, built in
+            // parallel) and the distances along the normals.
+            let mut g_data = vec![0.0; m * matched.len()];
+            g_data.par_chunks_mut(m).zip(matched.par_iter().zip(&normals)).for_each(|(col, (&s, n))| {
                 let e = &self.samples[s];
-                rho[(j, 0)] = sk * n.dot(&(pos[s] - acc[s] / count[s] as f64));
-                let mut col = g.col_mut(j);
                 for k in 0..8 {
                     for c in 0..3 {
                         let f = free[3 * e.nodes[k] as usize + c];
                         let coef = sk * e.weights[k] * n[c];
-                        if f != NONE && coef != 0.0 {
-                            let basis = sub.phit.col(f as usize);
-                            for i in 0..m {
-                                col[i] += coef * basis[i];
+                        if f != NONE
+                            && coef != 0.0
+                            && let Some(basis) = sub.phit.col(f as usize).try_as_col_major()
+                        {
+                            for (o, b) in col.iter_mut().zip(basis.as_slice()) {
+                                *o += coef * b;
                             }
                         }
                     }
                 }
-            }
+            });
+            let g = faer::MatRef::from_column_major_slice(&g_data, m, matched.len());
+            let rho = Mat::<f64>::from_fn(matched.len(), 1, |j, _| {
+                sk * normals[j].dot(&(pos[matched[j]] - acc[matched[j]] / count[matched[j]] as f64))
+            });
+            // The lower triangle only: the Cholesky factorisation reads no more.
             let mut a_r = sub.k_r.clone();
-            faer::linalg::matmul::matmul(a_r.as_mut(), faer::Accum::Add, g.as_ref(), g.transpose(), 1.0, par);
+            {
+                use faer::linalg::matmul::triangular::{BlockStructure, matmul};
+                let rect = BlockStructure::Rectangular;
+                matmul(a_r.as_mut(), BlockStructure::TriangularLower, faer::Accum::Add, g, rect, g.transpose(), rect, 1.0, par);
+            }
             let mut b_r = Mat::<f64>::zeros(m, 1);
-            faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Replace, g.as_ref(), rho.as_ref(), -1.0, par);
+            faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Replace, g, rho.as_ref(), -1.0, par);
             faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Add, sub.k_r.as_ref(), q_sum.as_ref(), -1.0, par);
             let Ok(llt) = a_r.llt(faer::Side::Lower) else { break };
             let q = llt.solve(&b_r);

@@ -199,9 +199,11 @@ pub struct MeanSolve {
 /// A calibrated solve that cannot reach its target keeps its converged state nearest the target
 /// when that moves at least this fraction of it (and at most `MAX_REACHED_FRACTION`); otherwise
 /// the sample is rejected. A state short of its target is still an equilibrium of the forces
-/// stored with it: the work is kept rather than redrawn (0.5 rejected 8 of the MR liver's 1000
-/// samples at 0.35-0.46 of their targets and instruments on stiffly held tissue).
-pub const MIN_REACHED_FRACTION: f64 = 0.25;
+/// stored with it: the work is kept rather than redrawn. 0.5 rejected 8 of the MR liver's 1000
+/// samples (at 0.35-0.46 of their targets) and the instruments on stiffly held tissue; 0.25
+/// still rejected 3 of the robustness sweep's 936 samples (instruments whose first loads
+/// inverted a contact cell, at 0.12-0.24, and one stalled at 0.11).
+pub const MIN_REACHED_FRACTION: f64 = 0.1;
 /// The largest multiple of the target a kept state may move (probes past twice the target are
 /// abandoned as heading for a collapse).
 pub const MAX_REACHED_FRACTION: f64 = 1.5;

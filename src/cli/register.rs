@@ -130,6 +130,11 @@ pub fn run(a: Args) -> Result<()> {
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, &seg)?;
+    // The correction's subspace before the source opens: a live stream would drop the frames
+    // that arrive while it is built.
+    if a.correction_updates > 0 {
+        ctx.prepare_correction(a.correction_subspace)?;
+    }
     let (mut source, rec_pose, truth) = open_source(&a)?;
     let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;
     let pose = match (&a.initial_pose, rec_pose) {

@@ -18,6 +18,9 @@ use crate::visible::Camera;
 use nalgebra::{Matrix4, Vector3};
 use std::path::{Path, PathBuf};
 
+/// The share of its target a recording's load must reach (a dataset keeps less).
+const RECORDING_MIN_REACHED: f64 = 0.5;
+
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SynthSettings {
     pub frames: usize,
@@ -376,6 +379,16 @@ pub fn run_rgbd_synth(
     // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
     // displacement is the dataset's target times `load_scale`).
     let index = 10_000_000 + settings.seed as usize;
+    // A recording presses as asked or says it could not: a state the dataset would keep below
+    // an unreachable target (down to a tenth of it) is refused under half of it, as it was
+    // before, and the load is made smaller below.
+    let reached = |sol: &crate::fem::solver::Solution, target_mm: f64| -> Result<(), RgbdError> {
+        let m = config.forces.mean_over.mean_mm(&sol.displacement_mm, &ctx.fixed);
+        if m < RECORDING_MIN_REACHED * target_mm {
+            return Err(bad(format!("the recording's load reached {m:.2} mm of the {target_mm:.2} mm asked")));
+        }
+        Ok(())
+    };
     let solve_load = |load_scale: f64| -> Result<Vec<crate::loads::PointForce>, RgbdError> {
         Ok(if settings.loads != LoadFamily::Pressing {
             // Another family: its own draw from the seed, calibrated and solved as a sample's.
@@ -392,7 +405,8 @@ pub fn run_rgbd_synth(
             let target = config.forces.target_displacement_mm * load_scale * settings.loads.target_factor();
             ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
             let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
-            r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+            let sol = r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+            reached(&sol, r.target_mm)?;
             r.forces
         } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
             let mut f = ctx.sample_forces(config, index).0;
@@ -402,7 +416,8 @@ pub fn run_rgbd_synth(
             let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
             let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
             let r = ctx.solve_sample(&mut s0, config, index, load_scale, 0.5, cancel);
-            r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
+            let sol = r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
+            reached(&sol, r.target_mm)?;
             r.forces
         })
     };

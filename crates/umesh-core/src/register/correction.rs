@@ -120,7 +120,16 @@ impl<'c> SurfaceFit<'c> {
 
     /// Solve the updates in a basis of `patches` x 3 surface-load responses (0: by CG).
     pub fn use_subspace(&mut self, patches: usize) -> Result<(), crate::Invalid> {
-        Ok(self.fit.use_subspace(patches).map_err(|e| e.to_string())?)
+        if let Some((p, sub)) = self.ctx.correction_basis.get()
+            && *p == patches
+        {
+            return Ok(self.fit.set_subspace(sub.clone()).map_err(|e| e.to_string())?);
+        }
+        self.fit.use_subspace(patches).map_err(|e| e.to_string())?;
+        if let Some(sub) = self.fit.subspace() {
+            let _ = self.ctx.correction_basis.set((patches, sub.clone()));
+        }
+        Ok(())
     }
 
     /// `work` updates toward the points (world, mm), correspondences searched at each.

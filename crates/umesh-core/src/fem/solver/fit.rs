@@ -130,7 +130,8 @@ pub struct PointFit<'g> {
 /// and an elastic body's response to surface loads is dominated by its smooth part, so the
 /// update's system projected on the basis is small and dense: one m x m solve a frame instead
 /// of one pair of triangular solves of the whole grid per CG iteration.
-struct Subspace {
+#[derive(Clone, Debug)]
+pub struct Subspace {
     /// The basis transposed (m x free dofs): column j holds dof j's coefficients.
     phit: Mat<f64>,
     /// The rest stiffness projected on the basis (m x m).
@@ -523,6 +524,24 @@ impl<'g> PointFit<'g> {
         }
         let phit = Mat::from_fn(m, nf, |i, j| columns[i][j]);
         self.subspace = Some(Subspace { phit, k_r });
+        Ok(())
+    }
+
+    /// The subspace in use, to hand to another fit of the same grid, samples and material.
+    pub fn subspace(&self) -> Option<&Subspace> {
+        self.subspace.as_ref()
+    }
+
+    /// Use a subspace built by `use_subspace` on another fit of the same grid and samples.
+    pub fn set_subspace(&mut self, subspace: Subspace) -> Result<(), FemError> {
+        if subspace.phit.ncols() != self.solver.asm.dofs.n_free {
+            return Err(FemError::InvalidInput(format!(
+                "point fit: a subspace of {} dofs for {}",
+                subspace.phit.ncols(),
+                self.solver.asm.dofs.n_free
+            )));
+        }
+        self.subspace = Some(subspace);
         Ok(())
     }
 

@@ -133,7 +133,7 @@ pub fn run(a: Args) -> Result<()> {
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
     if a.correction_updates > 0 {
-        ctx.prepare_correction(a.correction_subspace)?;
+        umesh_core::register::correction::prepare_correction(&ctx, a.correction_subspace)?;
     }
     let (mut source, rec_pose, truth) = open_source(&a)?;
     let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;

@@ -64,6 +64,15 @@ pub struct CorrectionReport {
     pub ms: f64,
 }
 
+/// Build the physics correction's subspace of `patches` on `ctx` (seconds on a large grid)
+/// before the frames come: a live stream then loses no frame to it.
+pub fn prepare_correction(ctx: &RegistrationContext, patches: usize) -> Result<(), crate::Invalid> {
+    if patches == 0 {
+        return Ok(());
+    }
+    SurfaceFit::new(ctx, ctx.material, PointFitSettings::default())?.use_subspace(patches)
+}
+
 /// The FE model of a registration context with its current nodal displacement.
 pub struct SurfaceFit<'c> {
     ctx: &'c RegistrationContext,

@@ -80,8 +80,9 @@ pub struct RegistrationContext {
     pub(crate) icp_target: IcpTarget,
     /// The rest surface's vertices in cells as large as the coverage gate's search.
     gate_grid: nn::PointGrid,
-    /// The physics correction's subspace (patches, basis), built once (`prepare_correction`, or
-    /// the first corrected frame) and shared by every registration on this context.
+    /// The physics correction's subspace (patches, basis), built once (before the frames by
+    /// the correction's `prepare_correction`, or at the first corrected frame) and shared by
+    /// every registration on this context.
     pub(crate) correction_basis: std::sync::OnceLock<(usize, crate::fem::solver::fit::Subspace)>,
 }
 
@@ -181,16 +182,6 @@ impl RegistrationContext {
             gate_grid,
             correction_basis: std::sync::OnceLock::new(),
         })
-    }
-
-    /// Build the physics correction's subspace of `patches` (seconds on a large grid) before
-    /// the frames come: a live stream then loses no frame to it.
-    pub fn prepare_correction(&self, patches: usize) -> Result<(), crate::Invalid> {
-        if patches == 0 {
-            return Ok(());
-        }
-        let mut fit = correction::SurfaceFit::new(self, self.material, crate::fem::solver::fit::PointFitSettings::default())?;
-        fit.use_subspace(patches)
     }
 
     /// The share of the organ's surface within `radius_mm` of an observed point (world, mm):

@@ -288,20 +288,10 @@ impl<'g> PointFit<'g> {
             let t = Instant::now();
             let pos = self.deformed(u);
             if it == 0 || !freeze {
-                self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
-                let buckets = &self.buckets;
-                nearest = points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect();
+                nearest = nearest_samples(&mut self.buckets, grid, &pos, points_mm, band);
             }
-            let mut acc = vec![Vector3::zeros(); ns];
-            let mut count = vec![0u32; ns];
-            let mut matched_points = 0;
-            for (p, &s) in points_mm.iter().zip(&nearest) {
-                if s != u32::MAX {
-                    acc[s as usize] += p;
-                    count[s as usize] += 1;
-                    matched_points += 1;
-                }
-            }
+            let (acc, count) = pulls(ns, points_mm, &nearest);
+            let matched_points = nearest.iter().filter(|&&s| s != u32::MAX).count();
             let matched: Vec<bool> = count.iter().map(|&c| c > 0).collect();
             report.points_matched = matched_points;
             report.samples_matched = matched.iter().filter(|&&m| m).count();
@@ -420,15 +410,7 @@ impl<'g> PointFit<'g> {
         // The distance left between each matched point and its sample after the update (the
         // last update's correspondences: a fresh search would cost another bucket fill).
         let t = Instant::now();
-        let pos = self.deformed(u);
-        let (mut sq, mut n) = (0.0, 0usize);
-        for (p, &s) in points_mm.iter().zip(&nearest) {
-            if s != u32::MAX {
-                sq += (pos[s as usize] - p).norm_squared();
-                n += 1;
-            }
-        }
-        report.rms_mm = if n > 0 { (sq / n as f64).sqrt() } else { 0.0 };
+        report.rms_mm = matched_rms(&self.deformed(u), points_mm, &nearest);
         report.search_ms += ms(t);
         Ok(report)
     }
@@ -584,18 +566,9 @@ impl<'g> PointFit<'g> {
         for it in 0..updates {
             let t = Instant::now();
             if it == 0 || !freeze {
-                self.buckets.fill(&pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
-                let buckets = &self.buckets;
-                nearest = points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect();
+                nearest = nearest_samples(&mut self.buckets, grid, &pos, points_mm, band);
             }
-            let mut acc = vec![Vector3::zeros(); ns];
-            let mut count = vec![0u32; ns];
-            for (p, &s) in points_mm.iter().zip(&nearest) {
-                if s != u32::MAX {
-                    acc[s as usize] += p;
-                    count[s as usize] += 1;
-                }
-            }
+            let (acc, count) = pulls(ns, points_mm, &nearest);
             let matched: Vec<usize> = (0..ns).filter(|&s| count[s] > 0).collect();
             report.points_matched = nearest.iter().filter(|&&s| s != u32::MAX).count();
             report.samples_matched = matched.len();
@@ -667,14 +640,7 @@ impl<'g> PointFit<'g> {
             report.solve_ms += ms(t);
             pos = self.deformed(u);
         }
-        let (mut sq, mut n) = (0.0, 0usize);
-        for (p, &s) in points_mm.iter().zip(&nearest) {
-            if s != u32::MAX {
-                sq += (pos[s as usize] - p).norm_squared();
-                n += 1;
-            }
-        }
-        report.rms_mm = if n > 0 { (sq / n as f64).sqrt() } else { 0.0 };
+        report.rms_mm = matched_rms(&pos, points_mm, &nearest);
         report
     }
 
@@ -812,6 +778,39 @@ pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_
         motion_rms_mm: rms(&u_prev, &u_conv),
         converged_updates: conv.updates,
     })
+}
+
+/// For each observed point, the index of the sample nearest it within `band` (u32::MAX: none),
+/// searched among the deformed samples `pos`.
+fn nearest_samples(buckets: &mut Buckets, grid: &ImmersedGrid, pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], band: f64) -> Vec<u32> {
+    buckets.fill(pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
+    let buckets = &*buckets;
+    points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect()
+}
+
+/// Per sample: the sum of the points that chose it and how many did.
+fn pulls(ns: usize, points_mm: &[Vector3<f64>], nearest: &[u32]) -> (Vec<Vector3<f64>>, Vec<u32>) {
+    let mut acc = vec![Vector3::zeros(); ns];
+    let mut count = vec![0u32; ns];
+    for (p, &s) in points_mm.iter().zip(nearest) {
+        if s != u32::MAX {
+            acc[s as usize] += p;
+            count[s as usize] += 1;
+        }
+    }
+    (acc, count)
+}
+
+/// RMS distance of the matched points to their samples (mm).
+fn matched_rms(pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], nearest: &[u32]) -> f64 {
+    let (mut sq, mut n) = (0.0, 0usize);
+    for (p, &s) in points_mm.iter().zip(nearest) {
+        if s != u32::MAX {
+            sq += (pos[s as usize] - p).norm_squared();
+            n += 1;
+        }
+    }
+    if n > 0 { (sq / n as f64).sqrt() } else { 0.0 }
 }
 
 fn interpolate(e: &Embedding, u: &[Vector3<f64>]) -> Vector3<f64> {

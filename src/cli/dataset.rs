@@ -57,7 +57,8 @@ pub struct PreflightArgs {
     /// time; jobs with no more samples than this start without the check.
     #[arg(long, default_value_t = umesh_core::dataset::PreflightSettings::default().samples)]
     pub preflight_samples: usize,
-    /// Run the job even when the pre-flight check projects an acceptance below 90 %.
+    /// Run the job even when the pre-flight check projects an acceptance below 90 % or
+    /// samples reaching less than 75 % of their target displacement.
     #[arg(long)]
     pub force: bool,
 }
@@ -74,8 +75,11 @@ impl PreflightArgs {
 /// job's error carries the likely cause, a forced one gets it as a warning.
 pub fn print_preflight(p: &umesh_core::dataset::Preflight, forced: bool) {
     eprintln!("{}", p.summary());
-    if forced && p.acceptance < umesh_core::dataset::PreflightSettings::default().min_acceptance {
-        eprintln!("warning: run with --force; likely cause of the low acceptance: {}", p.cause.as_deref().unwrap_or("unknown"));
+    if forced && p.cause.is_some() {
+        eprintln!(
+            "warning: run with --force; likely cause of the low acceptance or displacement: {}",
+            p.cause.as_deref().unwrap_or("unknown")
+        );
     }
 }
 

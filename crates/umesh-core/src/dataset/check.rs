@@ -29,7 +29,7 @@ impl PreflightCheck<'_> {
     /// Report the check's figures, then refuse the job when it would store too little (unless forced).
     pub fn judge(&self, p: Preflight) -> Result<Preflight, DatasetError> {
         (self.report)(&p);
-        match p.refusal(self.settings.min_acceptance) {
+        match p.refusal(&self.settings) {
             Some(message) if !self.force => Err(DatasetError::Refused { message, preflight: Box::new(p) }),
             _ => Ok(p),
         }
@@ -166,8 +166,7 @@ pub(super) fn preflight_with(
     let fixed_nodes = ctx.fixed.iter().filter(|&&f| f).count();
     let fixed_fraction = fixed_nodes as f64 / ctx.grid.node_count().max(1) as f64;
     let acceptance = accepted.len() as f64 / results.len().max(1) as f64;
-    let cause = (acceptance < settings.min_acceptance).then(|| likely_cause(ctx, config, &results, fixed_fraction));
-    Ok(Preflight {
+    let mut p = Preflight {
         samples: results.len(),
         accepted: accepted.len(),
         below_target,
@@ -184,8 +183,12 @@ pub(super) fn preflight_with(
         fixed_fraction,
         fixed_nodes,
         nodes: ctx.grid.node_count(),
-        cause,
-    })
+        cause: None,
+    };
+    if acceptance < settings.min_acceptance || p.is_doomed(settings) {
+        p.cause = Some(likely_cause(ctx, config, &results, fixed_fraction));
+    }
+    Ok(p)
 }
 
 impl DatasetContext {

@@ -594,13 +594,23 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     config.samples = 1000;
     let dir = tmp("doomed");
     let seen = std::sync::Mutex::new(Vec::new());
-    let report = |p: &umesh_core::dataset::Preflight| seen.lock().unwrap().push(p.clone());
-    let check = PreflightCheck { settings: PreflightSettings { samples: 6, ..Default::default() }, force: false, report: &report };
+    // The job is cancelled once the check has reported: a check that let it through fails
+    // here at once instead of computing 1000 samples.
+    let cancel = Cancel::new();
+    let report = |p: &umesh_core::dataset::Preflight| {
+        seen.lock().unwrap().push(p.clone());
+        cancel.cancel();
+    };
+    let settings = PreflightSettings { samples: 6, ..Default::default() };
+    let check = PreflightCheck { settings: settings.clone(), force: false, report: &report };
     // Bounded work: the grid, eight reference solves and six samples (the time on 2 cores is
     // a README figure, measured by `umesh dataset generate`, not asserted here).
-    let e = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&check), &Progress::none(), &Cancel::new()).unwrap_err();
+    let e = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&check), &Progress::none(), &cancel).unwrap_err();
     let DatasetError::Refused { message, preflight } = e else { panic!("not refused: {e}") };
-    assert!(preflight.acceptance < 0.9 && preflight.samples == 6, "{preflight:?}");
+    // Refused on either rule: few accepted, or the accepted far short of their targets (with
+    // the floor at a tenth of the target, an organ that collapses keeps its early states).
+    let short = preflight.achieved_over_target.is_some_and(|r| r < settings.min_achieved);
+    assert!((preflight.acceptance_upper_bound() < 0.9 || short) && preflight.samples == 6, "{preflight:?}");
     assert!(message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"), "{message}");
     assert!(message.contains("--max-strain 0.12"), "the limit that makes this set-up work is not named: {message}");
     assert!(!dir.exists(), "a refused job wrote {}", dir.display());
@@ -608,7 +618,8 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     // Forced, the job runs (a short one here, still longer than the check).
     config.samples = 7;
     config.shard_size = 7;
-    let forced = PreflightCheck { force: true, ..check };
+    let report = |p: &umesh_core::dataset::Preflight| seen.lock().unwrap().push(p.clone());
+    let forced = PreflightCheck { force: true, report: &report, ..check };
     let r = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&forced), &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.complete && r.samples_computed == 7 && r.preflight.is_some(), "{r:?}");
 }
@@ -626,6 +637,40 @@ fn the_preflight_refuses_only_when_its_samples_rule_out_the_acceptance_needed() 
     // At 90 % needed, 16 samples refuse at 12 accepted or fewer, 6 at 4 or fewer.
     assert!((0..=16).all(|k| (wilson_upper(k, 16, z) < 0.9) == (k <= 12)));
     assert!((0..=6).all(|k| (wilson_upper(k, 6, z) < 0.9) == (k <= 4)));
+}
+
+#[test]
+fn a_preflight_whose_samples_stop_far_short_of_their_targets_is_refused_even_when_all_are_accepted() {
+    use umesh_core::dataset::{Preflight, PreflightSettings};
+    let settings = PreflightSettings::default();
+    let p = |accepted: usize, achieved: Option<f64>| Preflight {
+        samples: 16,
+        accepted,
+        below_target: 0,
+        strain_limited: 0,
+        strain_limited_factor: None,
+        rejected: Default::default(),
+        acceptance: accepted as f64 / 16.0,
+        achieved_over_target: achieved,
+        sample_seconds: 1.0,
+        threads: 2,
+        projected_minutes: 10.0,
+        seconds: 30.0,
+        visible_fraction: 0.4,
+        fixed_fraction: 0.05,
+        fixed_nodes: 100,
+        nodes: 2000,
+        cause: Some("a cause".into()),
+    };
+    // The sweep's worst configuration averages 0.87 of its target: goes on.
+    assert!(p(16, Some(0.87)).refusal(&settings).is_none());
+    // 16 of 16 accepted, each at under half its target: refused, and the message says which rule.
+    let m = p(16, Some(0.43)).refusal(&settings).expect("not refused");
+    assert!(m.contains("43 % of their target displacement") && m.contains("Likely cause: a cause") && m.contains("--force"), "{m}");
+    // No sample accepted: the acceptance rule (no ratio to judge).
+    let m = p(0, None).refusal(&settings).expect("not refused");
+    assert!(m.contains("store 0 % of its samples"), "{m}");
+    assert!(PreflightSettings { min_achieved: 1.5, ..settings }.validate().is_err());
 }
 
 #[test]

@@ -728,6 +728,19 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
         let corrected = run(&mut RigidModel, correction);
         let c = corrected.correction.expect("the correction ran");
         assert!(c.moved_rms_mm > 0.5 && c.fit.updates == 1, "{c:?}");
+        // The confidence judges the model's prediction (what its reference range measured), not
+        // the corrected surface, whose residual the correction shrinks by construction: the same
+        // figures as without the correction (same points: the pose is fixed after frame 0),
+        // though the corrected surface lies nearer the points (tolerance: 1e-9 mm).
+        let (judged, uncorrected) = (&corrected.confidence, &rigid.confidence);
+        assert!((judged.residual_p95_mm - uncorrected.residual_p95_mm).abs() < 1e-9, "{judged:?} against {uncorrected:?}");
+        assert!((judged.residual_mean_mm - uncorrected.residual_mean_mm).abs() < 1e-9, "{judged:?} against {uncorrected:?}");
+        assert!(
+            c.fit.rms_mm < uncorrected.residual_p95_mm,
+            "corrected RMS {:.2} against the prediction's p95 {:.2}",
+            c.fit.rms_mm,
+            uncorrected.residual_p95_mm
+        );
         assert!(
             corrected.tre_mean_mm.unwrap() < 0.85 * rigid_tre,
             "corrected {:?} against rigid {rigid_tre:.2} ({correction:?})",

@@ -75,11 +75,8 @@ impl PreflightArgs {
 /// job's error carries the likely cause, a forced one gets it as a warning.
 pub fn print_preflight(p: &umesh_core::dataset::Preflight, forced: bool) {
     eprintln!("{}", p.summary());
-    if forced && p.cause.is_some() {
-        eprintln!(
-            "warning: run with --force; likely cause of the low acceptance or displacement: {}",
-            p.cause.as_deref().unwrap_or("unknown")
-        );
+    if let (true, Some(cause)) = (forced, &p.cause) {
+        eprintln!("warning: run with --force; likely cause of the low acceptance or displacement: {cause}");
     }
 }
 

@@ -609,8 +609,7 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     let DatasetError::Refused { message, preflight } = e else { panic!("not refused: {e}") };
     // Refused on either rule: few accepted, or the accepted far short of their targets (with
     // the floor at a tenth of the target, an organ that collapses keeps its early states).
-    let short = preflight.achieved_over_target.is_some_and(|r| r < settings.min_achieved);
-    assert!((preflight.acceptance_upper_bound() < 0.9 || short) && preflight.samples == 6, "{preflight:?}");
+    assert!(preflight.is_doomed(&settings) && preflight.samples == 6, "{preflight:?}");
     assert!(message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"), "{message}");
     assert!(message.contains("--max-strain 0.12"), "the limit that makes this set-up work is not named: {message}");
     assert!(!dir.exists(), "a refused job wrote {}", dir.display());

@@ -331,7 +331,10 @@ print("ok", a)
 fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let rec = tmp("synth-rec");
     let _ = std::fs::remove_dir_all(&rec);
-    let (ok, out, err) = umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--json", "--out", rec.to_str().unwrap()]);
+    // At 0.8 of the dataset's load, the AR view's synthetic recording: within the bundled
+    // model's range (the default 1.3 moves the markers 24 mm, beyond it).
+    let (ok, out, err) =
+        umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--load-scale", "0.8", "--json", "--out", rec.to_str().unwrap()]);
     assert!(ok, "{err}");
     let s = json(&out);
     assert_eq!(s["frames"], 4);
@@ -355,14 +358,14 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
         assert!(f["tre_mean_mm"].as_f64().is_some(), "TRE per frame: {f}");
     }
     // Threshold: the paper's ex vivo TRE (2.92 mm) on 1 mm depth noise, over the frames and at
-    // the last one, where the default recording moves the markers by the dataset's scale
-    // (measured: 18.3 mm of motion, 1.58 mm TRE, 18.3 mm rigid only).
+    // the last one, where the recording moves the markers by the dataset's scale (measured with
+    // the bundled mixture model: 12.35 mm of motion, 1.15 mm TRE, 12.30 mm rigid only).
     let tre = r["tre_mean_mm"].as_f64().unwrap();
     eprintln!("synthetic registration: {r}");
     assert!(tre < 2.92, "TRE {tre} mm");
     let (last, rigid, moved) =
         (r["last_tre_mm"].as_f64().unwrap(), r["last_tre_rigid_mm"].as_f64().unwrap(), r["last_marker_displacement_mm"].as_f64().unwrap());
-    assert!(moved >= 10.0, "the default recording moves the markers {moved} mm (the dataset's scale is 10)");
+    assert!(moved >= 10.0, "the recording moves the markers {moved} mm (the dataset's scale is 10)");
     assert!(last < 2.92 && last < 0.25 * rigid, "last frame: TRE {last} mm, rigid only {rigid} mm");
     assert!(reg.join("overlay/00003.png").exists());
     // Confidence without ground truth: the bundled model is calibrated (confidence.json), and
@@ -678,13 +681,28 @@ fn a_recordings_load_the_organ_cannot_take_is_made_smaller_and_said_not_refused(
 
 #[test]
 fn confidence_warns_on_a_deformation_far_beyond_the_datasets_scale() {
-    // Three times the default load: about 30 mm of marker motion against the dataset's 10 mm
-    // (measured: last-frame TRE 14.7 mm, the points 10.2 mm from the predicted surface at the
-    // 95th percentile against 4.6 mm allowed).
+    // Gravity at three times the dataset's target (made at 0.7 of it, the organ could not take
+    // more): 21.4 mm of marker motion against the dataset's 5-15 mm (measured with the bundled
+    // mixture model: last-frame TRE 8.4 mm, the points 8.3 mm from the predicted surface at the
+    // 95th percentile against 6.2 mm allowed). Pressing saturates near 22 mm, where the model
+    // registers within 3.5-6 mm, at the rule's edge.
     let rec = tmp("far-rec");
     let _ = std::fs::remove_dir_all(&rec);
-    let (ok, _, err) =
-        umesh(&["rgbd", "synth", "--frames", "3", "--load-scale", "3", "--seed", "6", "--json", "--out", rec.to_str().unwrap()]);
+    let (ok, _, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "3",
+        "--loads",
+        "gravity",
+        "--load-scale",
+        "3",
+        "--seed",
+        "6",
+        "--json",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(ok, "{err}");
     let reg = tmp("far-reg");
     let (ok, out, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);

@@ -40,9 +40,18 @@ fn known(scene: &str) -> bool {
 
 /// A folder for data a scene generates (a small dataset, a short recording), kept between
 /// runs: the generation is deterministic and is skipped when the folder is complete.
-fn scene_cache(name: &str) -> std::path::PathBuf {
-    // Keyed by the dataset format: a cache written by an older umesh is not reused.
-    std::env::temp_dir().join(format!("umesh-scene-{name}-v{}", umesh_core::dataset::FORMAT_VERSION))
+/// Keyed by the dataset format and by what the data is made from (the configuration, the
+/// recording's settings): a cache written by an older umesh, or for another bundled model, is
+/// not reused.
+fn scene_cache(name: &str, made_from: &impl serde::Serialize) -> std::path::PathBuf {
+    let key = umesh_core::dataset::fnv_hex(serde_json::to_string(made_from).unwrap_or_default().as_bytes());
+    std::env::temp_dir().join(format!("umesh-scene-{name}-v{}-{key}", umesh_core::dataset::FORMAT_VERSION))
+}
+
+/// The dataset configuration of the bundled model (the scenes' data are made with it).
+fn bundled_config(organ: &OrganData) -> anyhow::Result<umesh_core::dataset::DatasetConfig> {
+    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir)?;
+    Ok(umesh_workflow::input::model_dataset_config(Some(&info), &organ.seg))
 }
 
 fn run(job: impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput>) -> anyhow::Result<JobOutput> {
@@ -66,11 +75,10 @@ fn anterior_probes(organ: &OrganData, offsets: &[(f64, f64)]) -> Vec<Probe> {
 /// `samples` samples with the bundled model's configuration, in shards of 4, generated once
 /// into the temporary folder `name` (resumed when complete).
 fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> anyhow::Result<std::path::PathBuf> {
-    let info = umesh_net::ModelInfo::read(&ActiveModel::default().dir)?;
-    let mut config = umesh_workflow::input::model_dataset_config(Some(&info), &organ.seg);
+    let mut config = bundled_config(organ)?;
     config.samples = samples;
     config.shard_size = 4;
-    let dir = scene_cache(name);
+    let dir = scene_cache(name, &config);
     let all = umesh_core::dataset::ShardSelection::all();
     umesh_core::dataset::run_generate(&organ.seg, &dir, &config, all, &Progress::none(), &Cancel::new())?;
     Ok(dir)
@@ -226,7 +234,7 @@ fn qa_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
 /// The AR view on a synthetic recording, stepped through its frames.
 fn ar_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     let model = ActiveModel::default();
-    let dir = scene_cache("ar-recording");
+    let dir = scene_cache("ar-recording", &(bundled_config(organ)?, crate::app::ar::panel::synthetic_settings(4)));
     if !dir.join("trajectory.log").is_file() {
         run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
     }
@@ -363,7 +371,7 @@ pub fn frame_times_during_training(width: u32, height: u32, mode: Mode) -> anyho
     let (mut app, _) = headless_app("phantom", width, height)?;
     let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
     let data = small_dataset(&organ, "bench-dataset", 12)?;
-    let model = scene_cache("bench-model");
+    let model = scene_cache("bench-model", &());
     let _ = std::fs::remove_dir_all(&model);
     app.world_mut().resource_mut::<NextState<Mode>>().set(mode);
     let settings = umesh_net::TrainSettings { epochs: 3, batch_size: 2, ..Default::default() };
@@ -405,7 +413,7 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> anyhow::Result<A
     let (mut app, _) = headless_app("phantom", width, height)?;
     let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
     let model = ActiveModel::default();
-    let dir = scene_cache("bench-recording");
+    let dir = scene_cache("bench-recording", &(bundled_config(&organ)?, crate::app::ar::panel::synthetic_settings(20)));
     if !dir.join("trajectory.log").is_file() {
         run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
     }

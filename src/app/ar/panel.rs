@@ -339,7 +339,6 @@ pub fn central(ui: &mut egui::Ui, ar: &mut Ar, texture: &mut Option<egui::Textur
     }
 }
 
-/// A synthetic RGB-D recording of the organ deformed by the FE model (`umesh rgbd synth`).
 /// The settings of the view's synthetic recording (and the AR scenes'): the bundled pressing
 /// load at 0.8 of the dataset's target, within the range the model trained on (12.3 mm of
 /// marker motion on the phantom; the command line's default 1.3 gives 24 mm, a test beyond it).
@@ -347,6 +346,7 @@ pub fn synthetic_settings(frames: usize) -> umesh_core::synth::SynthSettings {
     umesh_core::synth::SynthSettings { frames, load_scale: 0.8, ..Default::default() }
 }
 
+/// A synthetic RGB-D recording of the organ deformed by the FE model (`umesh rgbd synth`).
 pub fn synth_job(
     organ: OrganData,
     model_dir: std::path::PathBuf,

@@ -84,6 +84,17 @@ fn small_dataset(organ: &OrganData, name: &str, samples: usize) -> anyhow::Resul
     Ok(dir)
 }
 
+/// The AR view's synthetic recording of `frames` frames with the bundled model's configuration,
+/// made once into the temporary folder `name`.
+fn synthetic_recording(organ: &OrganData, name: &str, frames: usize) -> anyhow::Result<std::path::PathBuf> {
+    let made_from = (bundled_config(organ)?, crate::app::ar::panel::synthetic_settings(frames));
+    let dir = scene_cache(name, &made_from);
+    if !dir.join("trajectory.log").is_file() {
+        run(crate::app::ar::panel::synth_job(organ.clone(), ActiveModel::default().dir, dir.clone(), frames))?;
+    }
+    Ok(dir)
+}
+
 /// Compute the state a scene shows (synchronously: a screenshot waits for nothing).
 pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
     let req = if scene == "ct" {
@@ -234,10 +245,7 @@ fn qa_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
 /// The AR view on a synthetic recording, stepped through its frames.
 fn ar_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     let model = ActiveModel::default();
-    let dir = scene_cache("ar-recording", &(bundled_config(organ)?, crate::app::ar::panel::synthetic_settings(4)));
-    if !dir.join("trajectory.log").is_file() {
-        run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 4))?;
-    }
+    let dir = synthetic_recording(organ, "ar-recording", 4)?;
     world.resource_mut::<NextState<Mode>>().set(Mode::Ar);
     let mut ar = world.resource_mut::<crate::app::ar::Ar>();
     ar.source_text = dir.display().to_string();
@@ -413,10 +421,7 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> anyhow::Result<A
     let (mut app, _) = headless_app("phantom", width, height)?;
     let organ = app.world().resource::<Organ>().data.clone().context("no organ")?;
     let model = ActiveModel::default();
-    let dir = scene_cache("bench-recording", &(bundled_config(&organ)?, crate::app::ar::panel::synthetic_settings(20)));
-    if !dir.join("trajectory.log").is_file() {
-        run(crate::app::ar::panel::synth_job(organ.clone(), model.dir.clone(), dir.clone(), 20))?;
-    }
+    let dir = synthetic_recording(&organ, "bench-recording", 20)?;
     app.world_mut().resource_mut::<NextState<Mode>>().set(Mode::Ar);
     let woken = std::sync::Arc::new((std::sync::Mutex::new(false), std::sync::Condvar::new()));
     let waker: Option<crate::app::ar::Waker> = on_demand.then(|| {

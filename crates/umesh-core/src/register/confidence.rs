@@ -19,10 +19,19 @@ pub const RESIDUAL_CAP_MM: f64 = 20.0;
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ConfidenceReference {
     /// The 95th percentile over the views of each view's 95th percentile of the distance from
-    /// its points to the predicted surface.
+    /// its points to the predicted surface; over the views the model got right when
+    /// `correct_tre_mm` is set, over all of them in files from before.
     pub residual_p95_mm: f64,
     /// The 95th percentile over the views of that distance's mean.
     pub residual_mean_mm: f64,
+    /// The residuals above were measured on the validation views registered within this TRE
+    /// (CORRECT_TRE_MM, or the TRE of the best quarter when too few are): a frame is compared
+    /// with predictions known to be right, so a weak network does not loosen its own check.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub correct_tre_mm: Option<f64>,
+    /// How many views that was.
+    #[serde(default)]
+    pub correct_views: usize,
     /// The 5th percentile over the views of the surface coverage.
     pub coverage_min: f64,
     /// The largest displacement of a surface vertex in the training targets.
@@ -43,7 +52,7 @@ impl ConfidenceReference {
         }
         let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
         let r: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-        let finite = [r.residual_p95_mm, r.residual_mean_mm, r.coverage_min, r.displacement_max_mm];
+        let finite = [r.residual_p95_mm, r.residual_mean_mm, r.coverage_min, r.displacement_max_mm, r.correct_tre_mm.unwrap_or(0.0)];
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
             return Err(crate::Invalid(format!("{}: the confidence range holds negative or non-finite values", path.display())));
         }
@@ -86,11 +95,34 @@ impl Confidence {
     }
 }
 
-/// Tolerances over the reference before a figure warns: a frame is not held to the single
-/// worst validation view.
-const RESIDUAL_MARGIN: f64 = 1.5;
+/// A validation view counts as right when its marker TRE is within this (the registration bar).
+pub const CORRECT_TRE_MM: f64 = 2.0;
+
+/// Tolerance over a reference measured on right views: measured on the phantom and the CT
+/// patient, it flags every frame beyond 2.6 mm and few below 2.0 (docs/REGISTRATION.md).
 const RESIDUAL_SLACK_MM: f64 = 0.5;
+/// References from before measured all views, wrong ones too: a wider tolerance (a frame is
+/// not held to the single worst view).
+const RESIDUAL_MARGIN_ALL_VIEWS: f64 = 1.5;
 const DISPLACEMENT_MARGIN: f64 = 1.25;
+
+impl ConfidenceReference {
+    /// The residual beyond which a frame warns, for a reference residual `r`.
+    fn residual_limit(&self, r: f64) -> f64 {
+        match self.correct_tre_mm {
+            Some(_) => r + RESIDUAL_SLACK_MM,
+            None => r * RESIDUAL_MARGIN_ALL_VIEWS + RESIDUAL_SLACK_MM,
+        }
+    }
+
+    /// What the residual limits were measured on, for the warnings.
+    fn residual_basis(&self) -> String {
+        match self.correct_tre_mm {
+            Some(t) => format!("seen on the validation views registered within {t:.1} mm"),
+            None => "seen in training".to_string(),
+        }
+    }
+}
 
 /// The confidence of a frame: `points` (world, mm) against `predicted` (the organ surface
 /// deformed by the prediction) and `rest` (the same mesh undeformed).
@@ -113,16 +145,18 @@ pub fn frame_confidence(
         calibrated: reference.is_some(),
     };
     if let Some(r) = reference {
-        let p95_limit = r.residual_p95_mm * RESIDUAL_MARGIN + RESIDUAL_SLACK_MM;
+        let p95_limit = r.residual_limit(r.residual_p95_mm);
         if residual_p95_mm > p95_limit {
             c.warnings.push(format!(
-                "the observed surface is {residual_p95_mm:.1} mm (95th percentile) from the predicted one, beyond the {p95_limit:.1} mm seen in training"
+                "the observed surface is {residual_p95_mm:.1} mm (95th percentile) from the predicted one, beyond the {p95_limit:.1} mm {}",
+                r.residual_basis()
             ));
         }
-        let mean_limit = r.residual_mean_mm * RESIDUAL_MARGIN + RESIDUAL_SLACK_MM;
+        let mean_limit = r.residual_limit(r.residual_mean_mm);
         if residual_mean_mm > mean_limit {
             c.warnings.push(format!(
-                "the observed surface is {residual_mean_mm:.1} mm (mean) from the predicted one, beyond the {mean_limit:.1} mm seen in training"
+                "the observed surface is {residual_mean_mm:.1} mm (mean) from the predicted one, beyond the {mean_limit:.1} mm {}",
+                r.residual_basis()
             ));
         }
         if coverage < r.coverage_min {
@@ -366,12 +400,45 @@ mod tests {
     #[test]
     fn a_residual_beyond_the_reference_warns_and_one_within_does_not() {
         let m = square();
-        let r = ConfidenceReference { residual_p95_mm: 1.0, residual_mean_mm: 0.8, coverage_min: 0.1, displacement_max_mm: 10.0, views: 1 };
+        let r = ConfidenceReference {
+            residual_p95_mm: 1.0,
+            residual_mean_mm: 0.8,
+            coverage_min: 0.1,
+            displacement_max_mm: 10.0,
+            views: 1,
+            correct_tre_mm: None,
+            correct_views: 0,
+        };
         let near: Vec<_> = (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, 0.5)).collect();
         assert!(!frame_confidence(&near, &m, &m, &VertexRings::new(&m), 0.3, Some(&r)).warning());
         let far: Vec<_> = near.iter().map(|p| p + Vector3::new(0.0, 0.0, 4.0)).collect();
         let c = frame_confidence(&far, &m, &m, &VertexRings::new(&m), 0.05, Some(&r));
         assert_eq!(c.warnings.len(), 3, "{:?}", c.warnings);
         assert!(frame_confidence(&far, &m, &m, &VertexRings::new(&m), 0.05, None).warnings.is_empty());
+    }
+
+    #[test]
+    fn a_reference_from_right_views_warns_half_a_millimetre_above_it_and_an_old_one_at_one_and_a_half_times() {
+        let m = square();
+        let at = |h: f64| -> Vec<Vector3<f64>> { (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, h)).collect() };
+        let right = ConfidenceReference {
+            residual_p95_mm: 2.0,
+            residual_mean_mm: 2.0,
+            coverage_min: 0.0,
+            displacement_max_mm: 10.0,
+            views: 100,
+            correct_tre_mm: Some(CORRECT_TRE_MM),
+            correct_views: 60,
+        };
+        let rings = VertexRings::new(&m);
+        // Limit 2.5 mm (2.0 + 0.5): 2.4 passes, 2.6 warns on both figures.
+        assert!(!frame_confidence(&at(2.4), &m, &m, &rings, 0.3, Some(&right)).warning());
+        let c = frame_confidence(&at(2.6), &m, &m, &rings, 0.3, Some(&right));
+        assert_eq!(c.warnings.len(), 2, "{:?}", c.warnings);
+        assert!(c.warnings[0].contains("registered within 2.0 mm"), "{:?}", c.warnings);
+        // The same numbers from all views (a file from before): limit 3.5 mm (2.0 x 1.5 + 0.5).
+        let all = ConfidenceReference { correct_tre_mm: None, correct_views: 0, ..right };
+        assert!(!frame_confidence(&at(3.4), &m, &m, &rings, 0.3, Some(&all)).warning());
+        assert!(frame_confidence(&at(3.6), &m, &m, &rings, 0.3, Some(&all)).warning());
     }
 }

@@ -59,6 +59,13 @@ pub struct Args {
     /// by conjugate gradients (0).
     #[arg(long, default_value_t = CorrectionSettings::default().subspace_patches)]
     pub correction_subspace: usize,
+    /// Tracking correction: each frame's correction starts from the prediction plus the
+    /// previous frame's correction and measures the elastic energy from rest (by conjugate
+    /// gradients; the subspace unused): the FE fit alone, moved on by the network's change from
+    /// frame to frame. Better on livers and loads the network fits poorly, 4-6 times the
+    /// correction's time (docs/REGISTRATION.md).
+    #[arg(long)]
+    pub correction_tracking: bool,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -133,7 +140,7 @@ pub fn run(a: Args) -> Result<()> {
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
     if a.correction_updates > 0 {
-        umesh_core::register::correction::prepare_correction(&ctx, a.correction_subspace)?;
+        umesh_core::register::correction::prepare_correction(&ctx, if a.correction_tracking { 0 } else { a.correction_subspace })?;
     }
     let (mut source, rec_pose, truth) = open_source(&a)?;
     let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;
@@ -156,6 +163,8 @@ pub fn run(a: Args) -> Result<()> {
             updates: a.correction_updates,
             cg_iterations: a.correction_cg,
             subspace_patches: a.correction_subspace,
+            carry: a.correction_tracking,
+            from_rest: a.correction_tracking,
         },
         ..Default::default()
     };

@@ -377,6 +377,28 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
         let p95 = c["residual_p95_mm"].as_f64().unwrap();
         assert!(p95.is_finite() && p95 > 0.0 && p95 < 5.0, "residual p95 {p95} mm: {c}");
     }
+    // The tracking correction on the same recording: the same bar, and each frame's correction
+    // measured from the prediction (it carries the previous frame's, so it moves more).
+    let reg_t = tmp("synth-reg-tracking");
+    let (ok, out, err) = umesh(&[
+        "register",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        reg_t.to_str().unwrap(),
+        "--no-overlay",
+        "--correction-tracking",
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let t = json(&out);
+    let last_t = t["last_tre_mm"].as_f64().unwrap();
+    eprintln!("tracking correction: {t}");
+    assert!(last_t < 2.92 && last_t < 0.25 * rigid, "tracking: last frame TRE {last_t} mm, rigid only {rigid} mm");
+    let report_t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg_t.join("report.json")).unwrap()).unwrap();
+    let moved = |f: &serde_json::Value| f["correction"]["moved_rms_mm"].as_f64().unwrap();
+    let last_frame = |r: &serde_json::Value| r["frames"].as_array().unwrap().last().unwrap().clone();
+    assert!(moved(&last_frame(&report_t)) > 0.0 && moved(&last_frame(&report)) > 0.0, "{t}");
     // A recording without intrinsics: one clear error naming the folder.
     std::fs::remove_file(rec.join("intrinsics.json")).unwrap();
     let (ok, _, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap()]);

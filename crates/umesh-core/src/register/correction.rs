@@ -23,11 +23,20 @@ pub struct CorrectionSettings {
     /// instead of by conjugate gradients.
     #[serde(default)]
     pub subspace_patches: usize,
+    /// Start each frame's correction from the prediction plus the previous frame's correction
+    /// (what the fit moved then, kept): over a sequence the correction accumulates, as the FE
+    /// fit alone does from frame to frame, instead of starting again from each prediction.
+    #[serde(default)]
+    pub carry: bool,
+    /// Measure the elastic energy from rest, as the FE fit alone does (by conjugate gradients,
+    /// the subspace unused), instead of from the prediction (`FitWork::from_start`).
+    #[serde(default)]
+    pub from_rest: bool,
 }
 
 impl Default for CorrectionSettings {
     fn default() -> Self {
-        Self { updates: 1, cg_iterations: 6, subspace_patches: 64 }
+        Self { updates: 1, cg_iterations: 6, subspace_patches: 64, carry: false, from_rest: false }
     }
 }
 
@@ -50,7 +59,7 @@ impl CorrectionSettings {
     }
 
     pub fn work(&self) -> FitWork {
-        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: true }
+        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: !self.from_rest }
     }
 }
 
@@ -146,22 +155,39 @@ impl<'c> SurfaceFit<'c> {
         Ok(self.fit.fit_with(points_world_mm, &mut self.u, work).map_err(|e| e.to_string())?)
     }
 
-    /// The physics correction of a predicted field in place.
+    /// The physics correction of a predicted field in place. With `carried` (one offset per
+    /// node, empty at the start of a sequence), the fit starts from the prediction plus that
+    /// offset and leaves in it this frame's whole correction of the prediction.
     pub fn correct(
         &mut self,
         points_world_mm: &[Vector3<f64>],
         field: &mut Vec<f32>,
         settings: &CorrectionSettings,
+        carried: Option<&mut Vec<Vector3<f64>>>,
     ) -> Result<CorrectionReport, crate::Invalid> {
         let t = Instant::now();
         self.set_field(field);
-        let before = self.u.clone();
+        let predicted = self.u.clone();
+        if let Some(c) = carried.as_deref()
+            && c.len() == self.u.len()
+        {
+            for ((u, d), &fixed) in self.u.iter_mut().zip(c).zip(&self.ctx.fixed) {
+                if !fixed {
+                    *u += d;
+                }
+            }
+        }
         let fit = self.fit(points_world_mm, settings.work())?;
+        // Moved: from the prediction, the carried part included.
         let (mut sq, mut max) = (0.0f64, 0.0f64);
-        for (a, b) in self.u.iter().zip(&before) {
+        for (a, b) in self.u.iter().zip(&predicted) {
             let d = (a - b).norm_squared();
             sq += d;
             max = max.max(d);
+        }
+        if let Some(c) = carried {
+            c.clear();
+            c.extend(self.u.iter().zip(&predicted).map(|(a, b)| a - b));
         }
         self.write_field(field);
         let n = self.u.len().max(1) as f64;

@@ -350,6 +350,8 @@ pub struct Registrar<'c> {
     rings: super::confidence::VertexRings,
     /// The physics correction's FE model, built on the first frame that needs it.
     corrector: Option<SurfaceFit<'c>>,
+    /// The previous frame's correction of its prediction, per node (`CorrectionSettings::carry`).
+    carried: Vec<Vector3<f64>>,
     /// No initial pose was given: a frame must bring its own until one has been aligned.
     needs_frame_pose: bool,
 }
@@ -369,6 +371,7 @@ impl<'c> Registrar<'c> {
             observer: None,
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
+            carried: Vec::new(),
             needs_frame_pose: false,
         }
     }
@@ -385,6 +388,7 @@ impl<'c> Registrar<'c> {
         self.posed = false;
         self.correction = None;
         self.prev_field.iter_mut().for_each(|v| *v = 0.0);
+        self.carried.clear();
     }
 
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
@@ -535,10 +539,13 @@ impl<'c> Registrar<'c> {
             let t = Instant::now();
             if self.corrector.is_none() {
                 let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
-                fit.use_subspace(self.settings.correction.subspace_patches)?;
+                // From rest the updates are solved by CG: no basis to build.
+                let c = &self.settings.correction;
+                fit.use_subspace(if c.from_rest { 0 } else { c.subspace_patches })?;
                 self.corrector = Some(fit);
             }
-            let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction)).transpose();
+            let carried = self.settings.correction.carry.then_some(&mut self.carried);
+            let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction, carried)).transpose();
             correction = c.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
             correction_ms = ms(t);
         }

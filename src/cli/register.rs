@@ -163,8 +163,7 @@ pub fn run(a: Args) -> Result<()> {
             updates: a.correction_updates,
             cg_iterations: a.correction_cg,
             subspace_patches: a.correction_subspace,
-            carry: a.correction_tracking,
-            from_rest: a.correction_tracking,
+            ..if a.correction_tracking { CorrectionSettings::tracking() } else { CorrectionSettings::default() }
         },
         ..Default::default()
     };

@@ -626,7 +626,7 @@ fn a_damaged_session_file_is_one_error_naming_it_and_changes_nothing() {
     }
     // The app's errors keep their sources: a missing file's io::Error under the path it names.
     let missing = dir.join("missing.json");
-    let err = umesh::app::model::session::Session::read(&missing).err().expect("a missing session is an error");
+    let err = umesh::app::model::session::Session::read(&missing).expect_err("a missing session is an error");
     assert!(err.to_string().contains("missing.json"), "{err:#}");
     let io = err.chain().find_map(|c| c.downcast_ref::<std::io::Error>()).expect("the io::Error is kept as the source");
     assert_eq!(io.kind(), std::io::ErrorKind::NotFound);

@@ -42,8 +42,8 @@ pub enum ArCommand {
     /// Write each overlay to this folder as PNG (None: stop).
     Record(Option<PathBuf>),
     ShowPoints(bool),
-    /// The physics correction after each prediction (on: the default work; off: none).
-    Correction(bool),
+    /// The physics correction after each prediction (`CorrectionSettings::off()`: none).
+    Correction(CorrectionSettings),
     /// Where the camera pose comes from; the alignment restarts with it.
     Pose(PosePolicy),
     Stop,
@@ -336,8 +336,8 @@ impl Playback {
                 self.show_points = s;
                 self.want = self.last_index;
             }
-            ArCommand::Correction(on) => {
-                reg.settings.correction = if on { CorrectionSettings::default() } else { CorrectionSettings::off() };
+            ArCommand::Correction(c) => {
+                reg.set_correction(c);
                 self.want = self.last_index;
             }
             ArCommand::Pose(p) => {
@@ -458,6 +458,8 @@ pub struct Ar {
     pub show_points: bool,
     /// The physics correction after each prediction (on by default).
     pub correction: bool,
+    /// ... in its tracking form (`CorrectionSettings::tracking`).
+    pub tracking: bool,
     /// Where the camera pose comes from.
     pub pose: PosePolicy,
     pub generation: u64,

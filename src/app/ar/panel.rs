@@ -7,6 +7,7 @@ use crate::app::state::{ActiveModel, Organ, OrganData, UiMessages};
 use anyhow::Context;
 use bevy_egui::egui;
 use std::path::PathBuf;
+use umesh_core::register::correction::CorrectionSettings;
 use umesh_core::register::pipeline::PosePolicy;
 use umesh_core::{Cancel, Progress};
 
@@ -86,7 +87,7 @@ fn source_ui(
             Some(o) => {
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
                 s.send(ArCommand::ShowPoints(ar.show_points));
-                s.send(ArCommand::Correction(ar.correction));
+                s.send(ArCommand::Correction(correction_settings(ar)));
                 s.send(ArCommand::Pose(ar.pose));
                 ar.session = Some(s);
                 ar.last = None;
@@ -192,20 +193,37 @@ fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     }
 }
 
+/// The correction the panel's two boxes ask for.
+fn correction_settings(ar: &Ar) -> CorrectionSettings {
+    match (ar.correction, ar.tracking) {
+        (false, _) => CorrectionSettings::off(),
+        (true, false) => CorrectionSettings::default(),
+        (true, true) => CorrectionSettings::tracking(),
+    }
+}
+
 /// What is drawn (observed points), the physics correction and recording the overlays.
 fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     ui.separator();
     if ui.checkbox(&mut ar.show_points, "observed organ points").changed() {
         s.send(ArCommand::ShowPoints(ar.show_points));
     }
-    if ui
+    let mut changed = ui
         .checkbox(&mut ar.correction, "physics correction")
         .on_hover_text(
-            "After the network, one FE fit update pulls the prediction onto the observed points (about 90 ms a frame on the phantom)",
+            "After the network, one FE fit update pulls the prediction onto the observed points (about 8 ms a frame on the phantom)",
         )
-        .changed()
-    {
-        s.send(ArCommand::Correction(ar.correction));
+        .changed();
+    ui.add_enabled_ui(ar.correction, |ui| {
+        changed |= ui
+            .checkbox(&mut ar.tracking, "tracking")
+            .on_hover_text(
+                "The correction carried from frame to frame, its elastic energy from rest: better where the network is weak (a liver or loads it fits poorly), 4-6 times the correction's time",
+            )
+            .changed();
+    });
+    if changed {
+        s.send(ArCommand::Correction(correction_settings(ar)));
     }
     ui.horizontal(|ui| {
         if ui.checkbox(&mut ar.record, "record overlays to").changed() {

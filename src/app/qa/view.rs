@@ -36,7 +36,7 @@ fn panels(
     });
     egui::Panel::right("qa_right").default_size(280.0).show(root, |ui| {
         egui::ScrollArea::vertical().show(ui, |ui| {
-            crate::app::qa::panel::right_panel(ui, &mut qa);
+            crate::app::qa::panel::right_panel(ui, &qa);
             if organ.data.as_ref().is_some_and(|d| d.ct.is_some()) {
                 ui.separator();
                 ui.heading("Scan");

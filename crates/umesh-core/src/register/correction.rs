@@ -45,6 +45,11 @@ impl CorrectionSettings {
         Self { updates: 0, ..Self::default() }
     }
 
+    /// The tracking correction: carried from frame to frame, its energy from rest (by CG).
+    pub fn tracking() -> Self {
+        Self { carry: true, from_rest: true, ..Self::default() }
+    }
+
     pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.updates > 100 || (self.updates > 0 && !(1..=1000).contains(&self.cg_iterations)) {
             return Err(crate::Invalid(format!(

@@ -391,6 +391,14 @@ impl<'c> Registrar<'c> {
         self.carried.clear();
     }
 
+    /// Change the physics correction between frames; a carried correction starts again.
+    pub fn set_correction(&mut self, correction: CorrectionSettings) {
+        if correction != self.settings.correction {
+            self.settings.correction = correction;
+            self.carried.clear();
+        }
+    }
+
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
     pub fn process(
         &mut self,

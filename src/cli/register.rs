@@ -139,9 +139,13 @@ pub fn run(a: Args) -> Result<()> {
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
-    if a.correction_updates > 0 {
-        umesh_core::register::correction::prepare_correction(&ctx, if a.correction_tracking { 0 } else { a.correction_subspace })?;
-    }
+    let correction = CorrectionSettings {
+        updates: a.correction_updates,
+        cg_iterations: a.correction_cg,
+        subspace_patches: a.correction_subspace,
+        ..if a.correction_tracking { CorrectionSettings::tracking() } else { CorrectionSettings::default() }
+    };
+    umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
     let (mut source, rec_pose, truth) = open_source(&a)?;
     let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;
     let pose = match (&a.initial_pose, rec_pose) {
@@ -159,12 +163,7 @@ pub fn run(a: Args) -> Result<()> {
         pose_bound_mm: a.pose_bound_mm,
         min_coverage: a.min_coverage,
         overlay: !a.no_overlay,
-        correction: CorrectionSettings {
-            updates: a.correction_updates,
-            cg_iterations: a.correction_cg,
-            subspace_patches: a.correction_subspace,
-            ..if a.correction_tracking { CorrectionSettings::tracking() } else { CorrectionSettings::default() }
-        },
+        correction,
         ..Default::default()
     };
     settings.validate()?;

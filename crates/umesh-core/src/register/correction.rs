@@ -63,6 +63,12 @@ impl CorrectionSettings {
         Ok(())
     }
 
+    /// The patches of the surface-load basis this correction solves in: none when it is off
+    /// or measures its energy from rest (solved by CG).
+    pub fn basis_patches(&self) -> usize {
+        if self.updates == 0 || self.from_rest { 0 } else { self.subspace_patches }
+    }
+
     pub fn work(&self) -> FitWork {
         FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: !self.from_rest }
     }
@@ -173,26 +179,18 @@ impl<'c> SurfaceFit<'c> {
         let t = Instant::now();
         self.set_field(field);
         let predicted = self.u.clone();
+        // The carried offset is zero at the fixed nodes: the fit holds them, as set_field does.
         if let Some(c) = carried.as_deref()
             && c.len() == self.u.len()
         {
-            for ((u, d), &fixed) in self.u.iter_mut().zip(c).zip(&self.ctx.fixed) {
-                if !fixed {
-                    *u += d;
-                }
-            }
+            self.u.iter_mut().zip(c).for_each(|(u, d)| *u += d);
         }
         let fit = self.fit(points_world_mm, settings.work())?;
         // Moved: from the prediction, the carried part included.
-        let (mut sq, mut max) = (0.0f64, 0.0f64);
-        for (a, b) in self.u.iter().zip(&predicted) {
-            let d = (a - b).norm_squared();
-            sq += d;
-            max = max.max(d);
-        }
+        let moved: Vec<Vector3<f64>> = self.u.iter().zip(&predicted).map(|(a, b)| a - b).collect();
+        let (sq, max) = moved.iter().fold((0.0f64, 0.0f64), |(s, m), d| (s + d.norm_squared(), m.max(d.norm_squared())));
         if let Some(c) = carried {
-            c.clear();
-            c.extend(self.u.iter().zip(&predicted).map(|(a, b)| a - b));
+            *c = moved;
         }
         self.write_field(field);
         let n = self.u.len().max(1) as f64;

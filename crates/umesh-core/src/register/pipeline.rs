@@ -547,9 +547,7 @@ impl<'c> Registrar<'c> {
             let t = Instant::now();
             if self.corrector.is_none() {
                 let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
-                // From rest the updates are solved by CG: no basis to build.
-                let c = &self.settings.correction;
-                fit.use_subspace(if c.from_rest { 0 } else { c.subspace_patches })?;
+                fit.use_subspace(self.settings.correction.basis_patches())?;
                 self.corrector = Some(fit);
             }
             let carried = self.settings.correction.carry.then_some(&mut self.carried);

@@ -2,6 +2,7 @@
 
 pub mod bench;
 mod bench_sweep;
+mod choose_correction;
 pub mod dataset;
 mod demo;
 mod grid;
@@ -62,6 +63,9 @@ enum Command {
     Rgbd(rgbd::Args),
     /// Register RGB-D frames: overlays of the deformed internal structures, latency, TRE.
     Register(Box<register::Args>),
+    /// Register a recording with ground truth with each correction form and keep the better
+    /// one in the model folder (as `prepare`'s check does).
+    ChooseCorrection(Box<choose_correction::Args>),
 }
 
 pub fn main() -> ExitCode {
@@ -82,6 +86,7 @@ pub fn main() -> ExitCode {
         Command::Bench(a) => bench::run(a),
         Command::Rgbd(a) => rgbd::run(a),
         Command::Register(a) => register::run(*a),
+        Command::ChooseCorrection(a) => choose_correction::run(*a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

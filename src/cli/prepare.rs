@@ -167,6 +167,9 @@ pub fn run(a: Args) -> Result<()> {
         c.last_frame_tre_rigid_mm.map(|v| format!("{v:.2}")).unwrap_or("-".into()),
         c.last_frame_marker_displacement_mm.map(|v| format!("{v:.2}")).unwrap_or("-".into())
     );
+    if let Some(ch) = &c.correction {
+        println!("registration check: {}", ch.describe());
+    }
     println!("report: {}", r.out.join("report.html").display());
     Ok(())
 }

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
-use umesh_core::register::correction::CorrectionSettings;
+use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
 use umesh_core::rgbd::stream::{FrameSource, RecordingSource, TcpSource};
@@ -59,13 +59,14 @@ pub struct Args {
     /// by conjugate gradients (0).
     #[arg(long, default_value_t = CorrectionSettings::default().subspace_patches)]
     pub correction_subspace: usize,
-    /// Tracking correction: each frame's correction starts from the prediction plus the
-    /// previous frame's correction and measures the elastic energy from rest (by conjugate
-    /// gradients; the subspace unused): the FE fit alone, moved on by the network's change from
-    /// frame to frame. Better on livers and loads the network fits poorly, 4-6 times the
-    /// correction's time (docs/REGISTRATION.md).
-    #[arg(long)]
-    pub correction_tracking: bool,
+    /// The correction's form: auto (the model folder's choice from its registration check,
+    /// `correction.json`, see `umesh choose-correction`; subspace when it has none), subspace
+    /// (each prediction corrected in a basis of smooth surface loads; within the phantom's
+    /// frame budget) or tracking (carried from frame to frame, its elastic energy from rest by
+    /// conjugate gradients: better on livers and loads the network fits poorly, 4-6 times the
+    /// correction's time; docs/REGISTRATION.md).
+    #[arg(long, default_value = "auto")]
+    pub correction_form: String,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -139,11 +140,12 @@ pub fn run(a: Args) -> Result<()> {
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
+    let form = correction_form(&a.correction_form, &model_dir)?;
     let correction = CorrectionSettings {
         updates: a.correction_updates,
         cg_iterations: a.correction_cg,
         subspace_patches: a.correction_subspace,
-        ..if a.correction_tracking { CorrectionSettings::tracking() } else { CorrectionSettings::default() }
+        ..form.settings()
     };
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
     let (mut source, rec_pose, truth) = open_source(&a)?;
@@ -200,6 +202,7 @@ pub fn run(a: Args) -> Result<()> {
         })
     };
     let mut v = summary(&report);
+    v["correction_form"] = serde_json::json!((correction.updates > 0).then_some(form.name()));
     if let Some(fe) = &fe_report {
         v["fe"] = summary(fe);
     }
@@ -269,6 +272,23 @@ pub fn run(a: Args) -> Result<()> {
         println!("overlays and report.json in {}", a.out.display());
     }
     Ok(())
+}
+
+/// The correction form `--correction-form` names; auto: the model folder's choice (said on
+/// stderr), else subspace.
+fn correction_form(asked: &str, model_dir: &Path) -> Result<CorrectionForm> {
+    Ok(match asked {
+        "subspace" => CorrectionForm::Subspace,
+        "tracking" => CorrectionForm::Tracking,
+        "auto" => match CorrectionChoice::read(model_dir)? {
+            Some(c) => {
+                eprintln!("correction: the model's check chose the {}", c.describe());
+                c.form
+            }
+            None => CorrectionForm::Subspace,
+        },
+        other => bail!("--correction-form {other:?}: auto, subspace or tracking"),
+    })
 }
 
 /// The median over the frames of how far the physics correction moved the prediction (mm

@@ -31,6 +31,7 @@ fn every_command_has_help() {
         vec!["rgbd", "synth", "--help"],
         vec!["rgbd", "serve", "--help"],
         vec!["register", "--help"],
+        vec!["choose-correction", "--help"],
         vec!["screenshot", "--help"],
         vec!["gui", "--help"],
     ] {
@@ -387,7 +388,8 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
         "--out",
         reg_t.to_str().unwrap(),
         "--no-overlay",
-        "--correction-tracking",
+        "--correction-form",
+        "tracking",
         "--json",
     ]);
     assert!(ok, "{err}");
@@ -399,6 +401,48 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let moved = |f: &serde_json::Value| f["correction"]["moved_rms_mm"].as_f64().unwrap();
     let last_frame = |r: &serde_json::Value| r["frames"].as_array().unwrap().last().unwrap().clone();
     assert!(moved(&last_frame(&report_t)) > 0.0 && moved(&last_frame(&report)) > 0.0, "{t}");
+    assert_eq!(t["correction_form"], "tracking", "{t}");
+    assert_eq!(r["correction_form"], "subspace", "the bundled model has no choice: {r}");
+    // The choice on this recording, kept in a copy of the model: the rule (tracking at 75 % of
+    // the subspace's late TRE or less) applied to the figures it reports, and `register`
+    // follows it unless told otherwise.
+    let model = tmp("choice-model");
+    let _ = std::fs::remove_dir_all(&model);
+    std::fs::create_dir_all(&model).unwrap();
+    for e in std::fs::read_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/model")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), model.join(e.file_name())).unwrap();
+    }
+    let (ok, out, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", rec.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    let c = json(&out);
+    let late = |f: &str| c[f]["late_tre_mm"].as_f64().unwrap();
+    let want = if late("tracking") <= 0.75 * late("subspace") { "tracking" } else { "subspace" };
+    assert_eq!(c["form"], want, "{c}");
+    assert!(model.join("correction.json").is_file());
+    let reg_c = tmp("synth-reg-chosen");
+    let args = [
+        "register",
+        "--model",
+        model.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--out",
+        reg_c.to_str().unwrap(),
+        "--no-overlay",
+        "--json",
+    ];
+    let (ok, out, err) = umesh(&args);
+    assert!(ok, "{err}");
+    assert_eq!(json(&out)["correction_form"], want, "{err}");
+    assert!(err.contains("the model's check chose the"), "{err}");
+    // A damaged choice: one error naming the file, nothing registered.
+    std::fs::write(model.join("correction.json"), "{\"form\": 3").unwrap();
+    let (ok, _, err) = umesh(&args);
+    assert!(!ok && err.contains("correction.json") && err.contains("not a correction choice"), "{err}");
+    // A recording without its truth cannot choose.
+    let (ok, _, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", model.to_str().unwrap()]);
+    assert!(!ok && err.contains("no ground_truth.json"), "{err}");
     // A recording without intrinsics: one clear error naming the folder.
     std::fs::remove_file(rec.join("intrinsics.json")).unwrap();
     let (ok, _, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap()]);
@@ -810,6 +854,12 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     assert!((0.75..=1.25).contains(&ratio), "achieved / target {ratio}");
     assert!(v["val_tre_mean_mm"].as_f64().unwrap().is_finite());
     assert!(v["check"]["summary"]["frames"].as_u64().unwrap() >= 2, "{v}");
+    // The check registered its recording with both correction forms and kept the choice in
+    // the model folder.
+    let form = v["check"]["correction"]["form"].as_str().unwrap_or_default().to_string();
+    assert!(form == "subspace" || form == "tracking", "{v}");
+    let kept: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
+    assert_eq!(kept["form"], form.as_str());
     // Run again: every stage was done, nothing is recomputed.
     let (ok, stdout, stderr) = umesh(&[
         "prepare",

@@ -7,7 +7,7 @@ use crate::app::state::{ActiveModel, Organ, OrganData, UiMessages};
 use anyhow::Context;
 use bevy_egui::egui;
 use std::path::PathBuf;
-use umesh_core::register::correction::CorrectionSettings;
+use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::PosePolicy;
 use umesh_core::{Cancel, Progress};
 
@@ -83,6 +83,19 @@ fn source_ui(
         }
     });
     if let Some(src) = start {
+        // Each session starts with the model's correction form (its registration check's
+        // choice, else the subspace form); the box changes it for this session.
+        ar.tracking = match CorrectionChoice::read(&model.dir) {
+            Ok(Some(c)) => {
+                messages.info(format!("the model's check chose the {}", c.describe()));
+                c.form == CorrectionForm::Tracking
+            }
+            Ok(None) => false,
+            Err(e) => {
+                messages.error(format!("{e}; the subspace correction is used"));
+                false
+            }
+        };
         match &organ.data {
             Some(o) => {
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);

@@ -638,6 +638,9 @@ pub fn patient_figures(ui: &mut egui::Ui, fig: &PatientFigures) -> Option<PathBu
             c.summary.frames,
             c.summary.frame_ms_median
         ));
+        if let Some(ch) = &c.correction {
+            ui.weak(ch.describe());
+        }
     }
     ui.horizontal(|ui| {
         if !fig.metrics.is_empty() && ui.button("Learning curves").clicked() {

@@ -197,3 +197,132 @@ impl<'c> SurfaceFit<'c> {
         Ok(CorrectionReport { moved_rms_mm: (sq / n).sqrt(), moved_max_mm: max.sqrt(), fit, ms: t.elapsed().as_secs_f64() * 1e3 })
     }
 }
+
+/// The correction's two forms: the subspace update from each prediction (`CorrectionSettings::
+/// default`, within the phantom's frame budget) and the tracking form (`tracking`, 4-6 times
+/// its time, better where the network is weak).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CorrectionForm {
+    Subspace,
+    Tracking,
+}
+
+impl CorrectionForm {
+    pub fn settings(self) -> CorrectionSettings {
+        match self {
+            Self::Subspace => CorrectionSettings::default(),
+            Self::Tracking => CorrectionSettings::tracking(),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Subspace => "subspace",
+            Self::Tracking => "tracking",
+        }
+    }
+}
+
+/// The tracking form is chosen when, on the check recording, its mean TRE over the second half
+/// of the frames (where the motion is largest) is at most this share of the subspace form's.
+/// Measured ratios: 0.32-0.49 on eight CT recordings, 0.49-0.62 on a model that never saw the
+/// family, 0.61-1.21 (median 0.93) on the phantom's seventeen (docs/REGISTRATION.md).
+pub const TRACKING_CHOSEN_AT_MOST: f64 = 0.75;
+
+/// One correction form's figures on a check recording.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FormFigures {
+    /// Mean TRE over the second half of the frames with ground truth (mm).
+    pub late_tre_mm: f64,
+    pub last_tre_mm: f64,
+    pub frame_ms_median: f64,
+}
+
+impl FormFigures {
+    /// The figures of one registration of a recording with ground truth; None when fewer than
+    /// two of its frames have a TRE.
+    pub fn of(report: &super::pipeline::RegisterReport) -> Option<Self> {
+        let tre: Vec<f64> = report.frames.iter().filter_map(|f| f.tre_mean_mm).filter(|t| t.is_finite()).collect();
+        if tre.len() < 2 {
+            return None;
+        }
+        let late = &tre[tre.len() / 2..];
+        Some(Self {
+            late_tre_mm: late.iter().sum::<f64>() / late.len() as f64,
+            last_tre_mm: tre[tre.len() - 1],
+            frame_ms_median: report.summary.frame_ms_median,
+        })
+    }
+}
+
+/// The correction form a model's registration check chose for its organ, kept in the model
+/// folder (`CorrectionChoice::FILE`): `register` and the AR view use it unless told otherwise.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CorrectionChoice {
+    pub format: String,
+    pub format_version: u32,
+    pub form: CorrectionForm,
+    pub subspace: FormFigures,
+    pub tracking: FormFigures,
+    /// The recording the two forms were measured on.
+    pub recording: String,
+}
+
+impl CorrectionChoice {
+    pub const FILE: &'static str = "correction.json";
+    const FORMAT: &'static str = "umesh-correction-choice";
+
+    pub fn decide(subspace: FormFigures, tracking: FormFigures, recording: &std::path::Path) -> Self {
+        let form = if tracking.late_tre_mm <= TRACKING_CHOSEN_AT_MOST * subspace.late_tre_mm {
+            CorrectionForm::Tracking
+        } else {
+            CorrectionForm::Subspace
+        };
+        Self { format: Self::FORMAT.into(), format_version: 1, form, subspace, tracking, recording: recording.display().to_string() }
+    }
+
+    /// One line: the form and the figures it was chosen on.
+    pub fn describe(&self) -> String {
+        let f = |x: &FormFigures| format!("{:.2} mm late, {:.2} last, {:.0} ms a frame", x.late_tre_mm, x.last_tre_mm, x.frame_ms_median);
+        format!(
+            "{} correction (check recording: tracking {}; subspace {}; tracking is chosen at {:.0} % of the subspace's late TRE or less)",
+            self.form.name(),
+            f(&self.tracking),
+            f(&self.subspace),
+            100.0 * TRACKING_CHOSEN_AT_MOST
+        )
+    }
+
+    /// The model folder's choice; None when it has none (models from before, or not checked).
+    pub fn read(model_dir: &std::path::Path) -> Result<Option<Self>, crate::Invalid> {
+        let path = model_dir.join(Self::FILE);
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(crate::Invalid(format!("{}: {e}", path.display()))),
+        };
+        let c: Self =
+            serde_json::from_str(&text).map_err(|e| crate::Invalid(format!("{}: not a correction choice: {e}", path.display())))?;
+        if c.format != Self::FORMAT || c.format_version != 1 {
+            return Err(crate::Invalid(format!(
+                "{}: format {} version {} (expected {} 1)",
+                path.display(),
+                c.format,
+                c.format_version,
+                Self::FORMAT
+            )));
+        }
+        let ok = |x: &FormFigures| [x.late_tre_mm, x.last_tre_mm, x.frame_ms_median].iter().all(|v| v.is_finite() && *v >= 0.0);
+        if !(ok(&c.subspace) && ok(&c.tracking)) {
+            return Err(crate::Invalid(format!("{}: a figure is negative or not finite", path.display())));
+        }
+        Ok(Some(c))
+    }
+
+    pub fn write(&self, model_dir: &std::path::Path) -> Result<(), crate::Invalid> {
+        let path = model_dir.join(Self::FILE);
+        let text = serde_json::to_string_pretty(self).map_err(|e| crate::Invalid(e.to_string()))?;
+        crate::write_atomic(&path, text.as_bytes()).map_err(|e| crate::Invalid(format!("{}: {e}", path.display())))
+    }
+}

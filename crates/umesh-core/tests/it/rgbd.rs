@@ -762,6 +762,37 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
 }
 
 #[test]
+fn the_correction_choice_takes_tracking_only_at_a_quarter_less_late_tre_and_its_file_is_checked() {
+    use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures, TRACKING_CHOSEN_AT_MOST};
+    let fig = |late: f64| FormFigures { late_tre_mm: late, last_tre_mm: 1.5 * late, frame_ms_median: 25.0 };
+    let rec = std::path::Path::new("rec");
+    // The rule at its edge (exact: the stated share), above it and well below it.
+    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(2.0 * TRACKING_CHOSEN_AT_MOST), rec).form, CorrectionForm::Tracking);
+    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(1.52), rec).form, CorrectionForm::Subspace);
+    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(0.8), rec).form, CorrectionForm::Tracking);
+    assert_eq!(CorrectionChoice::decide(fig(1.0), fig(1.2), rec).form, CorrectionForm::Subspace);
+    // Written and read back the same; a folder without one has none.
+    let dir = tmp("choice");
+    assert_eq!(CorrectionChoice::read(&dir).unwrap(), None);
+    let c = CorrectionChoice::decide(fig(2.0), fig(1.0), rec);
+    c.write(&dir).unwrap();
+    assert_eq!(CorrectionChoice::read(&dir).unwrap(), Some(c.clone()));
+    assert_eq!(c.form.settings(), umesh_core::register::correction::CorrectionSettings::tracking());
+    // Damaged files: one error naming the file and the problem.
+    let path = dir.join(CorrectionChoice::FILE);
+    for (text, says) in [
+        ("{", "not a correction choice"),
+        (&serde_json::to_string(&c).unwrap().replace("\"tracking\",", "\"sideways\","), "not a correction choice"),
+        (&serde_json::to_string(&c).unwrap().replace("umesh-correction-choice", "other"), "format other"),
+        (&serde_json::to_string(&c).unwrap().replace("25.0", "-1.0"), "negative or not finite"),
+    ] {
+        std::fs::write(&path, text).unwrap();
+        let e = CorrectionChoice::read(&dir).unwrap_err().0;
+        assert!(e.contains("correction.json") && e.contains(says), "{text}: {e}");
+    }
+}
+
+#[test]
 fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_organ() {
     use umesh_core::loads::{ForceSettings, LoadFamily, family_forces, family_points};
     use umesh_core::phantom::SplitMix64;

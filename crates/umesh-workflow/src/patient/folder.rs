@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 use umesh_core::dataset::{DatasetConfig, DatasetStats, fnv_hex, run_stats};
+use umesh_core::register::correction::CorrectionChoice;
 use umesh_core::register::pipeline::Summary;
 use umesh_core::segmentation::Segmentation;
 use umesh_core::synth::{SynthReport, SynthSettings};
@@ -181,6 +182,10 @@ pub struct CheckReport {
     /// the report and the command say this instead of the check's figures.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,
+    /// The correction form chosen on the check (the figures above are that form's); None in
+    /// folders from before and when the recording has too few frames with truth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub correction: Option<CorrectionChoice>,
 }
 
 impl CheckReport {
@@ -193,6 +198,7 @@ impl CheckReport {
             last_frame_marker_displacement_mm: None,
             log: Vec::new(),
             warning: Some(reason),
+            correction: None,
         }
     }
 }

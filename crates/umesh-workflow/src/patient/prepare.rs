@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use umesh_core::dataset::{DatasetConfig, DatasetContext, ShardSelection, run_generate, run_stats};
 use umesh_core::register::RegistrationContext;
+use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures};
 use umesh_core::register::pipeline::{GroundTruth, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::stream::RecordingSource;
@@ -283,7 +284,9 @@ pub fn run_prepare(
     })
 }
 
-/// Register the check recording with the patient's model: TRE against the recording's truth.
+/// Register the check recording with the patient's model, once with each correction form
+/// (`CorrectionForm`): TRE against the recording's truth; the form chosen on it is written into
+/// the model folder (`CorrectionChoice`) and its registration is the check's figure.
 pub fn registration_check(
     seg: &Segmentation,
     config: &DatasetConfig,
@@ -296,33 +299,52 @@ pub fn registration_check(
     let dctx = DatasetContext::prepare(seg, config, cancel)?;
     net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
     let ctx = RegistrationContext::new(dctx, seg).map_err(|e| NetError::Invalid(e.into()))?;
-    let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
-    let pose = rec
-        .trajectory
-        .as_ref()
-        .and_then(|t| t.first().copied())
-        .ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
     let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(|e| NetError::Invalid(e.into()))?;
-    let frames = rec.len() as u64;
-    let mut source = RecordingSource::new(rec);
-    let settings = RegisterSettings { overlay: false, ..Default::default() };
-    let p = progress.clone();
-    let inner = Progress::new(move |done, _, msg| p.report(done, frames, msg));
-    let r =
-        run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(|e| match e {
-            umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
-            e => NetError::Invalid(e.to_string()),
-        })?;
-    if r.summary.frames == 0 {
-        return Err(NetError::Invalid(format!("{}: no frame could be registered: {}", recording.display(), r.log.join("; "))));
+    let forms = [CorrectionForm::Subspace, CorrectionForm::Tracking];
+    let mut runs = Vec::new();
+    for (k, form) in forms.iter().enumerate() {
+        let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
+        let pose = rec
+            .trajectory
+            .as_ref()
+            .and_then(|t| t.first().copied())
+            .ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
+        let frames = rec.len() as u64;
+        let mut source = RecordingSource::new(rec);
+        let settings = RegisterSettings { overlay: false, correction: form.settings(), ..Default::default() };
+        let p = progress.clone();
+        let (k, name) = (k as u64, form.name());
+        let inner = Progress::new(move |done, _, msg| p.report(k * frames + done, 2 * frames, &format!("{name} correction: {msg}")));
+        let r =
+            run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(
+                |e| match e {
+                    umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
+                    e => NetError::Invalid(e.to_string()),
+                },
+            )?;
+        if r.summary.frames == 0 {
+            return Err(NetError::Invalid(format!("{}: no frame could be registered: {}", recording.display(), r.log.join("; "))));
+        }
+        runs.push(r);
     }
+    let figures: Vec<Option<FormFigures>> = runs.iter().map(FormFigures::of).collect();
+    let choice = match (figures[0], figures[1]) {
+        (Some(s), Some(t)) => {
+            let c = CorrectionChoice::decide(s, t, recording);
+            c.write(model).map_err(|e| NetError::Invalid(e.0))?;
+            Some(c)
+        }
+        _ => None,
+    };
+    let r = &runs[usize::from(choice.as_ref().is_some_and(|c| c.form == CorrectionForm::Tracking))];
     let last = r.frames.last();
     Ok(CheckReport {
         summary: (&r.summary).into(),
         last_frame_tre_mm: last.and_then(|f| f.tre_mean_mm),
         last_frame_tre_rigid_mm: last.and_then(|f| f.tre_rigid_mean_mm),
         last_frame_marker_displacement_mm: last.and_then(|f| f.marker_displacement_mean_mm),
-        log: r.log,
+        log: r.log.clone(),
         warning: None,
+        correction: choice,
     })
 }

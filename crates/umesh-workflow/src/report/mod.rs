@@ -424,6 +424,12 @@ pub fn patient_html(
             ],
         ],
     ));
+    if let Some(ch) = &check.correction {
+        body = body.child(el("p").text(format!(
+            "The figures above are the {} (written into the model folder; `register` and the AR view use it unless told otherwise).",
+            ch.describe()
+        )));
+    }
     if !check.log.is_empty() {
         body = body.child(el("pre").text(check.log.join("\n")));
     }

@@ -428,6 +428,26 @@ fn the_ar_view_overlays_a_synthetic_recording_with_its_tre_and_records_pngs() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+#[test]
+fn the_ar_view_starts_with_the_correction_form_the_models_check_chose() {
+    use umesh::app::ar::panel::model_correction_form;
+    use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures};
+    let dir = tmp_dir("ar-choice");
+    let mut messages = UiMessages::default();
+    // No choice (models from before, the bundled one): the subspace form, nothing said.
+    assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Subspace);
+    assert!(messages.list.is_empty(), "{:?}", messages.list);
+    let fig = |late: f64| FormFigures { late_tre_mm: late, last_tre_mm: late, frame_ms_median: 30.0 };
+    CorrectionChoice::decide(fig(2.0), fig(1.0), &dir).write(&dir).unwrap();
+    assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Tracking);
+    assert!(format!("{:?}", messages.list).contains("tracking correction"), "{:?}", messages.list);
+    // A damaged file: the subspace form and an error naming the file.
+    std::fs::write(dir.join(CorrectionChoice::FILE), "[]").unwrap();
+    assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Subspace);
+    assert!(format!("{:?}", messages.list).contains("correction.json"), "{:?}", messages.list);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Update until the camera preview is computed (or refused).
 fn wait_for_preview(app: &mut App, limit: Duration) {
     use umesh::app::setup::ObservationSetup;

@@ -83,19 +83,8 @@ fn source_ui(
         }
     });
     if let Some(src) = start {
-        // Each session starts with the model's correction form (its registration check's
-        // choice, else the subspace form); the box changes it for this session.
-        ar.tracking = match CorrectionChoice::read(&model.dir) {
-            Ok(Some(c)) => {
-                messages.info(format!("the model's check chose the {}", c.describe()));
-                c.form == CorrectionForm::Tracking
-            }
-            Ok(None) => false,
-            Err(e) => {
-                messages.error(format!("{e}; the subspace correction is used"));
-                false
-            }
-        };
+        // Each session starts with the model's correction form; the box changes it for this session.
+        ar.tracking = model_correction_form(&model.dir, messages) == CorrectionForm::Tracking;
         match &organ.data {
             Some(o) => {
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
@@ -203,6 +192,22 @@ fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     }
     if changed {
         s.send(ArCommand::PoseOffset(ar.offset_t_mm, ar.offset_r_deg));
+    }
+}
+
+/// The correction form a model asks for: its registration check's choice (said in the
+/// messages), else the subspace form; a damaged choice is shown as an error.
+pub fn model_correction_form(model_dir: &std::path::Path, messages: &mut UiMessages) -> CorrectionForm {
+    match CorrectionChoice::read(model_dir) {
+        Ok(Some(c)) => {
+            messages.info(format!("the model's check chose the {}", c.describe()));
+            c.form
+        }
+        Ok(None) => CorrectionForm::Subspace,
+        Err(e) => {
+            messages.error(format!("{e}; the subspace correction is used"));
+            CorrectionForm::Subspace
+        }
     }
 }
 

@@ -186,6 +186,9 @@ pub fn run_train(
     let out = staged.path();
     if resume && !continue_pending && final_out.join("last.safetensors").exists() {
         copy_files(final_out, out)?;
+        // The correction form was chosen for the weights before: the resumed model has none
+        // until it is checked again (`umesh choose-correction`, or prepare's check).
+        let _ = std::fs::remove_file(out.join(umesh_core::register::correction::CorrectionChoice::FILE));
     }
     // The app records a job's settings in the folder before it runs: they travel with the model.
     let job = final_out.join(JOB_FILE);

@@ -252,12 +252,15 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     // Tolerances: float summation order (1e-3 mm); half the points, 10 % of the largest predicted value.
     assert!(d_shuffle < 1e-3 && d_double < 1e-3, "{d_shuffle} {d_double}");
     assert!(d_half < 0.1 * range.max(1.0), "{d_half} of {range}");
-    // Resume continues from the last epoch.
+    // Resume continues from the last epoch; a correction form chosen for the old weights is
+    // not carried over to the new ones.
+    std::fs::write(out.join(umesh_core::register::correction::CorrectionChoice::FILE), "{}").unwrap();
     let more = TrainSettings { epochs: 3, ..settings };
     let r2 = run_train(&ds, &out, &more, true, &Default::default(), &|_| {}, &Default::default()).unwrap();
     assert_eq!(r2.epochs.len(), 3);
     assert_eq!(r2.epochs[0].epoch, 1);
     assert!((r2.epochs[0].train_loss - r.epochs[0].train_loss).abs() < 1e-12);
+    assert!(!out.join(umesh_core::register::correction::CorrectionChoice::FILE).exists(), "a stale correction choice was kept");
     assert_eq!(r2.epochs[2].epoch, 3);
     assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
     // A new training that fails (an --init-from that is not a model) or is cancelled leaves the

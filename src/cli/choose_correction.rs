@@ -2,7 +2,7 @@
 //! form and keep the one that registers it better in the model folder (`correction.json`),
 //! as `umesh prepare`'s registration check does; `register` and the AR view then use it.
 
-use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config};
+use super::input::{InputArgs, LoadInput, model_dataset_config};
 use anyhow::{Context, Result, bail};
 use std::path::PathBuf;
 
@@ -10,8 +10,9 @@ use std::path::PathBuf;
 pub struct Args {
     #[command(flatten)]
     pub input: InputArgs,
-    /// Model folder (default: the bundled phantom model); its correction.json is replaced.
-    #[arg(long, conflicts_with = "patient")]
+    /// Model folder; its correction.json is replaced (the bundled model is not written to
+    /// unless named: copy it first).
+    #[arg(long, conflicts_with = "patient", required_unless_present = "patient")]
     pub model: Option<PathBuf>,
     /// A patient folder from `umesh prepare`: its segmentation and model.
     #[arg(long, conflicts_with = "seg")]
@@ -30,7 +31,7 @@ pub fn run(a: Args) -> Result<()> {
             let patient = umesh_workflow::patient::Patient::read(p)?;
             (umesh_workflow::patient::model_dir(p), patient.segmentation(p)?)
         }
-        None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
+        None => (a.model.clone().context("give --model DIR or --patient DIR")?, a.input.load()?),
     };
     if !a.recording.join("ground_truth.json").is_file() {
         bail!("--recording {}: no ground_truth.json (the choice is made on the TRE against the truth)", a.recording.display());

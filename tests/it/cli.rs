@@ -332,10 +332,10 @@ print("ok", a)
 fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let rec = tmp("synth-rec");
     let _ = std::fs::remove_dir_all(&rec);
-    // At 0.8 of the dataset's load, the AR view's synthetic recording: within the bundled
-    // model's range (the default 1.3 moves the markers 24 mm, beyond it).
+    // At 1.5 x the bundled model's target (13 mm mean nodal displacement), the markers move
+    // 11 mm: the 10 mm or more, within the dataset's range.
     let (ok, out, err) =
-        umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--load-scale", "0.8", "--json", "--out", rec.to_str().unwrap()]);
+        umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--load-scale", "1.5", "--json", "--out", rec.to_str().unwrap()]);
     assert!(ok, "{err}");
     let s = json(&out);
     assert_eq!(s["frames"], 4);
@@ -360,13 +360,13 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     }
     // Threshold: the paper's ex vivo TRE (2.92 mm) on 1 mm depth noise, over the frames and at
     // the last one, where the recording moves the markers by the dataset's scale (measured with
-    // the bundled mixture model: 12.35 mm of motion, 1.15 mm TRE, 12.30 mm rigid only).
+    // the bundled model: 10.96 mm of motion, 0.53 mm TRE, 11.00 mm rigid only).
     let tre = r["tre_mean_mm"].as_f64().unwrap();
     eprintln!("synthetic registration: {r}");
     assert!(tre < 2.92, "TRE {tre} mm");
     let (last, rigid, moved) =
         (r["last_tre_mm"].as_f64().unwrap(), r["last_tre_rigid_mm"].as_f64().unwrap(), r["last_marker_displacement_mm"].as_f64().unwrap());
-    assert!(moved >= 10.0, "the recording moves the markers {moved} mm (the dataset's scale is 10)");
+    assert!(moved >= 10.0, "the recording moves the markers {moved} mm (the issue's recordings: 10 or more)");
     assert!(last < 2.92 && last < 0.25 * rigid, "last frame: TRE {last} mm, rigid only {rigid} mm");
     assert!(reg.join("overlay/00003.png").exists());
     // Confidence without ground truth: the bundled model is calibrated (confidence.json), and
@@ -378,8 +378,8 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
         let p95 = c["residual_p95_mm"].as_f64().unwrap();
         assert!(p95.is_finite() && p95 > 0.0 && p95 < 5.0, "residual p95 {p95} mm: {c}");
     }
-    // The tracking correction on the same recording: the same bar (measured: 0.80 mm against
-    // the default's 1.15), and each frame reports how far its correction moved the prediction.
+    // The tracking correction on the same recording: the same bar (measured: 0.44 mm against
+    // the default's 0.53), and each frame reports how far its correction moved the prediction.
     let reg_t = tmp("synth-reg-tracking");
     let (ok, out, err) = umesh(&[
         "register",

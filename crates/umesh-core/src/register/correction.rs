@@ -239,23 +239,6 @@ pub struct FormFigures {
     pub frame_ms_median: f64,
 }
 
-impl FormFigures {
-    /// The figures of one registration of a recording with ground truth; None when fewer than
-    /// two of its frames have a TRE.
-    pub fn of(report: &super::pipeline::RegisterReport) -> Option<Self> {
-        let tre: Vec<f64> = report.frames.iter().filter_map(|f| f.tre_mean_mm).filter(|t| t.is_finite()).collect();
-        if tre.len() < 2 {
-            return None;
-        }
-        let late = &tre[tre.len() / 2..];
-        Some(Self {
-            late_tre_mm: late.iter().sum::<f64>() / late.len() as f64,
-            last_tre_mm: tre[tre.len() - 1],
-            frame_ms_median: report.summary.frame_ms_median,
-        })
-    }
-}
-
 /// The correction form a model's registration check chose for its organ, kept in the model
 /// folder (`CorrectionChoice::FILE`): `register` and the AR view use it unless told otherwise.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

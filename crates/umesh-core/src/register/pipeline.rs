@@ -1,7 +1,7 @@
 //! The per-frame registration pipeline and its latency breakdown.
 
 use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
-use super::correction::{CorrectionReport, CorrectionSettings, SurfaceFit};
+use super::correction::{CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{depth_preview, draw_overlay};
 use super::{RegistrationContext, displacement_at};
@@ -800,6 +800,23 @@ pub struct RegisterReport {
     pub summary: Summary,
     pub frames: Vec<FrameReport>,
     pub log: Vec<String>,
+}
+
+impl RegisterReport {
+    /// Its figures as a correction form's on a recording with ground truth (`CorrectionChoice`);
+    /// None when fewer than two of its frames have a TRE.
+    pub fn form_figures(&self) -> Option<FormFigures> {
+        let tre: Vec<f64> = self.frames.iter().filter_map(|f| f.tre_mean_mm).filter(|t| t.is_finite()).collect();
+        if tre.len() < 2 {
+            return None;
+        }
+        let late = &tre[tre.len() / 2..];
+        Some(FormFigures {
+            late_tre_mm: late.iter().sum::<f64>() / late.len() as f64,
+            last_tre_mm: tre[tre.len() - 1],
+            frame_ms_median: self.summary.frame_ms_median,
+        })
+    }
 }
 
 /// Register every frame of `source`; `on_frame` receives each output (to write overlays).

@@ -327,7 +327,7 @@ pub fn registration_check(
         }
         runs.push(r);
     }
-    let figures: Vec<Option<FormFigures>> = runs.iter().map(FormFigures::of).collect();
+    let figures: Vec<Option<FormFigures>> = runs.iter().map(|r| r.form_figures()).collect();
     let choice = match (figures[0], figures[1]) {
         (Some(s), Some(t)) => {
             let c = CorrectionChoice::decide(s, t, recording);

@@ -2,7 +2,7 @@
 //! form and keep the one that registers it better in the model folder (`correction.json`),
 //! as `umesh prepare`'s registration check does; `register` and the AR view then use it.
 
-use super::input::{InputArgs, LoadInput, model_dataset_config};
+use super::input::{InputArgs, LoadInput, model_dataset_config, patient_model};
 use anyhow::{Context, Result, bail};
 use std::path::PathBuf;
 
@@ -27,17 +27,13 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let (model_dir, seg) = match &a.patient {
-        Some(p) => {
-            let patient = umesh_workflow::patient::Patient::read(p)?;
-            (umesh_workflow::patient::model_dir(p), patient.segmentation(p)?)
-        }
+        Some(p) => patient_model(p)?,
         None => (a.model.clone().context("give --model DIR or --patient DIR")?, a.input.load()?),
     };
     if !a.recording.join("ground_truth.json").is_file() {
         bail!("--recording {}: no ground_truth.json (the choice is made on the TRE against the truth)", a.recording.display());
     }
-    let info =
-        umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?.info;
+    let info = umesh_net::ModelInfo::read(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
     let config = model_dataset_config(Some(&info), &seg);
     let (pb, progress) = super::output::progress_bar("registering with each correction form");
     let r = umesh_workflow::patient::registration_check(&seg, &config, &model_dir, &a.recording, &progress, &super::output::cancel());

@@ -20,3 +20,14 @@ impl LoadInput for InputArgs {
         Ok(seg)
     }
 }
+
+/// A patient folder's model and organ (`--patient`), refused until its model is trained.
+pub fn patient_model(patient: &std::path::Path) -> Result<(std::path::PathBuf, Segmentation)> {
+    let p = umesh_workflow::patient::Patient::read(patient)?;
+    anyhow::ensure!(
+        p.done(umesh_workflow::patient::Stage::Train),
+        "{}: the patient's model is not trained yet (run `umesh prepare` again to finish the job)",
+        patient.display()
+    );
+    Ok((umesh_workflow::patient::model_dir(patient), p.segmentation(patient)?))
+}

@@ -1,7 +1,7 @@
 //! `umesh register`: RGB-D frames -> rigid ICP -> surface displacement -> network (and,
 //! when asked, the co-rotational FE) -> deformed internal structures overlaid on the frames.
 
-use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config};
+use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config, patient_model};
 use anyhow::{Context, Result, bail};
 use nalgebra::Matrix4;
 use std::path::{Path, PathBuf};
@@ -119,15 +119,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--fe-converged applies to --compare-fe");
     }
     let (model_dir, seg) = match &a.patient {
-        Some(p) => {
-            let patient = umesh_workflow::patient::Patient::read(p)?;
-            anyhow::ensure!(
-                patient.done(umesh_workflow::patient::Stage::Train),
-                "{}: the patient's model is not trained yet (run `umesh prepare` again to finish the job)",
-                p.display()
-            );
-            (umesh_workflow::patient::model_dir(p), patient.segmentation(p)?)
-        }
+        Some(p) => patient_model(p)?,
         None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
     };
     let mut net =

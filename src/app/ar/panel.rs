@@ -215,8 +215,8 @@ pub fn model_correction_form(model_dir: &std::path::Path, messages: &mut UiMessa
 fn correction_settings(ar: &Ar) -> CorrectionSettings {
     match (ar.correction, ar.tracking) {
         (false, _) => CorrectionSettings::off(),
-        (true, false) => CorrectionSettings::default(),
-        (true, true) => CorrectionSettings::tracking(),
+        (true, false) => CorrectionForm::Subspace.settings(),
+        (true, true) => CorrectionForm::Tracking.settings(),
     }
 }
 

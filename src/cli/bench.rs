@@ -16,7 +16,8 @@ use umesh_core::{Cancel, Progress};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// What to measure: grid, fe, dataset, net or ui (frame time while an SVK solve runs).
+    /// What to measure: grid, fe, dataset, net, ui (frame time while an SVK solve runs) or
+    /// register (registration over load families and materials).
     pub what: String,
     /// Repetitions (grid) or load cases (fe); medians are reported.
     #[arg(long, default_value_t = 5)]
@@ -38,6 +39,8 @@ pub struct Args {
     pub only: Option<String>,
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub register: super::bench_register::RegisterBenchArgs,
 }
 
 /// Peak resident memory of this process (MB), from /proc.
@@ -62,7 +65,15 @@ pub fn run(a: Args) -> Result<()> {
         "dataset" => bench_dataset(a.samples)?,
         "net" => bench_net(repeat.max(20))?,
         "ui" => bench_ui()?,
-        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui)"),
+        "register" => {
+            let v = super::bench_register::run(&a.register)?;
+            if !a.json {
+                super::bench_register::print(&v);
+                return Ok(());
+            }
+            v
+        }
+        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui, register)"),
     };
     if a.json {
         super::output::print_json(&value);

@@ -1117,3 +1117,61 @@ fn gui_refuses_a_bad_scan_or_session_before_opening_a_window() {
     let (ok, _, stderr) = umesh(&["gui", "--session", session.to_str().unwrap()]);
     assert!(!ok && stderr.contains("s.json") && stderr.contains("--session"), "{stderr}");
 }
+
+#[test]
+fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordings() {
+    let dir = tmp("bench-register");
+    let rec = dir.to_str().unwrap();
+    let args = ["bench", "register", "--loads", "gravity", "--frames", "3", "--motion-mm", "8", "--recordings", rec, "--json"];
+    let (ok, out, err) = umesh(&args);
+    assert!(ok, "{err}");
+    let v = json(&out);
+    let rows = v["recordings"].as_array().unwrap();
+    // One recording per truth material, each pressed to the motion asked within 25 % (the
+    // probe scales the load in proportion; the material is not linear).
+    assert_eq!(rows.iter().map(|r| r["truth"].as_str().unwrap()).collect::<Vec<_>>(), ["svk", "neo-hookean"], "{v}");
+    for r in rows {
+        let f = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
+        assert!((f("motion_mm") - 8.0).abs() <= 2.0, "{r}");
+        // Registration recovers most of the motion; the figures are the report's own.
+        assert!(f("rigid_mm") > 5.0 && f("corrected_mm") < 0.5 * f("rigid_mm") && f("network_mm").is_finite(), "{r}");
+        assert!((f("corrected_share_of_rigid") - f("corrected_mm") / f("rigid_mm")).abs() < 1e-9, "{r}");
+        assert!(f("frame_ms_median") > 0.0 && f("network_frame_ms_median") > 0.0, "{r}");
+        // At 8 mm of motion no recording meets a bar stated at 10 mm or more.
+        assert_eq!(r["meets_bar"], false, "{r}");
+    }
+    assert_eq!(v["within_bar"], "0 / 2", "{v}");
+    assert_eq!(v["correction_form"], "subspace", "{v}");
+    // A second run registers the same recordings again, made once (their files untouched).
+    let made = || -> Vec<(PathBuf, std::time::SystemTime)> {
+        let mut v: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .map(|e| e.path().join("ground_truth.json"))
+            .filter(|p| p.is_file())
+            .map(|p| {
+                let t = std::fs::metadata(&p).unwrap().modified().unwrap();
+                (p, t)
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let before = made();
+    assert_eq!(before.len(), 4, "two probes and two recordings: {before:?}");
+    let (ok, out2, err) = umesh(&args);
+    assert!(ok, "{err}");
+    let v2 = json(&out2);
+    for (a, b) in rows.iter().zip(v2["recordings"].as_array().unwrap()) {
+        assert_eq!(a["motion_mm"], b["motion_mm"], "{a} {b}");
+        assert_eq!(a["name"], b["name"], "{a} {b}");
+    }
+    assert_eq!(made(), before, "the recordings were made again");
+    // Bad options: one error naming the option, nothing made.
+    for (bad, name) in [(["--motion-mm", "0"], "--motion-mm"), (["--frames", "1"], "--frames"), (["--loads", "twist"], "--loads")] {
+        let mut a: Vec<&str> = vec!["bench", "register", "--recordings", rec];
+        a.extend(bad);
+        let (ok, _, err) = umesh(&a);
+        assert!(!ok && err.contains(name), "{bad:?}: {err}");
+    }
+}

@@ -51,8 +51,8 @@ pub struct RegisterBenchArgs {
     /// `bench register`: the first recording's seed (the next ones count up).
     #[arg(long, default_value_t = 101)]
     pub seed: u64,
-    /// `bench register`: where the recordings are kept (default: a folder per organ and model
-    /// in the system's temporary directory).
+    /// `bench register`: where the recordings are kept, in a folder per organ and model
+    /// configuration (default: the system's temporary directory).
     #[arg(long)]
     pub recordings: Option<PathBuf>,
 }
@@ -86,10 +86,10 @@ pub fn run(a: &RegisterBenchArgs) -> Result<serde_json::Value> {
     net.info
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
-    let root = match &a.recordings {
-        Some(d) => d.clone(),
-        None => std::env::temp_dir().join(format!("umesh-bench-register-{}", dctx.grid_hash())),
-    };
+    // The recordings depend on the organ and on the model's dataset configuration (its load
+    // scale, material, attachment): one folder per pair, so another model never reuses them.
+    let key = umesh_core::dataset::fnv_hex(format!("{}{}", dctx.grid_hash(), serde_json::to_string(&config)?).as_bytes());
+    let root = a.recordings.clone().unwrap_or_else(|| std::env::temp_dir().join("umesh-bench-register")).join(key);
     let ctx = RegistrationContext::new(dctx, &seg)?;
     let form = match CorrectionChoice::read(&model_dir)? {
         Some(c) => c.form,

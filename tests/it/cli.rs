@@ -1144,7 +1144,10 @@ fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordi
     assert_eq!(v["correction_form"], "subspace", "{v}");
     // A second run registers the same recordings again, made once (their files untouched).
     let made = || -> Vec<(PathBuf, std::time::SystemTime)> {
-        let mut v: Vec<_> = std::fs::read_dir(&dir)
+        // One folder for the organ and model, the recordings in it.
+        let folders: Vec<_> = std::fs::read_dir(&dir).unwrap().filter_map(|e| e.ok()).collect();
+        assert_eq!(folders.len(), 1, "{folders:?}");
+        let mut v: Vec<_> = std::fs::read_dir(folders[0].path())
             .unwrap()
             .filter_map(|e| e.ok())
             .map(|e| e.path().join("ground_truth.json"))

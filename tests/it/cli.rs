@@ -1182,7 +1182,8 @@ fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordi
 #[test]
 fn an_error_names_its_cause_once() {
     // A missing patient folder: the file and the system's reason, said once each.
-    let (ok, _, err) = umesh(&["register", "--patient", "/nonexistent-umesh-patient", "--recording", "/nonexistent", "--out", "/tmp/umesh-never-written"]);
+    let (ok, _, err) =
+        umesh(&["register", "--patient", "/nonexistent-umesh-patient", "--recording", "/nonexistent", "--out", "/tmp/umesh-never-written"]);
     assert!(!ok, "{err}");
     assert!(err.contains("/nonexistent-umesh-patient/patient.json"), "{err}");
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");

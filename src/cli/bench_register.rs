@@ -5,10 +5,9 @@
 //! alone and with the model's correction (its check's choice, else the subspace form). The
 //! recordings are kept and reused: a second run only registers.
 
-use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config, patient_model};
+use super::input::{InputArgs, ModelOnOrgan, model_on_organ};
 use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
-use umesh_core::dataset::DatasetContext;
 use umesh_core::fem::{MaterialKind, MaterialParams};
 use umesh_core::loads::{ForceSettings, LoadFamily};
 use umesh_core::register::RegistrationContext;
@@ -74,18 +73,7 @@ pub fn run(a: &RegisterBenchArgs) -> Result<serde_json::Value> {
         bail!("--frames {}: between 2 and 200", a.frames);
     }
     let families = ForceSettings::parse_families(&a.loads).context("--loads")?;
-    let (model_dir, seg) = match &a.patient {
-        Some(p) => patient_model(p)?,
-        None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
-    };
-    let mut net =
-        umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
-    let config = model_dataset_config(Some(&net.info), &seg);
-    let cancel = super::output::cancel();
-    let dctx = DatasetContext::prepare(&seg, &config, &cancel)?;
-    net.info
-        .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
-        .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
+    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     // The recordings depend on the organ and on the model's dataset configuration (its load
     // scale, material, attachment): one folder per pair, so another model never reuses them.
     let key = umesh_core::dataset::fnv_hex(format!("{}{}", dctx.grid_hash(), serde_json::to_string(&config)?).as_bytes());

@@ -1,12 +1,11 @@
 //! `umesh register`: RGB-D frames -> rigid ICP -> surface displacement -> network (and,
 //! when asked, the co-rotational FE) -> deformed internal structures overlaid on the frames.
 
-use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config, patient_model};
+use super::input::{InputArgs, ModelOnOrgan, model_on_organ};
 use anyhow::{Context, Result, bail};
 use nalgebra::Matrix4;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, run_register};
@@ -118,17 +117,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.fe_converged && !a.compare_fe {
         bail!("--fe-converged applies to --compare-fe");
     }
-    let (model_dir, seg) = match &a.patient {
-        Some(p) => patient_model(p)?,
-        None => (a.model.clone().unwrap_or_else(bundled_model), a.input.load()?),
-    };
-    let mut net =
-        umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
-    let config = model_dataset_config(Some(&net.info), &seg);
-    let dctx = DatasetContext::prepare(&seg, &config, &super::output::cancel())?;
-    net.info
-        .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
-        .with_context(|| format!("{} does not fit {}", model_dir.display(), seg.source.display()))?;
+    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.

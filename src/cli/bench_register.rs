@@ -12,9 +12,7 @@ use umesh_core::fem::{MaterialKind, MaterialParams};
 use umesh_core::loads::{ForceSettings, LoadFamily};
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings, prepare_correction};
-use umesh_core::register::pipeline::{GroundTruth, RegisterReport, RegisterSettings, run_register};
-use umesh_core::rgbd::recording::Recording;
-use umesh_core::rgbd::stream::RecordingSource;
+use umesh_core::register::pipeline::{RegisterReport, RegisterSettings};
 use umesh_core::synth::{SynthReport, SynthSettings, run_rgbd_synth};
 
 /// The bar for each recording: last-frame TRE at most this and at most this share of
@@ -216,19 +214,11 @@ fn register(
     net: &mut umesh_net::inference::Predictor,
     correction: CorrectionSettings,
 ) -> Result<RegisterReport> {
-    let rec = Recording::open(dir, None)?;
-    let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).with_context(|| format!("{}: no camera pose", dir.display()))?;
-    let truth = GroundTruth::read(&dir.join("ground_truth.json"))?;
-    let mut source = RecordingSource::new(rec);
     let settings = RegisterSettings { overlay: false, correction, ..Default::default() };
     let (pb, progress) = super::output::progress_bar(&format!("registering {}", dir.display()));
-    let r = run_register(&mut source, ctx, net, pose, Some(&truth), &settings, &mut |_| Ok(()), &progress, &super::output::cancel());
+    let r = umesh_workflow::patient::register_recording(dir, ctx, net, &settings, &progress, &super::output::cancel());
     pb.finish_and_clear();
-    let r = r.with_context(|| format!("registering {}", dir.display()))?;
-    if r.summary.frames == 0 {
-        bail!("{}: no frame could be registered: {}", dir.display(), r.log.join("; "));
-    }
-    Ok(r)
+    Ok(r?)
 }
 
 fn row(

@@ -14,4 +14,4 @@ pub use folder::{
     CheckReport, FORMAT, FORMAT_VERSION, InputFile, Patient, PatientFigures, PrepareReport, PrepareSettings, Stage, StageRecord,
     SummaryRecord, ct_path, hash_inputs, model_dir, read_figures, read_metrics, same_as_stored, settings_differences,
 };
-pub use prepare::{registration_check, run_prepare};
+pub use prepare::{register_recording, registration_check, run_prepare};

@@ -16,7 +16,7 @@ use std::time::Instant;
 use umesh_core::dataset::{DatasetConfig, DatasetContext, ShardSelection, run_generate, run_stats};
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures};
-use umesh_core::register::pipeline::{GroundTruth, RegisterSettings, run_register};
+use umesh_core::register::pipeline::{DisplacementModel, GroundTruth, RegisterReport, RegisterSettings, run_register};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::stream::RecordingSource;
 use umesh_core::segmentation::Segmentation;
@@ -287,6 +287,38 @@ pub fn run_prepare(
 /// Register the check recording with the patient's model, once with each correction form
 /// (`CorrectionForm`): TRE against the recording's truth; the form chosen on it is written into
 /// the model folder (`CorrectionChoice`) and its registration is the check's figure.
+/// Register every frame of the recording in `dir` from its first camera pose, against its
+/// ground truth, reporting frames done out of the recording's; an error when no frame could
+/// be registered.
+pub fn register_recording(
+    dir: &Path,
+    ctx: &RegistrationContext,
+    model: &mut dyn DisplacementModel,
+    settings: &RegisterSettings,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<RegisterReport, NetError> {
+    let invalid = |e: String| NetError::Invalid(e);
+    let truth = GroundTruth::read(&dir.join("ground_truth.json")).map_err(|e| invalid(e.to_string()))?;
+    let rec = Recording::open(dir, None).map_err(|e| invalid(e.to_string()))?;
+    let pose =
+        rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| invalid(format!("{}: no camera pose", dir.display())))?;
+    // The recording's length is known: frames done out of it (a live source reports none).
+    let frames = rec.len() as u64;
+    let p = progress.clone();
+    let progress = Progress::new(move |done, _, msg| p.report(done, frames, msg));
+    let mut source = RecordingSource::new(rec);
+    let r =
+        run_register(&mut source, ctx, model, pose, Some(&truth), settings, &mut |_| Ok(()), &progress, cancel).map_err(|e| match e {
+            umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
+            e => invalid(e.to_string()),
+        })?;
+    if r.summary.frames == 0 {
+        return Err(invalid(format!("{}: no frame could be registered: {}", dir.display(), r.log.join("; "))));
+    }
+    Ok(r)
+}
+
 pub fn registration_check(
     seg: &Segmentation,
     config: &DatasetConfig,
@@ -299,33 +331,14 @@ pub fn registration_check(
     let dctx = DatasetContext::prepare(seg, config, cancel)?;
     net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
     let ctx = RegistrationContext::new(dctx, seg).map_err(|e| NetError::Invalid(e.into()))?;
-    let truth = GroundTruth::read(&recording.join("ground_truth.json")).map_err(|e| NetError::Invalid(e.into()))?;
     let forms = [CorrectionForm::Subspace, CorrectionForm::Tracking];
     let mut runs = Vec::new();
     for (k, form) in forms.iter().enumerate() {
-        let rec = Recording::open(recording, None).map_err(|e| NetError::Invalid(e.to_string()))?;
-        let pose = rec
-            .trajectory
-            .as_ref()
-            .and_then(|t| t.first().copied())
-            .ok_or_else(|| NetError::Invalid(format!("{}: no camera pose", recording.display())))?;
-        let frames = rec.len() as u64;
-        let mut source = RecordingSource::new(rec);
         let settings = RegisterSettings { overlay: false, correction: form.settings(), ..Default::default() };
         let p = progress.clone();
         let (k, name) = (k as u64, form.name());
-        let inner = Progress::new(move |done, _, msg| p.report(k * frames + done, 2 * frames, &format!("{name} correction: {msg}")));
-        let r =
-            run_register(&mut source, &ctx, &mut net, pose, Some(&truth), &settings, &mut |_| Ok(()), &inner, cancel).map_err(
-                |e| match e {
-                    umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
-                    e => NetError::Invalid(e.to_string()),
-                },
-            )?;
-        if r.summary.frames == 0 {
-            return Err(NetError::Invalid(format!("{}: no frame could be registered: {}", recording.display(), r.log.join("; "))));
-        }
-        runs.push(r);
+        let inner = Progress::new(move |done, total, msg| p.report(k * total + done, 2 * total, &format!("{name} correction: {msg}")));
+        runs.push(register_recording(recording, &ctx, &mut net, &settings, &inner, cancel)?);
     }
     let figures: Vec<Option<FormFigures>> = runs.iter().map(|r| r.form_figures()).collect();
     let choice = match (figures[0], figures[1]) {

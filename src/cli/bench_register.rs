@@ -248,6 +248,7 @@ fn row(
         "corrected_mm": tre,
         "corrected_share_of_rigid": tre / rigid,
         "frames_flagged": corrected.summary.frames_with_warning,
+        "frames_corrected_as_fe": corrected.summary.frames_corrected_as_fe,
         "network_frame_ms_median": network.summary.frame_ms_median,
         "frame_ms_median": corrected.summary.frame_ms_median,
         "meets_bar": meets,
@@ -262,11 +263,14 @@ pub fn print(v: &serde_json::Value) {
         v["model"].as_str().unwrap_or(""),
         v["correction_form"].as_str().unwrap_or("")
     );
-    println!("{:32} {:>7} {:>7} {:>8} {:>14} {:>8} {:>8}", "recording", "motion", "rigid", "network", "corrected", "ms", "flagged");
+    println!(
+        "{:32} {:>7} {:>7} {:>8} {:>14} {:>8} {:>8} {:>6}",
+        "recording", "motion", "rigid", "network", "corrected", "ms", "flagged", "as FE"
+    );
     for r in v["recordings"].as_array().into_iter().flatten() {
         let f = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
         println!(
-            "{:32} {:>7.1} {:>7.2} {:>8.2} {:>7.2} ({:>3.0} %) {:>8.1} {:>8} {}",
+            "{:32} {:>7.1} {:>7.2} {:>8.2} {:>7.2} ({:>3.0} %) {:>8.1} {:>8} {:>6} {}",
             r["name"].as_str().unwrap_or(""),
             f("motion_mm"),
             f("rigid_mm"),
@@ -275,6 +279,7 @@ pub fn print(v: &serde_json::Value) {
             100.0 * f("corrected_share_of_rigid"),
             f("frame_ms_median"),
             r["frames_flagged"],
+            r["frames_corrected_as_fe"],
             if r["meets_bar"] == true { "" } else { "outside the bar" }
         );
     }

@@ -66,6 +66,15 @@ pub struct Args {
     /// correction's time; docs/REGISTRATION.md).
     #[arg(long, default_value = "auto")]
     pub correction_form: String,
+    /// On a frame whose prediction the confidence rule doubts (the observed points too far from
+    /// it, or it moves beyond the training deformations), correct it as the FE fit instead: its
+    /// elastic energy from rest, carried over the doubted frames, this many updates (0: as any
+    /// other frame). Needs a model with a confidence reference.
+    #[arg(long, default_value_t = CorrectionSettings::default().doubted_updates)]
+    pub doubted_updates: usize,
+    /// Conjugate-gradient iterations per update of a doubted frame at most.
+    #[arg(long, default_value_t = CorrectionSettings::default().doubted_cg_iterations)]
+    pub doubted_cg: usize,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -126,6 +135,8 @@ pub fn run(a: Args) -> Result<()> {
         updates: a.correction_updates,
         cg_iterations: a.correction_cg,
         subspace_patches: a.correction_subspace,
+        doubted_updates: a.doubted_updates,
+        doubted_cg_iterations: a.doubted_cg,
         ..form.settings()
     };
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
@@ -176,7 +187,7 @@ pub fn run(a: Args) -> Result<()> {
             "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
             "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
             "last_marker_displacement_mm": s.last_marker_displacement_mm,
-            "frames_with_warning": s.frames_with_warning, "residual_p95_median_mm": s.residual_p95_median_mm,
+            "frames_with_warning": s.frames_with_warning, "frames_corrected_as_fe": s.frames_corrected_as_fe, "residual_p95_median_mm": s.residual_p95_median_mm,
             "confidence_calibrated": r.frames.first().is_some_and(|f| f.confidence.calibrated),
             "latency_ms_median": latency_medians(r),
             "correction_moved_rms_mm_median": correction_moved_median(r),
@@ -230,7 +241,7 @@ pub fn run(a: Args) -> Result<()> {
         for r in std::iter::once(&report).chain(fe_report.as_ref()) {
             let s = &r.summary;
             println!(
-                "{}{}: {} frames ({} skipped, {} with a confidence warning), {:.1} ms median, {:.1} ms p95{}",
+                "{}{}: {} frames ({} skipped, {} with a confidence warning{}), {:.1} ms median, {:.1} ms p95{}",
                 r.model,
                 match correction_moved_median(r) {
                     Some(m) => format!(" + physics correction (moved {m:.2} mm RMS median)"),
@@ -239,6 +250,11 @@ pub fn run(a: Args) -> Result<()> {
                 s.frames,
                 s.skipped,
                 s.frames_with_warning,
+                if s.frames_corrected_as_fe > 0 {
+                    format!(", {} corrected as the FE fit", s.frames_corrected_as_fe)
+                } else {
+                    String::new()
+                },
                 s.frame_ms_median,
                 s.frame_ms_p95,
                 match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {

@@ -229,7 +229,7 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     let mut changed = ui
         .checkbox(&mut ar.correction, "physics correction")
         .on_hover_text(
-            "After the network, one FE fit update pulls the prediction onto the observed points (about 8 ms a frame on the phantom)",
+            "After the network, one FE fit update pulls the prediction onto the observed points (about 8 ms a frame on the phantom); a frame whose prediction the confidence check doubts is corrected as the FE fit instead (4 updates from rest, carried: hundreds of ms)",
         )
         .changed();
     ui.add_enabled_ui(ar.correction, |ui| {
@@ -271,11 +271,18 @@ pub fn right_panel(ui: &mut egui::Ui, ar: &Ar) {
             ("ICP (ms)", l.icp_ms),
             ("u_s (ms)", l.surface_ms),
             ("network (ms)", l.predict_ms),
+            ("correction (ms)", l.correction_ms),
             ("overlay (ms)", l.overlay_ms),
             ("total (ms)", l.total_ms),
         ] {
             ui.label(k);
             ui.label(format!("{v:.1}"));
+            ui.end_row();
+        }
+        if let Some(c) = &r.correction {
+            ui.label("correction moved");
+            let how = if c.doubted { ", as the FE fit (prediction doubted)" } else { "" };
+            ui.label(format!("{:.2} mm RMS{how}", c.moved_rms_mm));
             ui.end_row();
         }
         if let Some(fps) = ar.displayed_fps() {

@@ -87,6 +87,9 @@ pub struct Confidence {
     pub warnings: Vec<String>,
     /// A reference was available to compare with.
     pub calibrated: bool,
+    /// A warning about the prediction itself (the observed points too far from it, or it moves
+    /// beyond the training deformations), not only about how much is seen.
+    pub prediction_doubted: bool,
 }
 
 impl Confidence {
@@ -143,6 +146,7 @@ pub fn frame_confidence(
         displacement_max_mm,
         warnings: Vec::new(),
         calibrated: reference.is_some(),
+        prediction_doubted: false,
     };
     if let Some(r) = reference {
         let p95_limit = r.residual_limit(r.residual_p95_mm);
@@ -173,6 +177,7 @@ pub fn frame_confidence(
                 r.displacement_max_mm
             ));
         }
+        c.prediction_doubted = residual_p95_mm > p95_limit || residual_mean_mm > mean_limit || displacement_max_mm > d_limit;
     }
     c
 }

@@ -32,11 +32,36 @@ pub struct CorrectionSettings {
     /// the subspace unused), instead of from the prediction (`FitWork::from_start`).
     #[serde(default)]
     pub from_rest: bool,
+    /// On a frame whose prediction the confidence rule doubts (`Confidence::prediction_doubted`:
+    /// the observed points too far from it, or it moves beyond the training deformations), the
+    /// correction runs as the FE fit instead: its energy from rest, carried over the doubted
+    /// frames, this many updates (0: a doubted frame is corrected as any other).
+    #[serde(default = "default_doubted_updates")]
+    pub doubted_updates: usize,
+    /// Conjugate-gradient iterations per update of a doubted frame at most.
+    #[serde(default = "default_doubted_cg")]
+    pub doubted_cg_iterations: usize,
+}
+
+fn default_doubted_updates() -> usize {
+    CorrectionSettings::default().doubted_updates
+}
+
+fn default_doubted_cg() -> usize {
+    CorrectionSettings::default().doubted_cg_iterations
 }
 
 impl Default for CorrectionSettings {
     fn default() -> Self {
-        Self { updates: 1, cg_iterations: 6, subspace_patches: 64, carry: false, from_rest: false }
+        Self {
+            updates: 1,
+            cg_iterations: 6,
+            subspace_patches: 64,
+            carry: false,
+            from_rest: false,
+            doubted_updates: 4,
+            doubted_cg_iterations: 10,
+        }
     }
 }
 
@@ -51,11 +76,15 @@ impl CorrectionSettings {
     }
 
     pub fn validate(&self) -> Result<(), crate::Invalid> {
-        if self.updates > 100 || (self.updates > 0 && !(1..=1000).contains(&self.cg_iterations)) {
-            return Err(crate::Invalid(format!(
-                "correction: {} updates of {} CG iterations (at most 100 updates of 1-1000 iterations)",
-                self.updates, self.cg_iterations
-            )));
+        for (what, updates, cg) in [
+            ("correction", self.updates, self.cg_iterations),
+            ("correction of a doubted frame", self.doubted_updates, self.doubted_cg_iterations),
+        ] {
+            if updates > 100 || (updates > 0 && !(1..=1000).contains(&cg)) {
+                return Err(crate::Invalid(format!(
+                    "{what}: {updates} updates of {cg} CG iterations (at most 100 updates of 1-1000 iterations)"
+                )));
+            }
         }
         if self.subspace_patches > 1000 {
             return Err(crate::Invalid(format!("correction: {} subspace patches (at most 1000)", self.subspace_patches)));
@@ -67,6 +96,18 @@ impl CorrectionSettings {
     /// or measures its energy from rest (solved by CG).
     pub fn basis_patches(&self) -> usize {
         if self.updates == 0 || self.from_rest { 0 } else { self.subspace_patches }
+    }
+
+    /// The correction of a frame whose prediction the confidence rule doubts: the FE fit from
+    /// rest, carried (`doubted_updates`); None when it is not asked for or the correction is off.
+    pub fn doubted(&self) -> Option<CorrectionSettings> {
+        (self.updates > 0 && self.doubted_updates > 0).then_some(Self {
+            updates: self.doubted_updates,
+            cg_iterations: self.doubted_cg_iterations,
+            carry: true,
+            from_rest: true,
+            ..*self
+        })
     }
 
     pub fn work(&self) -> FitWork {
@@ -82,6 +123,8 @@ pub struct CorrectionReport {
     pub moved_max_mm: f64,
     pub fit: PointFitReport,
     pub ms: f64,
+    /// The prediction was doubted and corrected as the FE fit (`CorrectionSettings::doubted`).
+    pub doubted: bool,
 }
 
 /// Build the physics correction's subspace of `patches` on `ctx` (seconds on a large grid)
@@ -194,7 +237,13 @@ impl<'c> SurfaceFit<'c> {
         }
         self.write_field(field);
         let n = self.u.len().max(1) as f64;
-        Ok(CorrectionReport { moved_rms_mm: (sq / n).sqrt(), moved_max_mm: max.sqrt(), fit, ms: t.elapsed().as_secs_f64() * 1e3 })
+        Ok(CorrectionReport {
+            moved_rms_mm: (sq / n).sqrt(),
+            moved_max_mm: max.sqrt(),
+            fit,
+            ms: t.elapsed().as_secs_f64() * 1e3,
+            doubted: false,
+        })
     }
 }
 

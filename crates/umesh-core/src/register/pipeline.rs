@@ -536,6 +536,7 @@ impl<'c> Registrar<'c> {
         let mut correction = None;
         let mut correction_ms = 0.0;
         let correct = self.settings.correction.updates > 0 && !fe_fit;
+        let reference = model.confidence_reference();
         // The confidence judges the model's own prediction: its reference is the model's residual
         // on its validation views, and the correction shrinks the residual by construction (on
         // eleven phantom recordings the corrected frames' residual hid all five frames above
@@ -543,46 +544,76 @@ impl<'c> Registrar<'c> {
         let t = Instant::now();
         let predicted_organ = correct.then(|| self.ctx.deformed_surface(&self.field));
         let predicted_ms = ms(t);
-        if correct {
+        let mut judged_confidence = None;
+        if let Some(predicted_organ) = &predicted_organ {
             let t = Instant::now();
             if self.corrector.is_none() {
                 let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
                 fit.use_subspace(self.settings.correction.basis_patches())?;
                 self.corrector = Some(fit);
             }
-            let carried = self.settings.correction.carry.then_some(&mut self.carried);
-            let c = self.corrector.as_mut().map(|c| c.correct(&world, &mut self.field, &self.settings.correction, carried)).transpose();
-            correction = c.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
+            let settings = self.settings.correction;
+            let doubted = settings.doubted();
+            let predicted_field = doubted.is_some().then(|| self.field.clone());
+            // The confidence of the prediction beside its correction (the two cores); a doubted
+            // prediction is then corrected again, from itself, as the FE fit.
+            let (rings, world_ref) = (&self.rings, &world);
+            let (corrector, field) = (self.corrector.as_mut().expect("built above"), &mut self.field);
+            let carried = settings.carry.then_some(&mut self.carried);
+            let ((c, conf_ms), corrected) = rayon::join(
+                || {
+                    let t = Instant::now();
+                    let coverage = super::confidence::frame_coverage(predicted_organ, world_ref);
+                    let c = frame_confidence(world_ref, predicted_organ, &self.ctx.surface, rings, coverage, reference.as_ref());
+                    (c, ms(t) + predicted_ms)
+                },
+                || corrector.correct(world_ref, field, &settings, carried),
+            );
+            let mut corrected = corrected;
+            match (doubted, predicted_field) {
+                (Some(d), Some(predicted)) if c.prediction_doubted => {
+                    // Carried over consecutive doubted frames (in the tracking form, over all).
+                    *field = predicted;
+                    corrected =
+                        corrector.correct(world_ref, field, &d, Some(&mut self.carried)).map(|r| CorrectionReport { doubted: true, ..r });
+                }
+                _ if !settings.carry => self.carried.clear(),
+                _ => {}
+            }
+            correction = Some(corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?);
             correction_ms = ms(t);
+            judged_confidence = Some((c, conf_ms));
         }
         self.prev_field.clone_from(&self.field);
         let t = Instant::now();
         let organ = self.ctx.deformed_surface(&self.field);
-        let judged = predicted_organ.as_ref().unwrap_or(&organ);
-        // The coverage of the frame, on the organ as the model predicted it.
-        let coverage = super::confidence::frame_coverage(judged, &world);
-        let surface_ms_deform = ms(t) + predicted_ms;
-        let reference = model.confidence_reference();
-        // The confidence figures and the overlay both read the surfaces only: side by side on
-        // the two cores (the network, which used both, is done).
-        let ((confidence, confidence_ms), (overlay, overlay_ms)) = rayon::join(
-            || {
-                let t = Instant::now();
-                let c = frame_confidence(&world, judged, &self.ctx.surface, &self.rings, coverage, reference.as_ref());
-                (c, ms(t) + surface_ms_deform)
-            },
-            || {
-                let t = Instant::now();
-                let overlay = self.settings.overlay.then(|| {
-                    let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
-                    let structures: Vec<_> =
-                        self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
-                    draw_overlay(&mut img, &organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
-                    img
-                });
-                (overlay, ms(t))
-            },
-        );
+        let organ_ms = ms(t);
+        let overlay_for = |organ: &crate::mesh::TriMesh| {
+            let t = Instant::now();
+            let overlay = self.settings.overlay.then(|| {
+                let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
+                let structures: Vec<_> =
+                    self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
+                draw_overlay(&mut img, organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
+                img
+            });
+            (overlay, ms(t))
+        };
+        let ((confidence, confidence_ms), (overlay, overlay_ms)) = match judged_confidence {
+            Some((c, c_ms)) => ((c, c_ms + organ_ms), overlay_for(&organ)),
+            // Without a correction the confidence judges the frame's surface, beside the overlay
+            // (both read the surfaces only; the network, which used both cores, is done).
+            None => rayon::join(
+                || {
+                    let t = Instant::now();
+                    let coverage = super::confidence::frame_coverage(&organ, &world);
+                    let c = frame_confidence(&world, &organ, &self.ctx.surface, &self.rings, coverage, reference.as_ref());
+                    (c, ms(t) + organ_ms)
+                },
+                || overlay_for(&organ),
+            ),
+        };
+        let coverage = confidence.surface_coverage;
         let (mut tre_mean, mut tre_max, mut tre_rigid, mut disp) = (None, None, None, None);
         if let (Some(truth), Some(rest), Some(tp)) = (truth, rest, true_pose) {
             let true_cam = rigid_inverse(tp);
@@ -756,6 +787,9 @@ pub struct Summary {
     pub last_marker_displacement_mm: Option<f64>,
     /// Frames whose confidence figures left the range seen in training.
     pub frames_with_warning: usize,
+    /// Frames whose prediction was doubted and corrected as the FE fit
+    /// (`CorrectionSettings::doubted`).
+    pub frames_corrected_as_fe: usize,
     /// The median of the frames' residual 95th percentiles (mm).
     pub residual_p95_median_mm: f64,
     /// The most any frame's ICP moved the cloud from the pose it started from (RMS, mm).
@@ -783,6 +817,7 @@ pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
         last_tre_rigid_mm: frames.last().and_then(|f| f.tre_rigid_mean_mm),
         last_marker_displacement_mm: frames.last().and_then(|f| f.marker_displacement_mean_mm),
         frames_with_warning: frames.iter().filter(|f| f.confidence.warning()).count(),
+        frames_corrected_as_fe: frames.iter().filter(|f| f.correction.is_some_and(|c| c.doubted)).count(),
         residual_p95_median_mm: {
             let mut r: Vec<f64> = frames.iter().map(|f| f.confidence.residual_p95_mm).collect();
             r.sort_by(f64::total_cmp);

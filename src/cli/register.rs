@@ -47,17 +47,19 @@ pub struct Args {
     /// per-frame work.
     #[arg(long)]
     pub fe_converged: bool,
-    /// Physics correction after each network prediction: FE fit updates per frame (0: off).
-    #[arg(long, default_value_t = CorrectionSettings::default().updates)]
-    pub correction_updates: usize,
-    /// Conjugate-gradient iterations per correction update at most.
-    #[arg(long, default_value_t = CorrectionSettings::default().cg_iterations)]
-    pub correction_cg: usize,
+    /// Physics correction after each network prediction: FE fit updates per frame (0: off;
+    /// default: the form's, 1 subspace, 2 tracking).
+    #[arg(long)]
+    pub correction_updates: Option<usize>,
+    /// Conjugate-gradient iterations per correction update at most (default: the form's, 6
+    /// subspace where they are not used, 10 tracking).
+    #[arg(long)]
+    pub correction_cg: Option<usize>,
     /// Solve each correction update in a basis of the organ's responses to smooth loads on this
     /// many patches of the seen surface (3 vectors each, built at the first frame) instead of
-    /// by conjugate gradients (0).
-    #[arg(long, default_value_t = CorrectionSettings::default().subspace_patches)]
-    pub correction_subspace: usize,
+    /// by conjugate gradients (0; default 64). The tracking form solves by CG.
+    #[arg(long)]
+    pub correction_subspace: Option<usize>,
     /// The correction's form: auto (the model folder's choice from its registration check,
     /// `correction.json`, see `umesh choose-correction`; subspace when it has none), subspace
     /// (each prediction corrected in a basis of smooth surface loads; within the phantom's
@@ -131,13 +133,14 @@ pub fn run(a: Args) -> Result<()> {
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
     let form = correction_form(&a.correction_form, &model_dir)?;
+    let base = form.settings();
     let correction = CorrectionSettings {
-        updates: a.correction_updates,
-        cg_iterations: a.correction_cg,
-        subspace_patches: a.correction_subspace,
+        updates: a.correction_updates.unwrap_or(base.updates),
+        cg_iterations: a.correction_cg.unwrap_or(base.cg_iterations),
+        subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
         doubted_updates: a.doubted_updates,
         doubted_cg_iterations: a.doubted_cg,
-        ..form.settings()
+        ..base
     };
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
     let (mut source, rec_pose, truth) = open_source(&a)?;

@@ -64,8 +64,8 @@ pub struct Args {
     /// `correction.json`, see `umesh choose-correction`; subspace when it has none), subspace
     /// (each prediction corrected in a basis of smooth surface loads; within the phantom's
     /// frame budget) or tracking (carried from frame to frame, its elastic energy from rest by
-    /// conjugate gradients: better on livers and loads the network fits poorly, 4-6 times the
-    /// correction's time; docs/REGISTRATION.md).
+    /// conjugate gradients, 2 updates of 10 iterations: better on livers and loads the network
+    /// fits poorly, 6-10 times the correction's time; docs/REGISTRATION.md).
     #[arg(long, default_value = "auto")]
     pub correction_form: String,
     /// On a frame whose prediction the confidence rule doubts (the observed points too far from

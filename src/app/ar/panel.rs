@@ -236,7 +236,7 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
         changed |= ui
             .checkbox(&mut ar.tracking, "tracking")
             .on_hover_text(
-                "The correction carried from frame to frame, its elastic energy from rest: better where the network is weak (a liver or loads it fits poorly), 4-6 times the correction's time",
+                "The correction carried from frame to frame, its elastic energy from rest: better where the network is weak (a liver or loads it fits poorly), 6-10 times the correction's time (2 updates of 10 CG iterations)",
             )
             .changed();
     });

@@ -251,7 +251,7 @@ impl<'c> SurfaceFit<'c> {
 }
 
 /// The correction's two forms: the subspace update from each prediction (`CorrectionSettings::
-/// default`, within the phantom's frame budget) and the tracking form (`tracking`, 4-6 times
+/// default`, within the phantom's frame budget) and the tracking form (`tracking`, 6-10 times
 /// its time, better where the network is weak).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]

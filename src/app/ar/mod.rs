@@ -460,6 +460,9 @@ pub struct Ar {
     pub correction: bool,
     /// ... in its tracking form (`CorrectionSettings::tracking`).
     pub tracking: bool,
+    /// A frame whose prediction the confidence rule doubts is not corrected as the FE fit
+    /// (`CorrectionSettings::doubted`, on by default): every frame within the correction's time.
+    pub keep_frame_time: bool,
     /// Where the camera pose comes from.
     pub pose: PosePolicy,
     pub generation: u64,

@@ -213,11 +213,12 @@ pub fn model_correction_form(model_dir: &std::path::Path, messages: &mut UiMessa
 
 /// The correction the panel's two boxes ask for.
 fn correction_settings(ar: &Ar) -> CorrectionSettings {
-    match (ar.correction, ar.tracking) {
+    let settings = match (ar.correction, ar.tracking) {
         (false, _) => CorrectionSettings::off(),
         (true, false) => CorrectionForm::Subspace.settings(),
         (true, true) => CorrectionForm::Tracking.settings(),
-    }
+    };
+    if ar.keep_frame_time { CorrectionSettings { doubted_updates: 0, ..settings } } else { settings }
 }
 
 /// What is drawn (observed points), the physics correction and recording the overlays.
@@ -237,6 +238,12 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
             .checkbox(&mut ar.tracking, "tracking")
             .on_hover_text(
                 "The correction carried from frame to frame, its elastic energy from rest: better where the network is weak (a liver or loads it fits poorly), 6-10 times the correction's time (2 updates of 10 CG iterations)",
+            )
+            .changed();
+        changed |= ui
+            .checkbox(&mut ar.keep_frame_time, "keep the frame time")
+            .on_hover_text(
+                "Do not correct a frame whose prediction the confidence check doubts as the FE fit (4 updates from rest, 0.3-0.9 s a frame): every frame within the correction's time, the doubted ones less accurate",
             )
             .changed();
     });

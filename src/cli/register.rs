@@ -142,6 +142,7 @@ pub fn run(a: Args) -> Result<()> {
         doubted_cg_iterations: a.doubted_cg,
         ..base
     };
+    correction.validate()?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
     let (mut source, rec_pose, truth) = open_source(&a)?;
     let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;

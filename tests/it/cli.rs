@@ -570,6 +570,11 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
     let (ok, _, err) = umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);
     assert!(!ok && err.contains("--pose") && err.contains("tracked"), "{err}");
+    // Absurd correction work: one error naming the option, before anything is built.
+    for (flag, value) in [("--doubted-updates", "500"), ("--correction-subspace", "5000")] {
+        let (ok, _, err) = umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);
+        assert!(!ok && err.contains(flag) && err.lines().count() == 1, "{flag} {value}: {err}");
+    }
     // A shorter recording written over this one replaces it whole: no frame of the old one left.
     let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--cloud-points", "50", "--out", r]);
     assert!(ok, "{err}");

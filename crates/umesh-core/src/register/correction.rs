@@ -80,8 +80,8 @@ impl CorrectionSettings {
 
     pub fn validate(&self) -> Result<(), crate::Invalid> {
         for (what, updates, cg) in [
-            ("correction", self.updates, self.cg_iterations),
-            ("correction of a doubted frame", self.doubted_updates, self.doubted_cg_iterations),
+            ("--correction-updates / --correction-cg: the correction", self.updates, self.cg_iterations),
+            ("--doubted-updates / --doubted-cg: the correction of a doubted frame", self.doubted_updates, self.doubted_cg_iterations),
         ] {
             if updates > 100 || (updates > 0 && !(1..=1000).contains(&cg)) {
                 return Err(crate::Invalid(format!(
@@ -90,7 +90,7 @@ impl CorrectionSettings {
             }
         }
         if self.subspace_patches > 1000 {
-            return Err(crate::Invalid(format!("correction: {} subspace patches (at most 1000)", self.subspace_patches)));
+            return Err(crate::Invalid(format!("--correction-subspace: {} subspace patches (at most 1000)", self.subspace_patches)));
         }
         Ok(())
     }

@@ -207,9 +207,8 @@ impl RegisterSettings {
             return Err(crate::Invalid(format!("--iterations {}: between 1 and 100", self.iterations)));
         }
         self.icp.validate()?;
-        self.correction
-            .validate()
-            .map_err(|e| crate::Invalid(format!("--correction-updates / --correction-cg / --correction-subspace: {e}")))
+        // Its messages name the options.
+        self.correction.validate()
     }
 
     /// The ICP the pose policy runs.

@@ -131,35 +131,46 @@ pub fn draw_overlay(
     k: &Intrinsics,
     alpha: f32,
 ) {
-    let n = k.width * k.height;
-    let mut zbuf = vec![f32::INFINITY; n];
-    let mut color = vec![[0u8; 3]; n];
-    let mut hit = vec![false; n];
     // The organ's silhouette (the larger job: it covers most of the image) beside the
     // structures; composed afterwards in the same order, so the image does not change.
-    let mut inside = vec![false; n];
-    rayon::join(
+    let (layer, inside) = rayon::join(
+        || structure_layer(structures, camera_from_world, k),
         || {
-            for (mesh, rgb) in structures {
-                rasterize(mesh, camera_from_world, k, &mut zbuf, |i, _, nrm| {
-                    let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
-                    color[i] = rgb.map(|c| (c as f32 * s).min(255.0) as u8);
-                    hit[i] = true;
-                });
-            }
+            let mut inside = vec![false; k.width * k.height];
+            rasterize_silhouette(organ, camera_from_world, k, &mut inside);
+            inside
         },
-        || rasterize_silhouette(organ, camera_from_world, k, &mut inside),
     );
-    for i in 0..n {
-        if hit[i] {
-            base.blend(i % k.width, i / k.width, color[i], alpha);
+    compose_overlay(base, &layer, &inside, k.width, alpha);
+}
+
+/// Each pixel's nearest structure, its colour shaded by the surface normal (None: no structure).
+pub fn structure_layer(structures: &[(TriMesh, [u8; 3])], camera_from_world: &Matrix4<f64>, k: &Intrinsics) -> Vec<Option<[u8; 3]>> {
+    let n = k.width * k.height;
+    let mut zbuf = vec![f32::INFINITY; n];
+    let mut color = vec![None; n];
+    for (mesh, rgb) in structures {
+        rasterize(mesh, camera_from_world, k, &mut zbuf, |i, _, nrm| {
+            let s = (0.45 + 0.55 * nrm.z.abs()) as f32;
+            color[i] = Some(rgb.map(|c| (c as f32 * s).min(255.0) as u8));
+        });
+    }
+    color
+}
+
+/// The structures' layer blended over `base`, then the outline of the organ's silhouette
+/// `inside` (both `width` pixels a row, as `base`).
+pub fn compose_overlay(base: &mut ColorImage, layer: &[Option<[u8; 3]>], inside: &[bool], width: usize, alpha: f32) {
+    for (i, c) in layer.iter().enumerate() {
+        if let Some(c) = c {
+            base.blend(i % width, i / width, *c, alpha);
         }
     }
-    // Organ silhouette -> its outline.
-    for v in 1..k.height.saturating_sub(1) {
-        for u in 1..k.width.saturating_sub(1) {
-            let i = v * k.width + u;
-            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - k.width] || !inside[i + k.width]) {
+    let height = inside.len() / width.max(1);
+    for v in 1..height.saturating_sub(1) {
+        for u in 1..width.saturating_sub(1) {
+            let i = v * width + u;
+            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - width] || !inside[i + width]) {
                 base.blend(u, v, [255, 255, 255], 0.9);
             }
         }

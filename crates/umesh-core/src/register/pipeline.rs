@@ -3,7 +3,7 @@
 use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
 use super::correction::{CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
-use super::overlay::{depth_preview, draw_overlay};
+use super::overlay::{compose_overlay, depth_preview, rasterize_silhouette, structure_layer};
 use super::{RegistrationContext, displacement_at};
 use crate::fem::MaterialParams;
 use crate::fem::solver::fit::{FitWork, PointFitReport, PointFitSettings};
@@ -540,11 +540,8 @@ impl<'c> Registrar<'c> {
         // on its validation views, and the correction shrinks the residual by construction (on
         // eleven phantom recordings the corrected frames' residual hid all five frames above
         // 2 mm; the prediction's flagged four, the fifth at 2.00 mm, and no other frame).
-        let t = Instant::now();
-        let predicted_organ = correct.then(|| self.ctx.deformed_surface(&self.field));
-        let predicted_ms = ms(t);
         let mut judged_confidence = None;
-        if let Some(predicted_organ) = &predicted_organ {
+        if correct {
             let t = Instant::now();
             if self.corrector.is_none() {
                 let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
@@ -552,25 +549,26 @@ impl<'c> Registrar<'c> {
                 self.corrector = Some(fit);
             }
             let settings = self.settings.correction;
-            let doubted = settings.doubted();
-            let predicted_field = doubted.is_some().then(|| self.field.clone());
-            // The confidence of the prediction beside its correction (the two cores); a doubted
-            // prediction is then corrected again, from itself, as the FE fit.
-            let (rings, world_ref) = (&self.rings, &world);
+            let predicted = self.field.clone();
+            // The confidence of the prediction (its organ deformed there too) beside its
+            // correction, on the two cores; a doubted prediction is then corrected again, from
+            // itself, as the FE fit.
+            let (ctx, rings, world_ref) = (self.ctx, &self.rings, &world);
             let (corrector, field) = (self.corrector.as_mut().expect("built above"), &mut self.field);
             let carried = settings.carry.then_some(&mut self.carried);
             let ((c, conf_ms), corrected) = rayon::join(
                 || {
                     let t = Instant::now();
-                    let coverage = super::confidence::frame_coverage(predicted_organ, world_ref);
-                    let c = frame_confidence(world_ref, predicted_organ, &self.ctx.surface, rings, coverage, reference.as_ref());
-                    (c, ms(t) + predicted_ms)
+                    let predicted_organ = ctx.deformed_surface(&predicted);
+                    let coverage = super::confidence::frame_coverage(&predicted_organ, world_ref);
+                    let c = frame_confidence(world_ref, &predicted_organ, &ctx.surface, rings, coverage, reference.as_ref());
+                    (c, ms(t))
                 },
                 || corrector.correct(world_ref, field, &settings, carried),
             );
             let mut corrected = corrected;
-            match (doubted, predicted_field) {
-                (Some(d), Some(predicted)) if c.prediction_doubted => {
+            match settings.doubted() {
+                Some(d) if c.prediction_doubted => {
                     // Carried over consecutive doubted frames (in the tracking form, over all).
                     *field = predicted;
                     corrected =
@@ -584,34 +582,50 @@ impl<'c> Registrar<'c> {
             judged_confidence = Some((c, conf_ms));
         }
         self.prev_field.clone_from(&self.field);
+        // The registered organ (its silhouette's outline, and without a correction the frame's
+        // confidence) on one core, the deformed structures' layer on the other.
         let t = Instant::now();
-        let organ = self.ctx.deformed_surface(&self.field);
-        let organ_ms = ms(t);
-        let overlay_for = |organ: &crate::mesh::TriMesh| {
-            let t = Instant::now();
-            let overlay = self.settings.overlay.then(|| {
+        let (ctx, field, draw) = (self.ctx, &self.field, self.settings.overlay);
+        let ((inside, judged), layer) = rayon::join(
+            || {
+                let t = Instant::now();
+                let organ = ctx.deformed_surface(field);
+                let organ_ms = ms(t);
+                rayon::join(
+                    || {
+                        draw.then(|| {
+                            let mut inside = vec![false; k.width * k.height];
+                            rasterize_silhouette(&organ, &camera_from_world, &k, &mut inside);
+                            inside
+                        })
+                    },
+                    || {
+                        judged_confidence.unwrap_or_else(|| {
+                            let t = Instant::now();
+                            let coverage = super::confidence::frame_coverage(&organ, &world);
+                            let c = frame_confidence(&world, &organ, &ctx.surface, &self.rings, coverage, reference.as_ref());
+                            (c, ms(t) + organ_ms)
+                        })
+                    },
+                )
+            },
+            || {
+                draw.then(|| {
+                    let structures: Vec<_> = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, field), s.color)).collect();
+                    structure_layer(&structures, &camera_from_world, &k)
+                })
+            },
+        );
+        let (confidence, confidence_ms) = judged;
+        let overlay = match (inside, layer) {
+            (Some(inside), Some(layer)) => {
                 let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
-                let structures: Vec<_> =
-                    self.ctx.structures.iter().map(|s| (self.ctx.deformed_structure(s, &self.field), s.color)).collect();
-                draw_overlay(&mut img, organ, &structures, &camera_from_world, &k, self.settings.overlay_alpha);
-                img
-            });
-            (overlay, ms(t))
+                compose_overlay(&mut img, &layer, &inside, k.width, self.settings.overlay_alpha);
+                Some(img)
+            }
+            _ => None,
         };
-        let ((confidence, confidence_ms), (overlay, overlay_ms)) = match judged_confidence {
-            Some((c, c_ms)) => ((c, c_ms + organ_ms), overlay_for(&organ)),
-            // Without a correction the confidence judges the frame's surface, beside the overlay
-            // (both read the surfaces only; the network, which used both cores, is done).
-            None => rayon::join(
-                || {
-                    let t = Instant::now();
-                    let coverage = super::confidence::frame_coverage(&organ, &world);
-                    let c = frame_confidence(&world, &organ, &self.ctx.surface, &self.rings, coverage, reference.as_ref());
-                    (c, ms(t) + organ_ms)
-                },
-                || overlay_for(&organ),
-            ),
-        };
+        let overlay_ms = if draw { ms(t) } else { 0.0 };
         let coverage = confidence.surface_coverage;
         let (mut tre_mean, mut tre_max, mut tre_rigid, mut disp) = (None, None, None, None);
         if let (Some(truth), Some(rest), Some(tp)) = (truth, rest, true_pose) {

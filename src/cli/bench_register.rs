@@ -2,8 +2,9 @@
 //! organ. For each family, one recording with the model's own material (SVK) and one with a
 //! Neo-Hookean truth (ν 0.47), each pressed to about `--motion-mm` of mean marker motion (a
 //! two-frame probe sets the load), 1 mm noise and 6 holes; each registered by the network
-//! alone and with the model's correction (its check's choice, else the subspace form). The
-//! recordings are kept and reused: a second run only registers.
+//! alone and with the model's correction (its check's choice, else the subspace form), the
+//! overlay drawn each frame as at surgery. The recordings are kept and reused: a second run
+//! only registers.
 
 use super::input::{InputArgs, ModelOnOrgan, model_on_organ};
 use anyhow::{Context, Result, bail};
@@ -214,7 +215,8 @@ fn register(
     net: &mut umesh_net::inference::Predictor,
     correction: CorrectionSettings,
 ) -> Result<RegisterReport> {
-    let settings = RegisterSettings { overlay: false, correction, ..Default::default() };
+    // The overlay is drawn (not written), so that the frame time is the one at surgery.
+    let settings = RegisterSettings { overlay: true, correction, ..Default::default() };
     let (pb, progress) = super::output::progress_bar(&format!("registering {}", dir.display()));
     let r = umesh_workflow::patient::register_recording(dir, ctx, net, &settings, &progress, &super::output::cancel());
     pb.finish_and_clear();

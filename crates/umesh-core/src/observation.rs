@@ -281,6 +281,8 @@ const TANGENTIAL_MM: f64 = 3.0;
 /// searched in shells: a query near a point stops after 27 cells of band/2, an eighth of the
 /// volume of the 27 band-wide cells it scanned before (the physics correction's closest-sample
 /// search was a quarter of its time).
+const MAX_BUCKETS: f64 = (1 << 20) as f64;
+
 #[derive(Default)]
 pub(crate) struct Buckets {
     origin: Vector3<f64>,
@@ -296,8 +298,10 @@ impl Buckets {
     pub(crate) fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
         // The lattice's box grown by the band: points beyond cannot be nearest to a node.
         self.origin = lattice_origin - Vector3::repeat(band);
-        self.size = 0.5 * band;
         let extent = Vector3::new(shape[0] as f64, shape[1] as f64, shape[2] as f64) * h + Vector3::repeat(2.0 * band);
+        // Cells of half the band, but at most about MAX_BUCKETS of them (a small band on a
+        // large organ): the shell search finds the same nearest point with any cell size.
+        self.size = (0.5 * band).max((extent.x * extent.y * extent.z / MAX_BUCKETS).cbrt());
         self.dims = [0, 1, 2].map(|a| ((extent[a] / self.size).ceil() as usize).max(1));
         let n = self.dims.iter().product::<usize>();
         let key = |p: &Vector3<f64>| -> Option<usize> {
@@ -556,11 +560,20 @@ mod tests {
             })
             .collect();
         points.extend(points[..50].to_vec());
-        for band in [2.0, 5.0, 10.0] {
+        // 0.05 mm on an 80 mm lattice: cells far larger than half the band (about 2^20 of them at most).
+        for (band, h) in [(2.0, 4.0), (5.0, 4.0), (10.0, 4.0), (0.05, 4.0)] {
             let mut b = Buckets::default();
-            assert_eq!(b.fill(&points, Vector3::zeros(), band, [20, 20, 20], 4.0), points.len());
-            for _ in 0..2000 {
-                let q = Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0);
+            assert_eq!(b.fill(&points, Vector3::zeros(), band, [20, 20, 20], h), points.len());
+            // Each axis rounds its count up: a few per cent over.
+            assert!(b.start.len() <= (1 << 20) * 11 / 10, "{} cells for a {band} mm band", b.start.len());
+            for k in 0..2000 {
+                // Anywhere in the box, or near a point (within the band).
+                let q = if k % 2 == 0 {
+                    Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0)
+                } else {
+                    let p = points[(r(1.0) * points.len() as f64) as usize % points.len()];
+                    p + Vector3::new(r(band) - 0.5 * band, r(band) - 0.5 * band, r(band) - 0.5 * band) * 0.5
+                };
                 let brute =
                     points.iter().enumerate().map(|(i, p)| ((p - q).norm_squared(), i)).filter(|(d2, _)| *d2 <= band * band).min_by(
                         |a, b| {

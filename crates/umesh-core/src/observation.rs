@@ -277,12 +277,12 @@ impl Observer {
 /// `nearest`: an offset whose tangential part exceeds this plus its normal part is ignored (mm).
 const TANGENTIAL_MM: f64 = 3.0;
 
+const MAX_BUCKETS: f64 = (1 << 20) as f64;
+
 /// Points bucketed on a uniform grid of cells half the `band` wide, for nearest-point queries
 /// searched in shells: a query near a point stops after 27 cells of band/2, an eighth of the
 /// volume of the 27 band-wide cells it scanned before (the physics correction's closest-sample
 /// search was a quarter of its time).
-const MAX_BUCKETS: f64 = (1 << 20) as f64;
-
 #[derive(Default)]
 pub(crate) struct Buckets {
     origin: Vector3<f64>,
@@ -346,6 +346,8 @@ impl Buckets {
         }
         let l = (x - self.origin) / self.size;
         let c = [l.x.floor() as i64, l.y.floor() as i64, l.z.floor() as i64];
+        // Queries use the band the buckets were filled with (2 shells) or less; 64 bounds a
+        // query's work should one ask for far more.
         let reach = (band / self.size).ceil().clamp(1.0, 64.0) as i64;
         let mut best: Option<(f64, usize, Vector3<f64>)> = None;
         let visit = |i: i64, j: i64, k: i64, best: &mut Option<(f64, usize, Vector3<f64>)>| {

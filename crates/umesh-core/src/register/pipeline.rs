@@ -587,27 +587,31 @@ impl<'c> Registrar<'c> {
         let t = Instant::now();
         let (ctx, field, draw) = (self.ctx, &self.field, self.settings.overlay);
         let ((inside, judged), layer) = rayon::join(
-            || {
-                let t = Instant::now();
-                let organ = ctx.deformed_surface(field);
-                let organ_ms = ms(t);
-                rayon::join(
-                    || {
-                        draw.then(|| {
-                            let mut inside = vec![false; k.width * k.height];
-                            rasterize_silhouette(&organ, &camera_from_world, &k, &mut inside);
-                            inside
-                        })
-                    },
-                    || {
-                        judged_confidence.unwrap_or_else(|| {
-                            let t = Instant::now();
-                            let coverage = super::confidence::frame_coverage(&organ, &world);
-                            let c = frame_confidence(&world, &organ, &ctx.surface, &self.rings, coverage, reference.as_ref());
-                            (c, ms(t) + organ_ms)
-                        })
-                    },
-                )
+            || match judged_confidence {
+                // Neither an outline to draw nor a confidence to judge: no organ needed.
+                Some(judged) if !draw => (None, judged),
+                judged => {
+                    let t = Instant::now();
+                    let organ = ctx.deformed_surface(field);
+                    let organ_ms = ms(t);
+                    rayon::join(
+                        || {
+                            draw.then(|| {
+                                let mut inside = vec![false; k.width * k.height];
+                                rasterize_silhouette(&organ, &camera_from_world, &k, &mut inside);
+                                inside
+                            })
+                        },
+                        || {
+                            judged.unwrap_or_else(|| {
+                                let t = Instant::now();
+                                let coverage = super::confidence::frame_coverage(&organ, &world);
+                                let c = frame_confidence(&world, &organ, &ctx.surface, &self.rings, coverage, reference.as_ref());
+                                (c, ms(t) + organ_ms)
+                            })
+                        },
+                    )
+                }
             },
             || {
                 draw.then(|| {

@@ -292,6 +292,8 @@ pub(crate) struct Buckets {
     points: Vec<Vector3<f64>>,
     /// Index of each bucketed point in the filled slice.
     index: Vec<u32>,
+    /// The points of the filled slice the box left out (non-finite or beyond the band).
+    outside: Vec<u32>,
 }
 
 impl Buckets {
@@ -312,29 +314,100 @@ impl Buckets {
             let (i, j, k) = (l.x as usize, l.y as usize, l.z as usize);
             (i < self.dims[0] && j < self.dims[1] && k < self.dims[2]).then(|| (i * self.dims[1] + j) * self.dims[2] + k)
         };
-        let mut counts = vec![0u32; n + 1];
-        let keys: Vec<Option<usize>> = points.iter().map(key).collect();
-        for b in keys.iter().flatten() {
-            counts[*b + 1] += 1;
+        // A counting sort: counts, their running sums as each cell's end, then each point
+        // placed by counting down from its cell's end, which leaves the starts.
+        let keys: Vec<u32> = points.iter().map(|p| key(p).map_or(u32::MAX, |b| b as u32)).collect();
+        let mut start = std::mem::take(&mut self.start);
+        start.clear();
+        start.resize(n + 1, 0);
+        for &b in keys.iter().filter(|&&b| b != u32::MAX) {
+            start[b as usize + 1] += 1;
         }
         for b in 0..n {
-            counts[b + 1] += counts[b];
+            start[b + 1] += start[b];
         }
-        self.start = counts.clone();
-        let used = counts[n] as usize;
+        let used = start[n] as usize;
+        self.outside.clear();
+        self.outside.extend(keys.iter().enumerate().filter(|(_, b)| **b == u32::MAX).map(|(i, _)| i as u32));
         self.points.clear();
         self.points.resize(used, Vector3::zeros());
         self.index.clear();
         self.index.resize(used, 0);
-        let mut fill = counts;
-        for (i, (p, b)) in points.iter().zip(&keys).enumerate() {
-            if let Some(b) = b {
-                self.points[fill[*b] as usize] = *p;
-                self.index[fill[*b] as usize] = i as u32;
-                fill[*b] += 1;
+        for (i, (p, &b)) in points.iter().zip(&keys).enumerate().rev() {
+            if b != u32::MAX {
+                let end = &mut start[b as usize + 1];
+                *end -= 1;
+                self.points[*end as usize] = *p;
+                self.index[*end as usize] = i as u32;
             }
         }
+        // Each cell's end counted down to its start; shift back so start[b]..start[b + 1] is b.
+        for b in 0..n {
+            start[b] = start[b + 1];
+        }
+        start[n] = used as u32;
+        self.start = start;
         used
+    }
+
+    /// Whether a fill would bucket `p` (inside the grown lattice's box, finite).
+    pub(crate) fn holds(&self, p: &Vector3<f64>) -> bool {
+        let l = (p - self.origin) / self.size;
+        self.size > 0.0 && (0..3).all(|a| l[a].is_finite() && l[a] >= 0.0 && (l[a] as usize) < self.dims[a])
+    }
+
+    /// The nearest point within `band` of `x` once the bucketed points have moved to `now`
+    /// (indexed as filled) by at most `moved` each, given that one of them is now within
+    /// `reach` of `x` and inside the box (`band` when none is known): the same point as
+    /// `nearest` on buckets filled with `now`, without the fill. The nearest is now within `reach`, so it was
+    /// within `reach + moved` when filled: only the buckets that far are looked at.
+    pub(crate) fn nearest_moved(&self, x: &Vector3<f64>, now: &[Vector3<f64>], reach: f64, moved: f64, band: f64) -> Option<usize> {
+        // A micrometre's slack for the rounding of the positions keeps every candidate.
+        let r = reach.min(band) + moved + 1e-3;
+        if !(self.size > 0.0 && r.is_finite() && x.iter().all(|v| v.is_finite())) {
+            return None;
+        }
+        let range = |a: usize| {
+            let lo = ((x[a] - r - self.origin[a]) / self.size).floor().max(0.0) as usize;
+            let hi = ((x[a] + r - self.origin[a]) / self.size).floor();
+            (lo, if hi < 0.0 { None } else { Some((hi as usize).min(self.dims[a] - 1)) })
+        };
+        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
+        let mut consider = |idx: usize| {
+            let q = now[idx];
+            let d2 = (q - x).norm_squared();
+            // A fresh fill would not hold a point moved out of the box.
+            if d2 > band * band || !self.holds(&q) {
+                return;
+            }
+            // `nearest`'s order: distance, then coordinates, then index.
+            let better = match best {
+                None => true,
+                Some((bd, bi, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z, idx) < (bq.x, bq.y, bq.z, bi)),
+            };
+            if better {
+                best = Some((d2, idx, q));
+            }
+        };
+        if let [(i0, Some(i1)), (j0, Some(j1)), (k0, Some(k1))] = [range(0), range(1), range(2)] {
+            for i in i0..=i1 {
+                for j in j0..=j1 {
+                    let row = (i * self.dims[1] + j) * self.dims[2];
+                    for b in row + k0..=row + k1 {
+                        for s in self.start[b] as usize..self.start[b + 1] as usize {
+                            if (self.points[s] - x).norm_squared() <= r * r {
+                                consider(self.index[s] as usize);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // Those the box left out may have moved in.
+        for &idx in &self.outside {
+            consider(idx as usize);
+        }
+        best.map(|(_, i, _)| i)
     }
 
     /// The nearest bucketed point within `band` of `x`: its index in the filled slice and
@@ -588,6 +661,50 @@ mod tests {
                     );
                 let got = b.nearest(&q, band).map(|(i, _)| i);
                 assert_eq!(got, brute.map(|(_, i)| i), "band {band} mm, query {q:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn buckets_find_after_a_move_the_same_nearest_point_as_buckets_filled_anew() {
+        let mut rng = crate::phantom::SplitMix64(11);
+        let mut r = |s: f64| s * rng.next_f64();
+        let mut filled: Vec<Vector3<f64>> = (0..4000)
+            .map(|_| {
+                let (z, a) = (r(2.0) - 1.0, r(std::f64::consts::TAU));
+                let s = (1.0 - z * z).sqrt();
+                Vector3::new(40.0 + 30.0 * s * a.cos(), 40.0 + 30.0 * s * a.sin(), 40.0 + 30.0 * z)
+            })
+            .collect();
+        filled.extend(filled[..50].to_vec());
+        let band = 10.0;
+        // Moves small and large against the band, some points crossing the box's side.
+        for moved in [0.3, 2.0, 8.0] {
+            let mut now: Vec<Vector3<f64>> =
+                filled.iter().map(|p| p + Vector3::new(r(2.0) - 1.0, r(2.0) - 1.0, r(2.0) - 1.0).normalize() * r(moved)).collect();
+            // The duplicates moved alike (ties by index after the move).
+            for i in 0..50 {
+                now[4000 + i] = now[i];
+            }
+            // The box ends at x = 50 + 10 mm: the sphere (x up to 70) reaches beyond it.
+            let shape = [10, 20, 20];
+            let mut old = Buckets::default();
+            old.fill(&filled, Vector3::zeros(), band, shape, 4.0);
+            let mut fresh = Buckets::default();
+            fresh.fill(&now, Vector3::zeros(), band, shape, 4.0);
+            let left = now.iter().zip(&filled).filter(|(n, f)| old.holds(f) != old.holds(n)).count();
+            assert!(moved < 1.0 || left > 0, "no point crossed the box's side at {moved} mm");
+            for k in 0..2000 {
+                let q = if k % 2 == 0 {
+                    Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0)
+                } else {
+                    now[(r(1.0) * now.len() as f64) as usize % now.len()] + Vector3::new(r(4.0) - 2.0, r(4.0) - 2.0, r(4.0) - 2.0)
+                };
+                // A known point's distance bounds the nearest's, as the previous match does.
+                let known = now[(r(1.0) * now.len() as f64) as usize % now.len()];
+                let reach = if k % 3 == 0 || !fresh.holds(&known) { band } else { (known - q).norm() };
+                let expect = fresh.nearest(&q, band).map(|(i, _)| i);
+                assert_eq!(old.nearest_moved(&q, &now, reach, moved, band), expect, "moved {moved} mm, query {q:?}");
             }
         }
     }

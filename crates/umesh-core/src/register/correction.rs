@@ -54,7 +54,7 @@ fn default_doubted_cg() -> usize {
 impl Default for CorrectionSettings {
     fn default() -> Self {
         Self {
-            updates: 1,
+            updates: 2,
             cg_iterations: 6,
             subspace_patches: 64,
             carry: false,

@@ -722,13 +722,13 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     let fe_last = run(&mut fe, CorrectionSettings::off());
     assert!(fe_last.tre_mean_mm.unwrap() < 0.4 * rigid_tre, "FE fit {:?} against rigid {rigid_tre:.2}", fe_last.tre_mean_mm);
     // The correction after a prediction of no deformation, each frame from rest: the default
-    // work recovers part of the motion, and reports what it moved (measured: 6.76 of 9.12 mm;
-    // a network's prediction starts it much nearer).
+    // work recovers part of the motion, and reports what it moved (measured on the last frame:
+    // 7.39 of 11.97 mm in the subspace, 7.12 by CG; a network's prediction starts it much nearer).
     // Both ways of solving its update: in the surface-load subspace (the default) and by CG.
     for correction in [CorrectionSettings::default(), CorrectionSettings { subspace_patches: 0, ..Default::default() }] {
         let corrected = run(&mut RigidModel, correction);
         let c = corrected.correction.expect("the correction ran");
-        assert!(c.moved_rms_mm > 0.5 && c.fit.updates == 1, "{c:?}");
+        assert!(c.moved_rms_mm > 0.5 && c.fit.updates == correction.updates, "{c:?}");
         // The confidence judges the model's prediction (what its reference range measured), not
         // the corrected surface, whose residual the correction shrinks by construction: the same
         // figures as without the correction (same points: the pose is fixed after frame 0),
@@ -748,10 +748,10 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
             corrected.tre_mean_mm
         );
     }
-    // The correction carried from frame to frame with its energy from rest: the same single
-    // update a frame accumulates over the sequence, as the FE fit alone does, where each
-    // frame's correction starts again from its prediction (measured: 5.94 mm carried against
-    // 6.76 each frame alone, over the three deformed frames of this recording; tolerance 0.4 mm).
+    // The correction carried from frame to frame with its energy from rest: the same
+    // updates a frame accumulate over the sequence, as the FE fit alone does, where each
+    // frame's correction starts again from its prediction (measured: 6.38 mm carried against
+    // 7.07 each frame alone, on the last frame of this recording; tolerance 0.4 mm).
     // With a prediction of no deformation, from rest and from the prediction are the same.
     let from_rest = CorrectionSettings { from_rest: true, subspace_patches: 0, ..Default::default() };
     let alone = run(&mut RigidModel, from_rest).tre_mean_mm.unwrap();
@@ -763,7 +763,7 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     // A prediction the confidence rule doubts (a reference of right views whose points lay
     // within 0.3 mm of their predictions: every deformed frame of no deformation is beyond it)
     // is corrected as the FE fit, from rest, carried, 4 updates: nearer the converged fit than
-    // the one update of the default correction (measured: 2.52 mm against 7.83, the converged
+    // the two updates of the default correction (measured: 2.52 mm against 7.39, the converged
     // fit 1.94; tolerance: half the gap).
     let mut doubting = DoubtingRigid(ConfidenceReference {
         residual_p95_mm: 0.3,

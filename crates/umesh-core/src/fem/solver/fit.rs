@@ -122,6 +122,13 @@ pub struct PointFit<'g> {
     buckets: Buckets,
     /// When set, each update solves in this basis instead of by conjugate gradients.
     subspace: Option<Subspace>,
+    /// The free dofs of the nodes the samples hang on (node, axis, free index): all an update
+    /// between two searches needs to move.
+    sample_dofs: Vec<(u32, u8, u32)>,
+    /// Per free dof: its place in `sample_dofs` (NONE: not a sample's).
+    sample_slot: Vec<u32>,
+    /// The basis's columns of `sample_dofs` (m x sample dofs), gathered once.
+    sample_basis: Option<Mat<f32>>,
 }
 
 /// A basis of the displacements an update may make: the organ's response to smooth loads on
@@ -208,7 +215,33 @@ impl<'g> PointFit<'g> {
         solver.fact.factorize(&solver.asm, false, solver.settings.parallelism.par())?;
         // Only ever a preconditioner: single precision halves every triangular solve.
         solver.fact.factorize32(&solver.asm, solver.settings.parallelism.par());
-        Ok(Self { solver, samples, rest_mm, normals, k_n_per_mm, settings, buckets: Buckets::default(), subspace: None })
+        let free = &solver.asm.dofs.free_of;
+        let mut on_sample = vec![false; grid.node_count()];
+        samples.iter().flat_map(|e| e.nodes).for_each(|n| on_sample[n as usize] = true);
+        let mut sample_slot = vec![NONE; solver.asm.dofs.n_free];
+        let mut sample_dofs = Vec::new();
+        for (n, _) in on_sample.iter().enumerate().filter(|(_, on)| **on) {
+            for c in 0..3 {
+                let f = free[3 * n + c];
+                if f != NONE {
+                    sample_slot[f as usize] = sample_dofs.len() as u32;
+                    sample_dofs.push((n as u32, c as u8, f));
+                }
+            }
+        }
+        Ok(Self {
+            solver,
+            samples,
+            rest_mm,
+            normals,
+            k_n_per_mm,
+            settings,
+            buckets: Buckets::default(),
+            subspace: None,
+            sample_dofs,
+            sample_slot,
+            sample_basis: None,
+        })
     }
 
     pub fn samples(&self) -> usize {
@@ -240,7 +273,7 @@ impl<'g> PointFit<'g> {
     }
 
     fn deformed(&self, u: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
-        self.samples.iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate(e, u)).collect()
+        self.samples.par_iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate(e, u)).collect()
     }
 
     /// Move `u` (the previous frame's displacement in, this frame's out) toward `points_mm`:
@@ -422,7 +455,7 @@ impl<'g> PointFit<'g> {
     /// and one stiffness product per basis vector, once.
     pub fn use_subspace(&mut self, patches: usize) -> Result<(), FemError> {
         if patches == 0 {
-            self.subspace = None;
+            self.set_basis(None);
             return Ok(());
         }
         if patches > 1000 {
@@ -507,8 +540,15 @@ impl<'g> PointFit<'g> {
             }
         }
         let phit = Mat::from_fn(m, nf, |i, j| columns[i][j] as f32);
-        self.subspace = Some(Subspace { phit, k_r });
+        self.set_basis(Some(Subspace { phit, k_r }));
         Ok(())
+    }
+
+    fn set_basis(&mut self, subspace: Option<Subspace>) {
+        self.sample_basis = subspace
+            .as_ref()
+            .map(|sub| Mat::from_fn(sub.phit.nrows(), self.sample_dofs.len(), |i, k| sub.phit[(i, self.sample_dofs[k].2 as usize)]));
+        self.subspace = subspace;
     }
 
     /// The subspace in use, to hand to another fit of the same grid, samples and material.
@@ -525,7 +565,7 @@ impl<'g> PointFit<'g> {
                 self.solver.asm.dofs.n_free
             )));
         }
-        self.subspace = Some(subspace);
+        self.set_basis(Some(subspace));
         Ok(())
     }
 
@@ -551,6 +591,7 @@ impl<'g> PointFit<'g> {
         freeze: bool,
     ) -> PointFitReport {
         use faer::linalg::solvers::Solve;
+        let Some(basis_s) = self.sample_basis.take() else { return PointFitReport::default() };
         let grid = self.solver.grid;
         let band = self.settings.band_mm;
         let ns = self.samples.len();
@@ -564,11 +605,18 @@ impl<'g> PointFit<'g> {
         let mut report = PointFitReport::default();
         let mut q_sum = Mat::<f64>::zeros(m, 1);
         let mut nearest: Vec<u32> = Vec::new();
-        let mut pos = self.deformed(u);
+        // Between updates only the samples' nodes move (the basis's sample rows); the whole
+        // grid takes the sum of the steps once, at the end.
+        let u_start = u.to_vec();
+        let mut filled = Vec::new();
         for it in 0..updates {
             let t = Instant::now();
-            if it == 0 || !freeze {
-                nearest = nearest_samples(&mut self.buckets, grid, &pos, points_mm, band);
+            if it == 0 {
+                filled = self.deformed(u);
+                nearest = nearest_samples(&mut self.buckets, grid, &filled, points_mm, band);
+            } else if !freeze {
+                let now = self.deformed(u);
+                nearest = self.nearest_moved(points_mm, &nearest, &filled, &now);
             }
             let (acc, count) = pulls(ns, points_mm, &nearest);
             let matched: Vec<usize> = (0..ns).filter(|&s| count[s] > 0).collect();
@@ -576,75 +624,134 @@ impl<'g> PointFit<'g> {
             report.samples_matched = matched.len();
             report.search_ms += ms(t);
             if matched.is_empty() {
-                return report;
+                break;
             }
-            // Each matched sample's normal, turned by its cell's rotation in `u`.
+            // Each matched sample's normal, turned by its cell's rotation in `u` (one polar
+            // decomposition per cell: neighbouring samples share cells).
             let t = Instant::now();
-            let normals: Vec<Vector3<f64>> = matched
+            let mut cells: Vec<u32> = matched.iter().map(|&s| self.samples[s].cell).collect();
+            cells.sort_unstable();
+            cells.dedup();
+            let rotations: Vec<Matrix3<f64>> = cells
                 .par_iter()
+                .map(|&c| {
+                    let ue: [Vector3<f64>; 8] = grid.cells[c as usize].nodes.map(|n| u[n as usize]);
+                    crate::fem::assembly::rotation_of(&crate::fem::element::deformation_gradient(&ue, &g0))
+                })
+                .collect();
+            let normals: Vec<Vector3<f64>> = matched
+                .iter()
                 .map(|&s| {
-                    let e = &self.samples[s];
-                    let ue: [Vector3<f64>; 8] = e.nodes.map(|n| u[n as usize]);
-                    let f = crate::fem::element::deformation_gradient(&ue, &g0);
-                    (crate::fem::assembly::rotation_of(&f) * self.normals[s]).normalize()
+                    let c = cells.binary_search(&self.samples[s].cell).unwrap_or(0);
+                    (rotations[c] * self.normals[s]).normalize()
                 })
                 .collect();
             report.assembly_ms += ms(t);
             let t = Instant::now();
             // G (m x matched, column-major: one sample's column after another, built in
             // parallel) and the distances along the normals.
-            let mut g_data = vec![0.0; m * matched.len()];
+            // Single precision, as the basis: G G^T is the update's largest product.
+            let mut g_data = vec![0.0f32; m * matched.len()];
             g_data.par_chunks_mut(m).zip(matched.par_iter().zip(&normals)).for_each(|(col, (&s, n))| {
                 let e = &self.samples[s];
                 for k in 0..8 {
                     for c in 0..3 {
                         let f = free[3 * e.nodes[k] as usize + c];
-                        let coef = sk * e.weights[k] * n[c];
+                        let coef = (sk * e.weights[k] * n[c]) as f32;
                         if f != NONE
                             && coef != 0.0
-                            && let Some(basis) = sub.phit.col(f as usize).try_as_col_major()
+                            && let Some(basis) = basis_s.col(self.sample_slot[f as usize] as usize).try_as_col_major()
                         {
                             for (o, b) in col.iter_mut().zip(basis.as_slice()) {
-                                *o += coef * *b as f64;
+                                *o += coef * *b;
                             }
                         }
                     }
                 }
             });
             let g = faer::MatRef::from_column_major_slice(&g_data, m, matched.len());
-            let rho = Mat::<f64>::from_fn(matched.len(), 1, |j, _| {
-                sk * normals[j].dot(&(pos[matched[j]] - acc[matched[j]] / count[matched[j]] as f64))
+            let rho = Mat::<f32>::from_fn(matched.len(), 1, |j, _| {
+                let s = matched[j];
+                let x = self.rest_mm[s] + interpolate(&self.samples[s], u);
+                (sk * normals[j].dot(&(x - acc[s] / count[s] as f64))) as f32
             });
             // The lower triangle only: the Cholesky factorisation reads no more.
-            let mut a_r = sub.k_r.clone();
+            let mut ggt = Mat::<f32>::zeros(m, m);
             {
                 use faer::linalg::matmul::triangular::{BlockStructure, matmul};
                 let rect = BlockStructure::Rectangular;
-                matmul(a_r.as_mut(), BlockStructure::TriangularLower, faer::Accum::Add, g, rect, g.transpose(), rect, 1.0, par);
+                matmul(ggt.as_mut(), BlockStructure::TriangularLower, faer::Accum::Replace, g, rect, g.transpose(), rect, 1.0, par);
             }
-            let mut b_r = Mat::<f64>::zeros(m, 1);
-            faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Replace, g, rho.as_ref(), -1.0, par);
+            let a_r = Mat::<f64>::from_fn(m, m, |i, j| if i >= j { sub.k_r[(i, j)] + ggt[(i, j)] as f64 } else { 0.0 });
+            let mut grho = Mat::<f32>::zeros(m, 1);
+            faer::linalg::matmul::matmul(grho.as_mut(), faer::Accum::Replace, g, rho.as_ref(), -1.0, par);
+            let mut b_r = Mat::<f64>::from_fn(m, 1, |i, _| grho[(i, 0)] as f64);
             faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Add, sub.k_r.as_ref(), q_sum.as_ref(), -1.0, par);
             let Ok(llt) = a_r.llt(faer::Side::Lower) else { break };
             let q = llt.solve(&b_r);
+            q_sum += &q;
+            report.updates += 1;
+            if it + 1 < updates {
+                let mut du = Mat::<f32>::zeros(self.sample_dofs.len(), 1);
+                let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q[(i, 0)] as f32);
+                faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, basis_s.transpose(), q32.as_ref(), 1.0, par);
+                for (k, &(n, c, _)) in self.sample_dofs.iter().enumerate() {
+                    u[n as usize][c as usize] += du[(k, 0)] as f64;
+                }
+            }
+            report.solve_ms += ms(t);
+        }
+        let t = Instant::now();
+        if report.updates > 0 {
             let mut du = Mat::<f32>::zeros(nf, 1);
-            let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q[(i, 0)] as f32);
+            let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q_sum[(i, 0)] as f32);
             faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q32.as_ref(), 1.0, par);
-            for (nd, un) in u.iter_mut().enumerate() {
+            for (nd, (un, u0)) in u.iter_mut().zip(&u_start).enumerate() {
                 for c in 0..3 {
                     let f = free[3 * nd + c];
                     if f != NONE {
-                        un[c] += du[(f as usize, 0)] as f64;
+                        un[c] = u0[c] + du[(f as usize, 0)] as f64;
                     }
                 }
             }
-            q_sum += &q;
-            report.updates += 1;
-            report.solve_ms += ms(t);
-            pos = self.deformed(u);
         }
-        report.rms_mm = matched_rms(&pos, points_mm, &nearest);
+        report.solve_ms += ms(t);
+        let moved: Vec<(usize, Vector3<f64>)> = nearest
+            .iter()
+            .filter(|&&s| s != u32::MAX)
+            .map(|&s| (s as usize, self.rest_mm[s as usize] + interpolate(&self.samples[s as usize], u)))
+            .collect();
+        report.rms_mm = if moved.is_empty() {
+            0.0
+        } else {
+            let sq: f64 = moved
+                .iter()
+                .zip(points_mm.iter().zip(&nearest).filter(|(_, s)| **s != u32::MAX))
+                .map(|((_, x), (p, _))| (x - p).norm_squared())
+                .sum();
+            (sq / moved.len() as f64).sqrt()
+        };
+        self.sample_basis = Some(basis_s);
         report
+    }
+
+    /// The nearest sample within the band of each point after the samples moved from where the
+    /// buckets hold them (`filled`) to `now`, searched from each point's previous nearest
+    /// (`Buckets::nearest_moved`): the same samples as a search of freshly filled buckets.
+    fn nearest_moved(&self, points_mm: &[Vector3<f64>], previous: &[u32], filled: &[Vector3<f64>], now: &[Vector3<f64>]) -> Vec<u32> {
+        let band = self.settings.band_mm;
+        let moved = filled.iter().zip(now).map(|(a, b)| (a - b).norm_squared()).fold(0.0, f64::max).sqrt();
+        points_mm
+            .par_iter()
+            .zip(previous)
+            .map(|(p, &s0)| {
+                let reach = match now.get(s0 as usize) {
+                    Some(x) if self.buckets.holds(x) => (x - p).norm(),
+                    _ => band,
+                };
+                self.buckets.nearest_moved(p, now, reach, moved, band).map_or(u32::MAX, |s| s as u32)
+            })
+            .collect()
     }
 
     /// CG on A = K_corot + k sum over matched samples of W^T M W (M the spring's metric), with K_corot the cells' rest

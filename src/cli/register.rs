@@ -48,7 +48,7 @@ pub struct Args {
     #[arg(long)]
     pub fe_converged: bool,
     /// Physics correction after each network prediction: FE fit updates per frame (0: off;
-    /// default: the form's, 1 subspace, 2 tracking).
+    /// default: the form's, 2 subspace, 2 tracking).
     #[arg(long)]
     pub correction_updates: Option<usize>,
     /// Conjugate-gradient iterations per correction update at most (default: the form's, 6

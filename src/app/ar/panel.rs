@@ -230,7 +230,7 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     let mut changed = ui
         .checkbox(&mut ar.correction, "physics correction")
         .on_hover_text(
-            "After the network, one FE fit update pulls the prediction onto the observed points (about 8 ms a frame on the phantom); a frame whose prediction the confidence check doubts is corrected as the FE fit instead (4 updates from rest, carried: hundreds of ms)",
+            "After the network, two FE fit updates pull the prediction onto the observed points (about 8 ms a frame on the phantom); a frame whose prediction the confidence check doubts is corrected as the FE fit instead (4 updates from rest, carried: hundreds of ms)",
         )
         .changed();
     ui.add_enabled_ui(ar.correction, |ui| {

@@ -622,11 +622,9 @@ fn segment_line_distance(a: &Vector3<f64>, b: &Vector3<f64>, e: &Vector3<f64>, p
 mod tests {
     use super::*;
 
-    #[test]
-    fn buckets_find_the_same_nearest_point_within_the_band_as_a_brute_force_search() {
-        let mut rng = crate::phantom::SplitMix64(7);
-        let mut r = |s: f64| s * rng.next_f64();
-        // A sphere's surface sampled about every 1-2 mm, with exact duplicates (ties by index).
+    /// A sphere's surface (radius 30 mm about (40, 40, 40)) sampled about every 1-2 mm, with
+    /// exact duplicates of the first 50 at the end (ties by index).
+    fn sphere_points(r: &mut impl FnMut(f64) -> f64) -> Vec<Vector3<f64>> {
         let mut points: Vec<Vector3<f64>> = (0..4000)
             .map(|_| {
                 let (z, a) = (r(2.0) - 1.0, r(std::f64::consts::TAU));
@@ -635,6 +633,14 @@ mod tests {
             })
             .collect();
         points.extend(points[..50].to_vec());
+        points
+    }
+
+    #[test]
+    fn buckets_find_the_same_nearest_point_within_the_band_as_a_brute_force_search() {
+        let mut rng = crate::phantom::SplitMix64(7);
+        let mut r = |s: f64| s * rng.next_f64();
+        let points = sphere_points(&mut r);
         // 0.05 mm on an 80 mm lattice: cells far larger than half the band (about 2^20 of them at most).
         for (band, h) in [(2.0, 4.0), (5.0, 4.0), (10.0, 4.0), (0.05, 4.0)] {
             let mut b = Buckets::default();
@@ -669,14 +675,7 @@ mod tests {
     fn buckets_find_after_a_move_the_same_nearest_point_as_buckets_filled_anew() {
         let mut rng = crate::phantom::SplitMix64(11);
         let mut r = |s: f64| s * rng.next_f64();
-        let mut filled: Vec<Vector3<f64>> = (0..4000)
-            .map(|_| {
-                let (z, a) = (r(2.0) - 1.0, r(std::f64::consts::TAU));
-                let s = (1.0 - z * z).sqrt();
-                Vector3::new(40.0 + 30.0 * s * a.cos(), 40.0 + 30.0 * s * a.sin(), 40.0 + 30.0 * z)
-            })
-            .collect();
-        filled.extend(filled[..50].to_vec());
+        let filled = sphere_points(&mut r);
         let band = 10.0;
         // Moves small and large against the band, some points crossing the box's side.
         for moved in [0.3, 2.0, 8.0] {

@@ -306,17 +306,9 @@ impl Buckets {
         self.size = (0.5 * band).max((extent.x * extent.y * extent.z / MAX_BUCKETS).cbrt());
         self.dims = [0, 1, 2].map(|a| ((extent[a] / self.size).ceil() as usize).max(1));
         let n = self.dims.iter().product::<usize>();
-        let key = |p: &Vector3<f64>| -> Option<usize> {
-            let l = (p - self.origin) / self.size;
-            if !(l.iter().all(|v| v.is_finite() && *v >= 0.0)) {
-                return None;
-            }
-            let (i, j, k) = (l.x as usize, l.y as usize, l.z as usize);
-            (i < self.dims[0] && j < self.dims[1] && k < self.dims[2]).then(|| (i * self.dims[1] + j) * self.dims[2] + k)
-        };
         // A counting sort: counts, their running sums as each cell's end, then each point
         // placed by counting down from its cell's end, which leaves the starts.
-        let keys: Vec<u32> = points.iter().map(|p| key(p).map_or(u32::MAX, |b| b as u32)).collect();
+        let keys: Vec<u32> = points.iter().map(|p| self.cell_of(p).map_or(u32::MAX, |b| b as u32)).collect();
         let mut start = std::mem::take(&mut self.start);
         start.clear();
         start.resize(n + 1, 0);
@@ -350,17 +342,27 @@ impl Buckets {
         used
     }
 
-    /// Whether a fill would bucket `p` (inside the grown lattice's box, finite).
-    pub(crate) fn holds(&self, p: &Vector3<f64>) -> bool {
+    /// The bucket of `p`; None outside the grown lattice's box or not finite.
+    fn cell_of(&self, p: &Vector3<f64>) -> Option<usize> {
         let l = (p - self.origin) / self.size;
-        self.size > 0.0 && (0..3).all(|a| l[a].is_finite() && l[a] >= 0.0 && (l[a] as usize) < self.dims[a])
+        if !(l.iter().all(|v| v.is_finite() && *v >= 0.0)) {
+            return None;
+        }
+        let (i, j, k) = (l.x as usize, l.y as usize, l.z as usize);
+        (i < self.dims[0] && j < self.dims[1] && k < self.dims[2]).then(|| (i * self.dims[1] + j) * self.dims[2] + k)
+    }
+
+    /// Whether a fill would bucket `p`.
+    pub(crate) fn holds(&self, p: &Vector3<f64>) -> bool {
+        self.cell_of(p).is_some()
     }
 
     /// The nearest point within `band` of `x` once the bucketed points have moved to `now`
     /// (indexed as filled) by at most `moved` each, given that one of them is now within
     /// `reach` of `x` and inside the box (`band` when none is known): the same point as
-    /// `nearest` on buckets filled with `now`, without the fill. The nearest is now within `reach`, so it was
-    /// within `reach + moved` when filled: only the buckets that far are looked at.
+    /// `nearest` on buckets filled with `now`, without the fill. The nearest is now within
+    /// `reach`, so it was within `reach + moved` when filled: only the buckets that far are
+    /// looked at.
     pub(crate) fn nearest_moved(&self, x: &Vector3<f64>, now: &[Vector3<f64>], reach: f64, moved: f64, band: f64) -> Option<usize> {
         // A micrometre's slack for the rounding of the positions keeps every candidate.
         let r = reach.min(band) + moved + 1e-3;

@@ -445,7 +445,7 @@ impl<'g> PointFit<'g> {
         // The distance left between each matched point and its sample after the update (the
         // last update's correspondences: a fresh search would cost another bucket fill).
         let t = Instant::now();
-        report.rms_mm = matched_rms(&self.deformed(u), points_mm, &nearest);
+        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate(&self.samples[s], u), points_mm, &nearest);
         report.search_ms += ms(t);
         Ok(report)
     }
@@ -716,21 +716,7 @@ impl<'g> PointFit<'g> {
             }
         }
         report.solve_ms += ms(t);
-        let moved: Vec<(usize, Vector3<f64>)> = nearest
-            .iter()
-            .filter(|&&s| s != u32::MAX)
-            .map(|&s| (s as usize, self.rest_mm[s as usize] + interpolate(&self.samples[s as usize], u)))
-            .collect();
-        report.rms_mm = if moved.is_empty() {
-            0.0
-        } else {
-            let sq: f64 = moved
-                .iter()
-                .zip(points_mm.iter().zip(&nearest).filter(|(_, s)| **s != u32::MAX))
-                .map(|((_, x), (p, _))| (x - p).norm_squared())
-                .sum();
-            (sq / moved.len() as f64).sqrt()
-        };
+        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate(&self.samples[s], u), points_mm, &nearest);
         self.sample_basis = Some(basis_s);
         report
     }
@@ -912,11 +898,11 @@ fn pulls(ns: usize, points_mm: &[Vector3<f64>], nearest: &[u32]) -> (Vec<Vector3
 }
 
 /// RMS distance of the matched points to their samples (mm).
-fn matched_rms(pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], nearest: &[u32]) -> f64 {
+fn matched_rms(position: impl Fn(usize) -> Vector3<f64>, points_mm: &[Vector3<f64>], nearest: &[u32]) -> f64 {
     let (mut sq, mut n) = (0.0, 0usize);
     for (p, &s) in points_mm.iter().zip(nearest) {
         if s != u32::MAX {
-            sq += (pos[s as usize] - p).norm_squared();
+            sq += (position(s as usize) - p).norm_squared();
             n += 1;
         }
     }

@@ -230,8 +230,14 @@ fn update_preview(mut setup: ResMut<ObservationSetup>, organ: Res<Organ>, grid: 
     setup.task = Some((key, AsyncComputeTaskPool::get().spawn(async move { compute(data, gen_, g, vis) })));
 }
 
-/// The frustum (to just past the organ) and the fixed nodes.
-fn draw_preview(setup: Res<ObservationSetup>, organ: Res<Organ>, mut gizmos: Gizmos) {
+/// The frustum (to just past the organ; thin lines the UI paints over the view) and the fixed
+/// nodes.
+fn draw_preview(
+    setup: Res<ObservationSetup>,
+    organ: Res<Organ>,
+    mut gizmos: Gizmos,
+    mut lines: ResMut<crate::app::shell::view3d::OverlayLines>,
+) {
     let (true, Some(p), Some(d)) = (setup.show, &setup.preview, &organ.data) else { return };
     if p.organ_generation != organ.generation {
         return;
@@ -251,9 +257,10 @@ fn draw_preview(setup: Res<ObservationSetup>, organ: Res<Organ>, mut gizmos: Giz
         .map(|(a, b)| bevy_from_world(&(eye + f * depth + r * (a * half) + u * (b * half))))
         .collect();
     let e = bevy_from_world(&eye);
+    let line = egui::Color32::from_rgb(255, 217, 51);
     for k in 0..4 {
-        gizmos.line(e, corners[k], colour);
-        gizmos.line(corners[k], corners[(k + 1) % 4], colour);
+        lines.0.push((e, corners[k], line));
+        lines.0.push((corners[k], corners[(k + 1) % 4], line));
     }
     gizmos.sphere(Isometry3d::from_translation(e), 4.0 * UNITS_PER_MM, colour);
     let blue = Color::srgb(0.25, 0.45, 1.0);

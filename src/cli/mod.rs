@@ -3,6 +3,7 @@
 pub mod bench;
 mod bench_register;
 mod bench_sweep;
+mod camera;
 mod choose_correction;
 pub mod dataset;
 mod demo;

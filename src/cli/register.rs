@@ -8,9 +8,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
-use umesh_core::register::pipeline::{FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, run_register};
+use umesh_core::register::pipeline::{
+    FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, choose_pose, run_register,
+};
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
-use umesh_core::rgbd::stream::{FrameSource, RecordingSource, TcpSource};
+use umesh_core::rgbd::stream::{FrameSource, Peeked, RecordingSource, TcpSource};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -22,7 +24,8 @@ pub struct Args {
     /// A patient folder from `umesh prepare`: its segmentation and model.
     #[arg(long, conflicts_with = "seg")]
     pub patient: Option<PathBuf>,
-    /// Recorded RGB-D folder (color/, depth/, intrinsics JSON; see the README).
+    /// Recorded RGB-D folder (color/, depth/, intrinsics JSON; docs/REGISTRATION.md), or a
+    /// RealSense recording (.db3, .bag), imported first as `umesh rgbd import` does.
     #[arg(long, conflicts_with = "source")]
     pub recording: Option<PathBuf>,
     /// Live source: a TCP camera bridge "host:port" speaking umesh's frame protocol.
@@ -36,6 +39,11 @@ pub struct Args {
     /// --pose tracked).
     #[arg(long)]
     pub initial_pose: Option<PathBuf>,
+    /// True marker positions (ground_truth.json of a synthetic recording; default: the
+    /// recording folder's), for the TRE of a recording that does not carry them (a RealSense
+    /// file made from a synthetic recording, say).
+    #[arg(long, conflicts_with = "source")]
+    pub ground_truth: Option<PathBuf>,
     /// Overlay PNGs and report.json go here.
     #[arg(long)]
     pub out: PathBuf,
@@ -80,10 +88,11 @@ pub struct Args {
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
-    /// Where the camera pose comes from: tracked (keep the recording's or stream's pose, refined
-    /// on the first frame by a trimmed ICP within --pose-bound-mm), icp-first (full ICP on the
-    /// first frame) or icp-every-frame.
-    #[arg(long, default_value = "icp-first")]
+    /// Where the camera pose comes from: auto (tracked when the recording or stream carries a
+    /// tracked pose for every frame, else icp-first), tracked (keep the recording's or
+    /// stream's pose, refined on the first frame by a trimmed ICP within --pose-bound-mm),
+    /// icp-first (full ICP on the first frame) or icp-every-frame.
+    #[arg(long, default_value = "auto")]
     pub pose: String,
     /// With --pose tracked: the refinement moves the cloud by at most this much (RMS, mm).
     #[arg(long, default_value_t = RegisterSettings::default().pose_bound_mm)]
@@ -107,21 +116,52 @@ pub struct Args {
     pub json: bool,
 }
 
-fn open_source(a: &Args) -> Result<(Box<dyn FrameSource>, Option<Matrix4<f64>>, Option<GroundTruth>)> {
-    match (&a.recording, &a.source) {
+/// A frame source, its initial pose, its ground truth, and whether it tracks the camera on
+/// every frame (`choose_pose`).
+struct Opened {
+    source: Box<dyn FrameSource>,
+    pose: Option<Matrix4<f64>>,
+    truth: Option<GroundTruth>,
+    tracked: bool,
+}
+
+fn open_source(a: &Args, recording: Option<&Path>) -> Result<Opened> {
+    match (recording, &a.source) {
         (Some(dir), None) => {
             let rec = Recording::open(dir, a.intrinsics.as_deref())?;
             for w in &rec.warnings {
                 eprintln!("warning: {w}");
             }
             let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied());
-            let gt_path = dir.join("ground_truth.json");
-            let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
-            Ok((Box::new(RecordingSource::new(rec)), pose, truth))
+            let gt_path = a.ground_truth.clone().unwrap_or_else(|| dir.join("ground_truth.json"));
+            let truth = if a.ground_truth.is_some() || gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
+            let tracked = rec.tracks_every_frame();
+            Ok(Opened { source: Box::new(RecordingSource::new(rec)), pose, truth, tracked })
         }
-        (None, Some(addr)) => Ok((Box::new(TcpSource::connect(addr, Duration::from_secs(5))?), None, None)),
+        (None, Some(addr)) => {
+            // The first frame says whether the stream carries a tracked pose.
+            let s = Peeked::new(Box::new(TcpSource::connect(addr, Duration::from_secs(5))?), Duration::from_secs(10));
+            let tracked = s.first().is_some_and(|f| f.world_from_camera.is_some());
+            Ok(Opened { source: Box::new(s), pose: None, truth: None, tracked })
+        }
         _ => bail!("give --recording DIR or --source HOST:PORT"),
     }
+}
+
+/// A RealSense recording file (.db3, .bag) is imported into a folder beside --out, removed
+/// when the command ends.
+struct Imported(Option<PathBuf>);
+
+impl Drop for Imported {
+    fn drop(&mut self) {
+        if let Some(d) = &self.0 {
+            let _ = std::fs::remove_dir_all(d);
+        }
+    }
+}
+
+fn is_realsense_file(p: &Path) -> bool {
+    p.is_file() && p.extension().is_some_and(|e| e.eq_ignore_ascii_case("db3") || e.eq_ignore_ascii_case("bag"))
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -144,8 +184,23 @@ pub fn run(a: Args) -> Result<()> {
     };
     correction.validate()?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
-    let (mut source, rec_pose, truth) = open_source(&a)?;
-    let pose_policy = PosePolicy::parse(&a.pose).context("--pose")?;
+    let requested = match a.pose.as_str() {
+        "auto" => None,
+        p => Some(PosePolicy::parse(p).context("--pose (or auto)")?),
+    };
+    let imported = match &a.recording {
+        Some(f) if is_realsense_file(f) => {
+            let name = a.out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+            let dir = a.out.with_file_name(format!(".{name}.import-{}", std::process::id()));
+            let r = super::camera::import_to(f, &dir).with_context(|| format!("--recording {}", f.display()))?;
+            eprintln!("imported {} frames of {} ({} dropped by the camera)", r.frames, f.display(), r.dropped);
+            Imported(Some(dir))
+        }
+        _ => Imported(None),
+    };
+    let recording = imported.0.as_deref().or(a.recording.as_deref());
+    let Opened { mut source, pose: rec_pose, truth, tracked } = open_source(&a, recording)?;
+    let (pose_policy, pose_reason) = choose_pose(requested, tracked);
     let pose = match (&a.initial_pose, rec_pose) {
         (Some(p), _) => Some(*read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?),
         (None, Some(p)) => Some(p),
@@ -171,10 +226,12 @@ pub fn run(a: Args) -> Result<()> {
     // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
     let staged = umesh_core::StagedDir::new(&a.out, &["report.json"]).with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
-    let report = register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
+    let mut report =
+        register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
+    report.pose_reason = pose_reason;
     let fe_report = if a.compare_fe {
-        let Some(recording) = &a.recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
-        let (mut src, _, _) = open_source(&Args { recording: Some(recording.clone()), source: None, ..a.clone() })?;
+        let Some(recording) = recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
+        let mut src = open_source(&Args { source: None, ..a.clone() }, Some(recording))?.source;
         let mut fe = FeDisplacementModel::new(&ctx, config.material)?;
         if a.fe_converged {
             fe = fe.converged(0.01, 60);
@@ -186,7 +243,8 @@ pub fn run(a: Args) -> Result<()> {
     let summary = |r: &RegisterReport| {
         let s = &r.summary;
         serde_json::json!({
-            "model": r.model, "pose": r.pose.name(), "pose_moved_max_mm": s.pose_moved_max_mm, "frames": s.frames, "skipped": s.skipped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
+            "model": r.model, "pose": r.pose.name(), "pose_reason": r.pose_reason, "pose_moved_max_mm": s.pose_moved_max_mm, "frames": s.frames, "skipped": s.skipped, "dropped": s.dropped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
+            "end_to_end_ms_median": s.end_to_end_ms_median,
             "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
             "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
             "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
@@ -267,8 +325,18 @@ pub fn run(a: Args) -> Result<()> {
                 }
             );
         }
-        if let Some(m) = report.summary.pose_moved_max_mm {
-            println!("pose: {} (ICP moved the organ points by at most {m:.2} mm RMS)", report.pose);
+        match report.summary.pose_moved_max_mm {
+            Some(m) => println!("pose: {} (ICP moved the organ points by at most {m:.2} mm RMS)", report.pose_reason),
+            None => println!("pose: {}", report.pose_reason),
+        }
+        if report.summary.dropped > 0 {
+            println!(
+                "{} frames dropped by the source (the camera's gaps, or frames arriving while one was registered)",
+                report.summary.dropped
+            );
+        }
+        if let Some(e) = report.summary.end_to_end_ms_median {
+            println!("end-to-end latency (camera bridge to overlay): {e:.1} ms median");
         }
         println!("overlays and report.json in {}", a.out.display());
     }

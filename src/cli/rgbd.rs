@@ -1,5 +1,6 @@
-//! `umesh rgbd synth` (synthetic recordings with ground truth) and `umesh rgbd serve`
-//! (stream a recording over the TCP frame protocol, as a camera bridge would).
+//! `umesh rgbd synth` (synthetic recordings with ground truth), `umesh rgbd serve` (stream a
+//! recording folder over the TCP frame protocol, as a camera bridge would), and the RealSense
+//! commands `import` and `realsense` (in `camera.rs`).
 
 use super::input::{InputArgs, LoadInput, bundled_model, model_dataset_config};
 use anyhow::{Context, Result};
@@ -21,6 +22,12 @@ enum Sub {
     Synth(Box<SynthArgs>),
     /// Serve a recording's frames on a TCP port in umesh's stream protocol.
     Serve(ServeArgs),
+    /// Turn a RealSense recording (.db3, .bag) into a recording folder: depth aligned to
+    /// colour, the device's intrinsics and depth units, frame numbers and timestamps.
+    Import(super::camera::ImportArgs),
+    /// Serve a connected RealSense camera (or a RealSense recording) on a TCP port in umesh's
+    /// stream protocol, depth aligned to colour, with a tracked pose from a file or a tracker.
+    Realsense(super::camera::RealSenseArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -117,6 +124,8 @@ pub fn run(a: Args) -> Result<()> {
     match a.command {
         Sub::Synth(s) => synth(*s),
         Sub::Serve(s) => serve(s),
+        Sub::Import(s) => super::camera::import(s),
+        Sub::Realsense(s) => super::camera::realsense(s),
     }
 }
 

@@ -535,8 +535,10 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
         let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
         (json(&stdout), report)
     };
-    let (v, report) = register("tracked");
-    assert_eq!(v["pose"], "tracked");
+    // No --pose: the recording's trajectory holds a pose for every frame, so it is followed.
+    let (v, report) = register("auto");
+    assert_eq!(v["pose"], "tracked", "{v}");
+    assert!(v["pose_reason"].as_str().unwrap().contains("every frame"), "{v}");
     assert_eq!((v["frames"].as_u64(), v["skipped"].as_u64()), (Some(6), Some(0)), "every frame registered: {v}");
     for f in report["frames"].as_array().unwrap() {
         assert_eq!(f["observed_points"], 500, "the cloud is used whole: {}", f["observed_points"]);
@@ -551,7 +553,7 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     // The output folder is replaced whole or not at all: a run that registers no frame (the
     // organ outside the depth range) leaves the last run's folder as it was, stray file and
     // all; a run that succeeds replaces it, stray file gone.
-    let out = tmp("tracked-clouds-tracked");
+    let out = tmp("tracked-clouds-auto");
     let before = std::fs::read(out.join("report.json")).unwrap();
     std::fs::write(out.join("stray.txt"), "an earlier run's file").unwrap();
     let o = out.to_str().unwrap();
@@ -559,13 +561,13 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     assert!(!ok && err.contains("no frame could be registered"), "{err}");
     assert_eq!(std::fs::read(out.join("report.json")).unwrap(), before);
     assert!(out.join("stray.txt").is_file());
-    register("tracked");
+    register("auto");
     assert!(!out.join("stray.txt").exists(), "a stale file survived the new run");
     let parent = out.parent().unwrap();
     let leftovers: Vec<_> = std::fs::read_dir(parent)
         .unwrap()
         .flatten()
-        .filter(|e| e.file_name().to_string_lossy().contains("tracked-clouds-tracked.staging"))
+        .filter(|e| e.file_name().to_string_lossy().contains("tracked-clouds-auto.staging"))
         .collect();
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
     let (ok, _, err) = umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);

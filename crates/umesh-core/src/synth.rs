@@ -570,6 +570,8 @@ pub fn run_rgbd_synth(
             mask: Some(mask),
             world_from_camera: Some(poses[f]),
             points: None,
+            device_frame: None,
+            host_time_s: None,
         };
         if settings.cloud_points > 0 {
             write_cloud_frame(out, &format!("{f:05}"), &frame, settings.cloud_points, &mut rng)?;

@@ -1,5 +1,5 @@
-//! The AR view's engine: a worker thread owns the source (a recording or a live TCP
-//! stream), the network and the registrar, and sends overlay frames back; the UI sends it
+//! The AR view's engine: a worker thread owns the source (a recording, a RealSense camera or
+//! recording through the bridge, or a live TCP stream), the network and the registrar, and sends overlay frames back; the UI sends it
 //! play / pause / step / seek / ICP / pose commands. The UI thread never waits for it.
 
 pub mod panel;
@@ -15,10 +15,11 @@ use std::time::{Duration, Instant};
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::CorrectionSettings;
-use umesh_core::register::pipeline::{FrameReport, GroundTruth, PosePolicy, RegisterSettings, Registrar};
+use umesh_core::register::pipeline::{FrameReport, GroundTruth, PosePolicy, RegisterSettings, Registrar, choose_pose};
+use umesh_core::rgbd::realsense::{RealSenseRequest, RealSenseSource};
 use umesh_core::rgbd::recording::Recording;
 use umesh_core::rgbd::segment::segment_frame;
-use umesh_core::rgbd::stream::{FrameSource, Poll, TcpSource};
+use umesh_core::rgbd::stream::{FrameSource, Peeked, Poll, TcpSource};
 use umesh_core::rgbd::{ColorImage, Frame};
 use umesh_core::segmentation::Segmentation;
 
@@ -26,6 +27,8 @@ use umesh_core::segmentation::Segmentation;
 pub enum ArSource {
     Recording(PathBuf),
     Tcp(String),
+    /// A RealSense camera, or a RealSense recording played at its own rate, through the bridge.
+    RealSense(RealSenseRequest),
 }
 
 #[derive(Clone, Debug)]
@@ -44,8 +47,9 @@ pub enum ArCommand {
     ShowPoints(bool),
     /// The physics correction after each prediction (`CorrectionSettings::off()`: none).
     Correction(CorrectionSettings),
-    /// Where the camera pose comes from; the alignment restarts with it.
-    Pose(PosePolicy),
+    /// Where the camera pose comes from (None: as the source carries it, `choose_pose`); the
+    /// alignment restarts with it.
+    Pose(Option<PosePolicy>),
     Stop,
 }
 
@@ -54,6 +58,9 @@ pub struct ArFrame {
     pub image: ColorImage,
     pub report: FrameReport,
     pub received: Instant,
+    /// Frames the live source dropped so far (the camera's gaps, frames arriving while one
+    /// was registered).
+    pub dropped: u64,
 }
 
 /// Wakes the UI's event loop from another thread.
@@ -75,7 +82,14 @@ impl EventSender {
 }
 
 pub enum ArEvent {
-    Opened { label: String, frames: Option<usize>, fps: f64, truth: bool },
+    Opened {
+        label: String,
+        frames: Option<usize>,
+        fps: f64,
+        truth: bool,
+    },
+    /// The pose policy in use and why (`choose_pose`).
+    Pose(PosePolicy, String),
     Frame(Box<ArFrame>),
     Log(String),
     Ended(String),
@@ -121,7 +135,7 @@ impl Drop for ArSession {
 
 enum Src {
     Recording(std::sync::Arc<Recording>, usize),
-    Live(TcpSource),
+    Live(Box<dyn FrameSource>),
 }
 
 fn pose_with_offset(base: &Matrix4<f64>, t_mm: [f64; 3], r_deg: [f64; 3]) -> Matrix4<f64> {
@@ -157,7 +171,12 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("the model {} does not fit {}", am.dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, seg)?;
-    let (mut src, base_pose, truth, label, fps) = open_source(&source, &ctx, &log)?;
+    if !matches!(source, ArSource::Recording(_)) {
+        // The correction's subspace before a live source opens (as `umesh register` does): the
+        // frames arriving while it is built would be dropped.
+        umesh_core::register::correction::prepare_correction(&ctx, CorrectionSettings::default().basis_patches())?;
+    }
+    let (mut src, base_pose, truth, label, fps, tracked) = open_source(&source, &ctx, &log)?;
     let frames = match &src {
         Src::Recording(r, _) => Some(r.len()),
         Src::Live(_) => None,
@@ -165,6 +184,9 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
     let settings = RegisterSettings { overlay: true, ..Default::default() };
     let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
+    let (pose, why) = choose_pose(None, tracked);
+    reg.settings.pose = pose;
+    let _ = tx.send(ArEvent::Pose(pose, why));
     let true_pose = truth.as_ref().map(|g| g.pose());
     let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
     let mut state = Playback { playing: false, record: None, show_points: true, next_due: Instant::now(), want: Some(0), last_index: None };
@@ -180,6 +202,13 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
         };
         match cmd {
             Ok(ArCommand::Stop) | Err(Some(TryRecvError::Disconnected)) => return Ok(()),
+            Ok(ArCommand::Pose(p)) => {
+                let (pose, why) = choose_pose(p, tracked);
+                reg.settings.pose = pose;
+                reg.reset(reg.world_from_camera);
+                state.want = state.last_index;
+                let _ = tx.send(ArEvent::Pose(pose, why));
+            }
             Ok(c) => state.apply(c, &mut reg, &src, &base_pose, &log)?,
             Err(_) => {}
         }
@@ -191,6 +220,9 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 if !state.playing {
                     None
                 } else {
+                    for l in s.take_log() {
+                        log(l);
+                    }
                     match s.poll(Duration::from_millis(100)) {
                         Poll::Frame(f) => Some(*f),
                         Poll::Pending => None,
@@ -233,11 +265,16 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                     }
                 }
                 let report = out.report;
+                let dropped = match &src {
+                    Src::Live(s) => s.dropped(),
+                    Src::Recording(..) => 0,
+                };
                 let _ = tx.send(ArEvent::Frame(Box::new(ArFrame {
                     index: state.last_index.unwrap_or(index),
                     image,
                     report,
                     received: Instant::now(),
+                    dropped,
                 })));
             }
             Err(e) => log(format!("frame {index} skipped: {e:#}")),
@@ -245,13 +282,32 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     }
 }
 
+/// A live source, its first frame read ahead: whether it carries a tracked pose, and a
+/// source that fails at once (no library, no camera, a bad file) fails here with its reason.
+fn open_live(s: Box<dyn FrameSource>, what: &str, log: &dyn Fn(String)) -> anyhow::Result<(Src, bool)> {
+    let mut p = Peeked::new(s, Duration::from_secs(15));
+    for l in p.take_log() {
+        log(l);
+    }
+    if p.first().is_none() {
+        match p.poll(Duration::ZERO) {
+            Poll::Ended(Some(reason)) => anyhow::bail!("{what}: {reason}"),
+            Poll::Ended(None) => anyhow::bail!("{what}: the source ended before its first frame"),
+            _ => anyhow::bail!("{what}: no frame in 15 s"),
+        }
+    }
+    let tracked = p.first().is_some_and(|f| f.world_from_camera.is_some());
+    Ok((Src::Live(Box::new(p)), tracked))
+}
+
 /// Open the frames' source: a recording (its first tracked pose, ground truth if any, frame
-/// rate) or a live stream (starting from the training camera).
+/// rate) or a live one (starting from the training camera unless its frames carry a pose);
+/// and whether it tracks the camera on every frame (`choose_pose`).
 fn open_source(
     source: &ArSource,
     ctx: &RegistrationContext,
     log: &dyn Fn(String),
-) -> anyhow::Result<(Src, Matrix4<f64>, Option<GroundTruth>, String, f64)> {
+) -> anyhow::Result<(Src, Matrix4<f64>, Option<GroundTruth>, String, f64, bool)> {
     Ok(match &source {
         ArSource::Recording(dir) => {
             let rec = Recording::open(dir, None)?;
@@ -268,12 +324,20 @@ fn open_source(
             let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
             // The recording's rate from its timestamps (30 fps when they are missing).
             let fps = rec_fps(&rec).unwrap_or(30.0);
-            (Src::Recording(std::sync::Arc::new(rec), 0), pose, truth, dir.display().to_string(), fps)
+            let tracked = rec.tracks_every_frame();
+            (Src::Recording(std::sync::Arc::new(rec), 0), pose, truth, dir.display().to_string(), fps, tracked)
         }
         ArSource::Tcp(addr) => {
             let s = TcpSource::connect(addr, Duration::from_secs(5)).with_context(|| addr.to_string())?;
-            // A live camera has no recorded pose: start from the phantom's training camera.
-            (Src::Live(s), default_pose(ctx), None, format!("tcp://{addr}"), 30.0)
+            let (src, tracked) = open_live(Box::new(s), &format!("tcp://{addr}"), log)?;
+            // Without a pose in its frames, start from the phantom's training camera.
+            (src, default_pose(ctx), None, format!("tcp://{addr}"), 30.0, tracked)
+        }
+        ArSource::RealSense(req) => {
+            let req = RealSenseRequest { realtime: true, ..req.clone() };
+            let s = RealSenseSource::open(&req)?;
+            let (src, tracked) = open_live(Box::new(s), &req.describe(), log)?;
+            (src, default_pose(ctx), None, req.describe(), req.fps as f64, tracked)
         }
     })
 }
@@ -340,11 +404,8 @@ impl Playback {
                 reg.set_correction(c);
                 self.want = self.last_index;
             }
-            ArCommand::Pose(p) => {
-                reg.settings.pose = p;
-                reg.reset(reg.world_from_camera);
-                self.want = self.last_index;
-            }
+            // Resolved by the worker, which knows the source.
+            ArCommand::Pose(_) => {}
         }
         Ok(())
     }
@@ -463,8 +524,12 @@ pub struct Ar {
     /// A frame whose prediction the confidence rule doubts is not corrected as the FE fit
     /// (`CorrectionSettings::doubted`, on by default): every frame within the correction's time.
     pub keep_frame_time: bool,
-    /// Where the camera pose comes from.
-    pub pose: PosePolicy,
+    /// Where the camera pose comes from (None: as the source carries it).
+    pub pose: Option<PosePolicy>,
+    /// The policy in use and why, as the worker resolved it.
+    pub pose_in_use: Option<(PosePolicy, String)>,
+    /// The RealSense part of the source choice (`panel::camera_ui`).
+    pub camera: CameraChoice,
     pub generation: u64,
 }
 
@@ -489,6 +554,10 @@ fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<crate::app::state::UiMessage
                 ar.frames = frames;
                 ar.fps = fps;
                 ar.has_truth = truth;
+            }
+            ArEvent::Pose(p, why) => {
+                ar.log.push(format!("pose: {why}"));
+                ar.pose_in_use = Some((p, why));
             }
             ArEvent::Frame(f) => {
                 if let Some(prev) = &ar.last {
@@ -520,6 +589,39 @@ fn poll_ar(mut ar: ResMut<Ar>, mut messages: ResMut<crate::app::state::UiMessage
                 messages.error(format!("AR: {e:#}"));
                 break;
             }
+        }
+    }
+}
+
+/// The RealSense cameras found (listed on a helper thread: the bridge takes about a second),
+/// the one chosen, and a recording file to play.
+#[derive(Default)]
+pub struct CameraChoice {
+    pub devices: Option<Result<Vec<umesh_core::rgbd::realsense::DeviceInfo>, String>>,
+    pub listing: Option<std::sync::Mutex<Receiver<Result<Vec<umesh_core::rgbd::realsense::DeviceInfo>, String>>>>,
+    pub chosen: usize,
+    pub width: usize,
+    pub height: usize,
+    pub fps: u32,
+    pub file: String,
+}
+
+impl CameraChoice {
+    /// Start listing the cameras (the answer arrives in `poll`).
+    pub fn list(&mut self) {
+        let (tx, rx) = channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(umesh_core::rgbd::realsense::list_devices().map_err(|e| e.to_string()));
+        });
+        self.listing = Some(std::sync::Mutex::new(rx));
+    }
+
+    pub fn poll(&mut self) {
+        let got = self.listing.as_ref().and_then(|l| l.lock().ok().and_then(|r| r.try_recv().ok()));
+        if let Some(r) = got {
+            self.devices = Some(r);
+            self.listing = None;
+            self.chosen = 0;
         }
     }
 }

@@ -9,6 +9,7 @@ use bevy_egui::egui;
 use std::path::PathBuf;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::PosePolicy;
+use umesh_core::rgbd::realsense::RealSenseRequest;
 use umesh_core::{Cancel, Progress};
 
 /// Default recording folder of the synthetic sequence the AR view offers to generate.
@@ -82,6 +83,9 @@ fn source_ui(
             start = Some(ArSource::Tcp(ar.live_text.trim().to_string()));
         }
     });
+    if let Some(s) = camera_ui(ui, ar) {
+        start = Some(s);
+    }
     if let Some(src) = start {
         // Each session starts with the model's correction form; the box changes it for this session.
         ar.tracking = model_correction_form(&model.dir, messages) == CorrectionForm::Tracking;
@@ -95,7 +99,8 @@ fn source_ui(
                 ar.last = None;
                 ar.frames = None;
                 ar.intervals.clear();
-                ar.playing = matches!(src, ArSource::Tcp(_));
+                ar.pose_in_use = None;
+                ar.playing = matches!(src, ArSource::Tcp(_) | ArSource::RealSense(_));
                 if ar.playing
                     && let Some(s) = &ar.session
                 {
@@ -106,6 +111,71 @@ fn source_ui(
         }
     }
     want_synth
+}
+
+/// A RealSense camera (listed by the bridge) or a RealSense recording played at its own rate.
+fn camera_ui(ui: &mut egui::Ui, ar: &mut Ar) -> Option<ArSource> {
+    let c = &mut ar.camera;
+    c.poll();
+    if c.width == 0 {
+        let d = RealSenseRequest::default();
+        (c.width, c.height, c.fps) = (d.width, d.height, d.fps);
+    }
+    let mut start = None;
+    ui.horizontal(|ui| {
+        ui.label("RealSense");
+        if c.listing.is_some() {
+            ui.spinner();
+        } else if ui.button("Find cameras").on_hover_text("asks librealsense (pyrealsense2) for the connected cameras").clicked() {
+            c.list();
+        }
+    });
+    match &c.devices {
+        Some(Err(e)) => {
+            ui.colored_label(egui::Color32::from_rgb(235, 90, 60), egui::RichText::new(e).small());
+        }
+        Some(Ok(d)) if d.is_empty() => {
+            ui.weak("no RealSense camera is connected");
+        }
+        Some(Ok(d)) => {
+            let label = |i: usize| {
+                let x = &d[i];
+                format!("{} {}", x.name.as_deref().unwrap_or("camera"), x.serial.as_deref().unwrap_or(""))
+            };
+            ui.horizontal(|ui| {
+                egui::ComboBox::from_id_salt("ar_camera").selected_text(label(c.chosen.min(d.len() - 1))).show_ui(ui, |ui| {
+                    for i in 0..d.len() {
+                        ui.selectable_value(&mut c.chosen, i, label(i));
+                    }
+                });
+            });
+            ui.horizontal(|ui| {
+                ui.add(egui::DragValue::new(&mut c.width).range(1..=4096));
+                ui.label("x");
+                ui.add(egui::DragValue::new(&mut c.height).range(1..=4096));
+                ui.add(egui::DragValue::new(&mut c.fps).range(1..=300));
+                ui.label("fps");
+                if ui.button("Start").clicked() {
+                    start = Some(ArSource::RealSense(RealSenseRequest {
+                        serial: d.get(c.chosen).and_then(|x| x.serial.clone()),
+                        width: c.width,
+                        height: c.height,
+                        fps: c.fps,
+                        ..Default::default()
+                    }));
+                }
+            });
+        }
+        None => {}
+    }
+    ui.horizontal(|ui| {
+        ui.label("RealSense file");
+        ui.add(egui::TextEdit::singleline(&mut c.file).hint_text(".db3 or .bag").desired_width(110.0));
+        if ui.button("Play").on_hover_text("played at its own rate through the RealSense bridge, as a camera would be").clicked() {
+            start = Some(ArSource::RealSense(RealSenseRequest::recording(std::path::Path::new(c.file.trim()))));
+        }
+    });
+    start
 }
 
 /// Play, pause, step and scrub.
@@ -146,17 +216,22 @@ fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     let before = ar.pose;
     ui.horizontal(|ui| {
         ui.label("pose").on_hover_text(
-            "tracked: keep the recording's or stream's camera pose, refined on the first frame by at most 3 mm; \
+            "auto: tracked when the source carries a tracked camera pose for every frame, else icp-first; \
+             tracked: keep the recording's or stream's camera pose, refined on the first frame by at most 1.5 mm; \
              icp-first: full ICP on the first frame; icp-every-frame: full ICP on each frame",
         );
-        egui::ComboBox::from_id_salt("ar_pose").selected_text(ar.pose.name()).show_ui(ui, |ui| {
+        egui::ComboBox::from_id_salt("ar_pose").selected_text(ar.pose.map_or("auto", PosePolicy::name)).show_ui(ui, |ui| {
+            ui.selectable_value(&mut ar.pose, None, "auto");
             for p in PosePolicy::ALL {
-                ui.selectable_value(&mut ar.pose, p, p.name());
+                ui.selectable_value(&mut ar.pose, Some(p), p.name());
             }
         });
     });
     if ar.pose != before {
         s.send(ArCommand::Pose(ar.pose));
+    }
+    if let Some((_, why)) = &ar.pose_in_use {
+        ui.weak(format!("in use: {why}"));
     }
     if ui.button("ICP on this frame").clicked() {
         s.send(ArCommand::Icp);
@@ -290,6 +365,16 @@ pub fn right_panel(ui: &mut egui::Ui, ar: &Ar) {
             ui.label("correction moved");
             let how = if c.doubted { ", as the FE fit (prediction doubted)" } else { "" };
             ui.label(format!("{:.2} mm RMS{how}", c.moved_rms_mm));
+            ui.end_row();
+        }
+        if let Some(e) = r.end_to_end_ms {
+            ui.label("camera to overlay (ms)");
+            ui.label(format!("{e:.1}"));
+            ui.end_row();
+        }
+        if f.dropped > 0 {
+            ui.label("frames dropped");
+            ui.label(f.dropped.to_string());
             ui.end_row();
         }
         if let Some(fps) = ar.displayed_fps() {

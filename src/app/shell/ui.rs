@@ -365,6 +365,8 @@ fn shell_central(
     mut view: ResMut<crate::app::shell::view3d::View3d>,
     registry: Res<ViewRegistry>,
     mode: Res<State<Mode>>,
+    mut lines: ResMut<crate::app::shell::view3d::OverlayLines>,
+    cameras: Query<(&Camera, &GlobalTransform), With<crate::app::shell::camera::MainCamera>>,
 ) {
     let root = &mut frame.root;
     let ctx = root.ctx().clone();
@@ -377,10 +379,14 @@ fn shell_central(
             let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
             root.painter().image(tex, rect, uv, egui::Color32::WHITE);
         }
+        if let Ok((camera, at)) = cameras.single() {
+            crate::app::shell::view3d::paint_lines(root.painter(), rect, camera, at, &lines.0);
+        }
         if let Some((max_mm, what)) = &frame.scale {
             scale_bar(root.painter(), rect, *max_mm, what);
         }
     }
+    lines.0.clear();
     open_window(&ctx, &mut st);
     let view_keys = registry.get(*mode.get()).map(|e| e.keys).unwrap_or_default();
     help_and_error_windows(&ctx, &mut uis, &mut st, view_keys);

@@ -145,12 +145,57 @@ fn apply_shadows(
     }
 }
 
+/// Lines over the 3-D view, painted by the UI at the display's resolution: thin and crisp
+/// where the view renders at a fraction of it (a 2-pixel gizmo line is 8 pixels wide at a
+/// quarter), clipped to the camera's near plane and to the view. Producers set them each
+/// frame; the shell paints and clears them.
+#[derive(Resource, Default)]
+pub struct OverlayLines(pub Vec<(Vec3, Vec3, egui::Color32)>);
+
+/// Paint `lines` (world space) as the main camera sees them, into `rect` (the 3-D view).
+pub fn paint_lines(
+    painter: &egui::Painter,
+    rect: egui::Rect,
+    camera: &Camera,
+    at: &GlobalTransform,
+    lines: &[(Vec3, Vec3, egui::Color32)],
+) {
+    let view_from_world = at.affine().inverse();
+    let clip_from_view = camera.clip_from_view();
+    // The near plane's depth (view space looks along -z): points closer are cut off.
+    let near = {
+        let p = clip_from_view.inverse() * Vec4::new(0.0, 0.0, 1.0, 1.0);
+        p.z / p.w
+    };
+    let painter = painter.with_clip_rect(rect);
+    let to_screen = |v: Vec3| {
+        let c = clip_from_view * v.extend(1.0);
+        let ndc = c.truncate() / c.w;
+        egui::pos2(rect.min.x + (ndc.x + 1.0) * 0.5 * rect.width(), rect.min.y + (1.0 - ndc.y) * 0.5 * rect.height())
+    };
+    for (a, b, colour) in lines {
+        let (mut va, mut vb) = (view_from_world.transform_point3(*a), view_from_world.transform_point3(*b));
+        let limit = near - 1e-4;
+        if va.z > limit && vb.z > limit {
+            continue;
+        }
+        // Cut at the near plane the part of the segment behind it.
+        if va.z > limit {
+            va = va + (vb - va) * ((va.z - limit) / (va.z - vb.z));
+        } else if vb.z > limit {
+            vb = vb + (va - vb) * ((vb.z - limit) / (vb.z - va.z));
+        }
+        painter.line_segment([to_screen(va), to_screen(vb)], egui::Stroke::new(1.5, *colour));
+    }
+}
+
 pub struct View3dPlugin;
 
 impl Plugin for View3dPlugin {
     fn build(&self, app: &mut App) {
         // PreStartup: before the first organ is loaded, which reads the display step.
         app.init_resource::<View3d>()
+            .init_resource::<OverlayLines>()
             .add_systems(PreStartup, detect_adapter)
             .add_systems(Update, (detect_adapter, resize_image, apply_shadows).chain());
     }

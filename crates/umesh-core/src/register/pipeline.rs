@@ -141,6 +141,21 @@ impl PosePolicy {
     }
 }
 
+/// `--pose auto`: the pose follows the source. A source that carries a tracked camera pose
+/// for every frame (a trajectory with one pose a frame, a stream whose frames carry
+/// `world_from_camera`) is registered with it (`Tracked`: on a sequence that starts deformed
+/// the full first-frame ICP slides the organ); any other keeps `IcpFirst`. Returns the policy
+/// and the reason, for the report and the AR panel.
+pub fn choose_pose(requested: Option<PosePolicy>, source_tracks_every_frame: bool) -> (PosePolicy, String) {
+    match requested {
+        Some(p) => (p, format!("{p}, as asked")),
+        None if source_tracks_every_frame => {
+            (PosePolicy::Tracked, "tracked: the source carries a tracked camera pose for every frame".into())
+        }
+        None => (PosePolicy::IcpFirst, "icp-first: the source carries no tracked pose for every frame (an initial pose at most)".into()),
+    }
+}
+
 impl std::fmt::Display for PosePolicy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
@@ -319,6 +334,10 @@ pub struct FrameReport {
     pub confidence: Confidence,
     /// What the physics correction did (None: off, or the FE registration itself).
     pub correction: Option<CorrectionReport>,
+    /// From the camera bridge taking the frame to its overlay (bridge, transport, waiting,
+    /// registration), when the source stamps its frames on this machine's clock.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub end_to_end_ms: Option<f64>,
 }
 
 /// What one frame produced (for the GUI and the overlay writer).
@@ -669,6 +688,12 @@ impl<'c> Registrar<'c> {
                 marker_displacement_mean_mm: disp,
                 confidence,
                 correction,
+                end_to_end_ms: frame.host_time_s.and_then(|t| {
+                    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok()?.as_secs_f64();
+                    let ms = (now - t) * 1e3;
+                    // Another machine's clock gives nonsense: no figure rather than a wrong one.
+                    (0.0..3.6e6).contains(&ms).then_some(ms)
+                }),
             },
             field: self.field.clone(),
             overlay,
@@ -811,6 +836,12 @@ pub struct Summary {
     pub residual_p95_median_mm: f64,
     /// The most any frame's ICP moved the cloud from the pose it started from (RMS, mm).
     pub pose_moved_max_mm: Option<f64>,
+    /// Frames the source dropped (the camera's gaps, frames the registration was late for);
+    /// counted in `skipped` too.
+    #[serde(default)]
+    pub dropped: usize,
+    /// Median end-to-end latency (`FrameReport::end_to_end_ms`) over the frames that have one.
+    pub end_to_end_ms_median: Option<f64>,
 }
 
 pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
@@ -841,6 +872,12 @@ pub fn summarize(frames: &[FrameReport], skipped: usize) -> Summary {
             if r.is_empty() { 0.0 } else { r[(r.len() - 1) / 2] }
         },
         pose_moved_max_mm: frames.iter().filter_map(|f| f.icp.as_ref().map(|i| i.moved_mm)).reduce(f64::max),
+        dropped: 0,
+        end_to_end_ms_median: {
+            let mut e: Vec<f64> = frames.iter().filter_map(|f| f.end_to_end_ms).collect();
+            e.sort_by(f64::total_cmp);
+            (!e.is_empty()).then(|| e[(e.len() - 1) / 2])
+        },
     }
 }
 
@@ -849,6 +886,8 @@ pub struct RegisterReport {
     pub model: String,
     /// The pose policy the frames were registered with.
     pub pose: PosePolicy,
+    /// Why that policy (`choose_pose`).
+    pub pose_reason: String,
     pub summary: Summary,
     pub frames: Vec<FrameReport>,
     pub log: Vec<String>,
@@ -925,6 +964,9 @@ pub fn run_register(
         }
     }
     log.extend(source.take_log());
-    skipped += source.dropped() as usize;
-    Ok(RegisterReport { model: model.name(), pose: settings.pose, summary: summarize(&frames, skipped), frames, log })
+    let dropped = source.dropped() as usize;
+    skipped += dropped;
+    let summary = Summary { dropped, ..summarize(&frames, skipped) };
+    let pose_reason = format!("{}, as set", settings.pose);
+    Ok(RegisterReport { model: model.name(), pose: settings.pose, pose_reason, summary, frames, log })
 }

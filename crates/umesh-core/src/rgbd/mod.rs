@@ -3,6 +3,8 @@
 //!
 //! Camera frame: OpenCV's (x right, y down, z forward), in millimetres.
 
+pub mod import;
+pub mod realsense;
 pub mod recording;
 pub mod segment;
 pub mod stream;
@@ -233,6 +235,12 @@ pub struct Frame {
     /// The camera's own point cloud (camera frame, mm) when the source gives points rather
     /// than depth; `depth` is then their splat, for display and segmentation only.
     pub points: Option<Vec<Vector3<f64>>>,
+    /// The camera's own frame counter, when the source gives one (a gap is a frame the camera
+    /// or its bridge dropped).
+    pub device_frame: Option<u64>,
+    /// When the camera's bridge took the frame from the camera (Unix time, s): the start of
+    /// the end-to-end latency (bridge, transport, queue, registration) on the same machine.
+    pub host_time_s: Option<f64>,
 }
 
 /// Refuse clouds larger than this (4 M points): a corrupt count must not allocate gigabytes.

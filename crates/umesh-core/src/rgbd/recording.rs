@@ -198,6 +198,12 @@ impl Recording {
         self.frames.len()
     }
 
+    /// Its trajectory holds a pose for every frame (tracked), not one initial pose (of a
+    /// recording longer than a frame).
+    pub fn tracks_every_frame(&self) -> bool {
+        self.trajectory.as_ref().is_some_and(|t| t.len() >= 2 && t.len() >= self.frames.len())
+    }
+
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }
@@ -256,7 +262,18 @@ impl Recording {
             None => None,
         };
         let world_from_camera = self.trajectory.as_ref().and_then(|t| t.get(i.min(t.len().saturating_sub(1))).copied());
-        Ok(Frame { index: i, timestamp_s: i as f64 / self.meta.fps, intrinsics: k, depth, color, mask, world_from_camera, points: cloud })
+        Ok(Frame {
+            index: i,
+            timestamp_s: i as f64 / self.meta.fps,
+            intrinsics: k,
+            depth,
+            color,
+            mask,
+            world_from_camera,
+            points: cloud,
+            device_frame: None,
+            host_time_s: None,
+        })
     }
 }
 

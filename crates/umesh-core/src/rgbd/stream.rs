@@ -16,7 +16,10 @@
 //!              only when the header has "points" (a camera that gives a cloud)
 //! ```
 //!
-//! Optional header fields: `"points": N` (a cloud follows; registration uses it whole and the
+//! Optional header fields: `"frame_number": N` (the camera's own frame counter; a gap is a
+//! frame the camera or bridge dropped, counted as such), `"host_time_s": T` (Unix time at
+//! which the bridge took the frame from the camera: the start of the end-to-end latency a
+//! consumer on the same machine reports), `"points": N` (a cloud follows; registration uses it whole and the
 //! depth image, which may be all zeros, only for display) and `"world_from_camera": [16
 //! numbers]` (the tracked camera pose, row-major, mm), which `--pose tracked` keeps.
 //!
@@ -102,6 +105,55 @@ impl FrameSource for RecordingSource {
     }
 }
 
+/// A source whose first frame is read ahead, to see what the source carries (a tracked
+/// pose, say), and then given first.
+pub struct Peeked {
+    first: Option<Box<Frame>>,
+    ended: Option<Option<String>>,
+    inner: Box<dyn FrameSource>,
+}
+
+impl Peeked {
+    /// Wait up to `timeout` for the first frame.
+    pub fn new(mut inner: Box<dyn FrameSource>, timeout: Duration) -> Self {
+        let t0 = std::time::Instant::now();
+        let (mut first, mut ended) = (None, None);
+        while first.is_none() && ended.is_none() && t0.elapsed() < timeout {
+            match inner.poll(timeout.saturating_sub(t0.elapsed()).max(Duration::from_millis(1))) {
+                Poll::Frame(f) => first = Some(f),
+                Poll::Ended(r) => ended = Some(r),
+                Poll::Pending => {}
+            }
+        }
+        Self { first, ended, inner }
+    }
+
+    pub fn first(&self) -> Option<&Frame> {
+        self.first.as_deref()
+    }
+}
+
+impl FrameSource for Peeked {
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+    fn poll(&mut self, timeout: Duration) -> Poll {
+        if let Some(f) = self.first.take() {
+            return Poll::Frame(f);
+        }
+        if let Some(r) = self.ended.take() {
+            return Poll::Ended(r);
+        }
+        self.inner.poll(timeout)
+    }
+    fn dropped(&self) -> u64 {
+        self.inner.dropped()
+    }
+    fn take_log(&mut self) -> Vec<String> {
+        self.inner.take_log()
+    }
+}
+
 #[derive(serde::Serialize, serde::Deserialize)]
 struct Header {
     width: usize,
@@ -117,6 +169,10 @@ struct Header {
     points: usize,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     world_from_camera: Option<[f64; 16]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    frame_number: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    host_time_s: Option<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -142,6 +198,8 @@ pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std:
             a.copy_from_slice(m.transpose().as_slice());
             a
         }),
+        frame_number: frame.device_frame,
+        host_time_s: frame.host_time_s,
     };
     let header = serde_json::to_vec(&h).map_err(std::io::Error::other)?;
     let mut buf = Vec::with_capacity(12 + header.len() + k.width * k.height * 5);
@@ -165,6 +223,11 @@ pub fn write_frame<W: Write>(w: &mut W, frame: &Frame, depth_scale: f64) -> std:
 
 /// Read one frame; Ok(None) on a clean end of stream (between frames).
 pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, crate::Invalid> {
+    Ok(read_frame_scaled(r, index)?.map(|(f, _)| f))
+}
+
+/// [`read_frame`] with the frame's raw depth units per metre (`depth_scale` of its header).
+pub fn read_frame_scaled<R: Read>(r: &mut R, index: usize) -> Result<Option<(Frame, f64)>, crate::Invalid> {
     let mut magic = [0u8; 8];
     match r.read(&mut magic[..1]) {
         Ok(0) => return Ok(None),
@@ -231,23 +294,163 @@ pub fn read_frame<R: Read>(r: &mut R, index: usize) -> Result<Option<Frame>, cra
     {
         depth = super::recording::splat_points(p, &k);
     }
-    Ok(Some(Frame { index, timestamp_s: h.timestamp_s, intrinsics: k, depth, color, mask: None, world_from_camera, points }))
+    if !h.timestamp_s.is_finite() {
+        return Err(crate::Invalid(format!("frame header: timestamp_s {} is not finite", h.timestamp_s)));
+    }
+    let frame = Frame {
+        index,
+        timestamp_s: h.timestamp_s,
+        intrinsics: k,
+        depth,
+        color,
+        mask: None,
+        world_from_camera,
+        points,
+        device_frame: h.frame_number,
+        host_time_s: h.host_time_s.filter(|t| t.is_finite()),
+    };
+    Ok(Some((frame, h.depth_scale)))
 }
 
+/// What a reader thread hands its source: the newest frame (or, keeping all, the next ones).
 #[derive(Default)]
 struct Shared {
-    latest: Option<Frame>,
+    frames: std::collections::VecDeque<Frame>,
     ended: Option<Option<String>>,
     received: u64,
     dropped: u64,
+    depth_scale: Option<f64>,
+    last_device_frame: Option<u64>,
+    /// The source was dropped: a reader waiting for room stops.
+    closed: bool,
+}
+
+/// A thread reading frames in the stream protocol from `reader` into a shared slot.
+/// `keep_all`: every frame is kept (at most 4 waiting; the reader then waits for the consumer,
+/// so a recording played as fast as it is read loses nothing); otherwise only the newest,
+/// the ones replaced counted as dropped. Gaps in the frames' `frame_number` count as dropped.
+/// `on_end` is called once the stream ends and gives the reason when it ended badly (a
+/// bridge process's exit status and last message, say).
+pub(crate) struct FrameReader {
+    shared: Arc<(Mutex<Shared>, Condvar)>,
+    ended_reported: bool,
+}
+
+const KEEP_ALL_DEPTH: usize = 4;
+
+impl FrameReader {
+    pub(crate) fn spawn<R, E>(mut reader: R, name: &str, keep_all: bool, on_end: E) -> Result<Self, RgbdError>
+    where
+        R: Read + Send + 'static,
+        E: FnOnce(Option<String>) -> Option<String> + Send + 'static,
+    {
+        let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
+        let sh = shared.clone();
+        std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || {
+                let mut index = 0;
+                let mut on_end = Some(on_end);
+                loop {
+                    let r = read_frame_scaled(&mut reader, index);
+                    let (lock, cv) = &*sh;
+                    let (f, scale) = match r {
+                        Ok(Some(fs)) => fs,
+                        Ok(None) | Err(_) => {
+                            // The end's reason (a bridge's exit status, say) is found unlocked.
+                            let reason = match r {
+                                Err(e) => Some(on_end.take().and_then(|f| f(Some(e.0.clone()))).unwrap_or(e.0)),
+                                _ => on_end.take().and_then(|e| e(None)),
+                            };
+                            if let Ok(mut s) = lock.lock() {
+                                s.ended = Some(reason);
+                            }
+                            cv.notify_all();
+                            return;
+                        }
+                    };
+                    let Ok(mut s) = lock.lock() else { return };
+                    index += 1;
+                    s.received += 1;
+                    s.depth_scale = Some(scale);
+                    if let (Some(prev), Some(n)) = (s.last_device_frame, f.device_frame)
+                        && n > prev + 1
+                    {
+                        s.dropped += n - prev - 1;
+                    }
+                    s.last_device_frame = f.device_frame.or(s.last_device_frame);
+                    if keep_all {
+                        while s.frames.len() >= KEEP_ALL_DEPTH {
+                            if s.closed {
+                                return;
+                            }
+                            match cv.wait(s) {
+                                Ok(g) => s = g,
+                                Err(_) => return,
+                            }
+                        }
+                    } else if s.frames.pop_front().is_some() {
+                        s.dropped += 1;
+                    }
+                    s.frames.push_back(f);
+                    drop(s);
+                    cv.notify_all();
+                }
+            })
+            .map_err(|e| RgbdError::Stream(format!("cannot start the reader thread: {e}")))?;
+        Ok(Self { shared, ended_reported: false })
+    }
+
+    pub(crate) fn poll(&mut self, timeout: Duration) -> Poll {
+        let (lock, cv) = &*self.shared;
+        let Ok(guard) = lock.lock() else { return Poll::Ended(Some("reader thread failed".into())) };
+        let Ok((mut s, _)) = cv.wait_timeout_while(guard, timeout, |s| s.frames.is_empty() && s.ended.is_none()) else {
+            return Poll::Ended(Some("reader thread failed".into()));
+        };
+        if let Some(f) = s.frames.pop_front() {
+            drop(s);
+            // A reader waiting for room (keep_all) goes on.
+            cv.notify_all();
+            return Poll::Frame(Box::new(f));
+        }
+        match &s.ended {
+            Some(reason) if !self.ended_reported => {
+                self.ended_reported = true;
+                Poll::Ended(reason.clone())
+            }
+            Some(_) => Poll::Ended(None),
+            None => Poll::Pending,
+        }
+    }
+
+    pub(crate) fn received(&self) -> u64 {
+        self.shared.0.lock().map(|s| s.received).unwrap_or(0)
+    }
+
+    pub(crate) fn dropped(&self) -> u64 {
+        self.shared.0.lock().map(|s| s.dropped).unwrap_or(0)
+    }
+
+    /// Raw depth units per metre of the last frame read.
+    pub(crate) fn depth_scale(&self) -> Option<f64> {
+        self.shared.0.lock().ok().and_then(|s| s.depth_scale)
+    }
+}
+
+impl Drop for FrameReader {
+    fn drop(&mut self) {
+        if let Ok(mut s) = self.shared.0.lock() {
+            s.closed = true;
+        }
+        self.shared.1.notify_all();
+    }
 }
 
 /// A live TCP source (see the module docs for the protocol).
 pub struct TcpSource {
     addr: String,
-    shared: Arc<(Mutex<Shared>, Condvar)>,
+    reader: FrameReader,
     stream: TcpStream,
-    ended_reported: bool,
 }
 
 impl std::fmt::Debug for TcpSource {
@@ -267,42 +470,13 @@ impl TcpSource {
         let stream = TcpStream::connect_timeout(&sock, Duration::from_secs(5))
             .map_err(|e| RgbdError::Stream(format!("{addr}: cannot connect: {e}")))?;
         stream.set_read_timeout(Some(stall_timeout)).map_err(|e| RgbdError::Stream(e.to_string()))?;
-        let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
-        let mut reader = std::io::BufReader::with_capacity(1 << 20, stream.try_clone().map_err(|e| RgbdError::Stream(e.to_string()))?);
-        let sh = shared.clone();
-        std::thread::Builder::new()
-            .name("umesh-tcp-source".into())
-            .spawn(move || {
-                let mut index = 0;
-                loop {
-                    let r = read_frame(&mut reader, index);
-                    let (lock, cv) = &*sh;
-                    let Ok(mut s) = lock.lock() else { return };
-                    match r {
-                        Ok(Some(f)) => {
-                            index += 1;
-                            s.received += 1;
-                            if s.latest.replace(f).is_some() {
-                                s.dropped += 1;
-                            }
-                        }
-                        Ok(None) => s.ended = Some(None),
-                        Err(e) => s.ended = Some(Some(e.into())),
-                    }
-                    let done = s.ended.is_some();
-                    drop(s);
-                    cv.notify_all();
-                    if done {
-                        return;
-                    }
-                }
-            })
-            .map_err(|e| RgbdError::Stream(e.to_string()))?;
-        Ok(Self { addr: addr.to_string(), shared, stream, ended_reported: false })
+        let reader = std::io::BufReader::with_capacity(1 << 20, stream.try_clone().map_err(|e| RgbdError::Stream(e.to_string()))?);
+        let reader = FrameReader::spawn(reader, "umesh-tcp-source", false, |reason| reason)?;
+        Ok(Self { addr: addr.to_string(), reader, stream })
     }
 
     pub fn received(&self) -> u64 {
-        self.shared.0.lock().map(|s| s.received).unwrap_or(0)
+        self.reader.received()
     }
 }
 
@@ -317,24 +491,9 @@ impl FrameSource for TcpSource {
         format!("tcp://{}", self.addr)
     }
     fn poll(&mut self, timeout: Duration) -> Poll {
-        let (lock, cv) = &*self.shared;
-        let Ok(guard) = lock.lock() else { return Poll::Ended(Some("reader thread failed".into())) };
-        let Ok((mut s, _)) = cv.wait_timeout_while(guard, timeout, |s| s.latest.is_none() && s.ended.is_none()) else {
-            return Poll::Ended(Some("reader thread failed".into()));
-        };
-        if let Some(f) = s.latest.take() {
-            return Poll::Frame(Box::new(f));
-        }
-        match &s.ended {
-            Some(reason) if !self.ended_reported => {
-                self.ended_reported = true;
-                Poll::Ended(reason.clone())
-            }
-            Some(_) => Poll::Ended(None),
-            None => Poll::Pending,
-        }
+        self.reader.poll(timeout)
     }
     fn dropped(&self) -> u64 {
-        self.shared.0.lock().map(|s| s.dropped).unwrap_or(0)
+        self.reader.dropped()
     }
 }

@@ -201,6 +201,8 @@ fn frame(k: Intrinsics, index: usize) -> Frame {
         mask: None,
         world_from_camera: None,
         points: None,
+        device_frame: None,
+        host_time_s: None,
     }
 }
 
@@ -975,4 +977,29 @@ fn the_point_grid_finds_the_same_nearest_point_as_a_brute_force_search() {
         let (_, d) = grid.nearest_except(&points[i], 50.0, i).unwrap();
         assert!((brute - d).abs() < 1e-12, "point {i}: {d} against {brute}");
     }
+}
+
+#[test]
+fn auto_pose_follows_a_trajectory_with_a_pose_a_frame_and_keeps_icp_for_one_initial_pose() {
+    use umesh_core::register::pipeline::{PosePolicy, choose_pose};
+    use umesh_core::rgbd::recording::write_trajectory_log;
+    let dir = std::env::temp_dir().join(format!("umesh-auto-pose-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let k = Intrinsics { width: 16, height: 12, fx: 20.0, fy: 20.0, cx: 7.5, cy: 5.5 };
+    for i in 0..3 {
+        umesh_core::rgbd::recording::write_frame(&dir, &format!("{i:05}"), &frame(k, i), 1000.0).unwrap();
+    }
+    std::fs::write(dir.join("intrinsics.json"), k.to_open3d_json()).unwrap();
+    let pose = nalgebra::Matrix4::new_translation(&nalgebra::Vector3::new(0.0, 0.0, -400.0));
+    for (poses, tracked) in [(1, false), (2, false), (3, true)] {
+        std::fs::write(dir.join("trajectory.log"), write_trajectory_log(&vec![pose; poses])).unwrap();
+        let rec = Recording::open(&dir, None).unwrap();
+        assert_eq!(rec.tracks_every_frame(), tracked, "{poses} poses for 3 frames");
+        let (p, why) = choose_pose(None, rec.tracks_every_frame());
+        assert_eq!(p, if tracked { PosePolicy::Tracked } else { PosePolicy::IcpFirst }, "{why}");
+        assert!(why.starts_with(p.name()), "{why}");
+    }
+    // Asked for, the policy is kept whatever the source carries.
+    assert_eq!(choose_pose(Some(PosePolicy::IcpEveryFrame), true).0, PosePolicy::IcpEveryFrame);
+    let _ = std::fs::remove_dir_all(&dir);
 }

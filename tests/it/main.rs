@@ -8,3 +8,4 @@ mod architecture;
 mod camera;
 mod cli;
 mod screenshots;
+mod support;

@@ -22,7 +22,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use umesh_core::{Cancel, Progress};
 
-pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "camera", "jobs", "qa", "ar"];
+pub const SCENES: &[&str] = &["phantom", "grid", "probes", "rehearsal", "camera", "jobs", "qa", "ar", "ar-camera"];
 /// Scenes on the real data beside the checkout (`../shared/data`, or `UMESH_SHARED_DATA`):
 /// rendered when it exists.
 pub const DATA_SCENES: &[&str] = &["ct"];
@@ -141,6 +141,7 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
         }
         "qa" => qa_scene(world, &organ)?,
         "ar" => ar_scene(world, &organ)?,
+        "ar-camera" => ar_camera_scene(world, &organ)?,
         other => anyhow::bail!("unknown scene {other:?}; scenes: {}, {}", SCENES.join(", "), DATA_SCENES.join(", ")),
     }
     Ok(())
@@ -261,6 +262,41 @@ fn ar_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The AR view on a live camera: the synthetic recording served in umesh's stream protocol
+/// as `umesh rgbd realsense` serves a RealSense camera (no masks, the tracked pose and the
+/// bridge's time stamp in each frame, one every 0.4 s), so the panel shows the live source,
+/// the pose it follows and the camera-to-overlay time.
+fn ar_camera_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
+    use umesh_core::rgbd::recording::Recording;
+    let dir = synthetic_recording(organ, "ar-recording", 4)?;
+    let rec = Recording::open(&dir, None)?;
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?.to_string();
+    std::thread::spawn(move || {
+        let Ok((mut sock, _)) = listener.accept() else { return };
+        for i in 0..rec.len() {
+            let Ok(mut f) = rec.read_frame(i) else { continue };
+            f.mask = None;
+            f.device_frame = Some(i as u64 + 1);
+            f.host_time_s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok().map(|d| d.as_secs_f64());
+            if umesh_core::rgbd::stream::write_frame(&mut sock, &f, 1000.0).is_err() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(400));
+        }
+    });
+    world.resource_mut::<NextState<Mode>>().set(Mode::Ar);
+    let mut ar = world.resource_mut::<crate::app::ar::Ar>();
+    ar.live_text = addr.clone();
+    ar.show_points = true;
+    ar.playing = true;
+    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Tcp(addr), organ.seg.clone(), ActiveModel::default(), None);
+    s.send(crate::app::ar::ArCommand::ShowPoints(true));
+    s.send(crate::app::ar::ArCommand::Play(true));
+    ar.session = Some(s);
+    Ok(())
+}
+
 #[derive(Resource, Default)]
 struct Captured(Arc<Mutex<Option<anyhow::Result<()>>>>);
 
@@ -278,7 +314,7 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     }
     // The AR view waits for its worker's first overlay (a minute at most).
     let t0 = std::time::Instant::now();
-    while scene == "ar" && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
+    while scene.starts_with("ar") && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
         if t0.elapsed().as_secs() > 60 {
             anyhow::bail!("the AR view showed no frame within 60 s");
         }

@@ -192,19 +192,33 @@ fn synth(
 ) -> Result<SynthReport> {
     let out = root.join(name);
     let report = out.join("bench_synth.json");
+    let made = out.join("bench_made.json");
+    // Reused only when it is what these settings make: the settings and the ground truth's
+    // hash, recorded when it was made, unchanged (a swapped truth would report nonsense).
+    let expected = serde_json::to_string(settings)?;
+    let truth_hash = |dir: &Path| std::fs::read(dir.join("ground_truth.json")).ok().map(|b| umesh_core::dataset::fnv_hex(&b));
     if let Ok(text) = std::fs::read_to_string(&report)
         && let Ok(r) = serde_json::from_str::<SynthReport>(&text)
-        && out.join("ground_truth.json").is_file()
     {
-        return Ok(SynthReport { out, ..r });
+        let recorded: Option<serde_json::Value> = std::fs::read_to_string(&made).ok().and_then(|t| serde_json::from_str(&t).ok());
+        let same = recorded.as_ref().is_some_and(|m| {
+            m["settings"].as_str() == Some(expected.as_str()) && m["ground_truth_fnv"].as_str().map(str::to_string) == truth_hash(&out)
+        });
+        if same {
+            return Ok(SynthReport { out, ..r });
+        }
+        eprintln!("{}: the cached recording is not what these settings made (changed or damaged); making it again", out.display());
     }
-    let staged = umesh_core::StagedDir::new(&out, &["synth.json", "ground_truth.json", "bench_synth.json"])
-        .with_context(|| format!("{}", out.display()))?;
+    let staged =
+        umesh_core::StagedDir::new(&out, umesh_core::OutputKind::Recording, &["synth.json", "ground_truth.json", "bench_synth.json"])
+            .with_context(|| format!("{}", out.display()))?;
     let (pb, progress) = super::output::progress_bar(&format!("recording {name}"));
     let r = run_rgbd_synth(seg, config, settings, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let r = r.with_context(|| format!("making the recording {}", out.display()))?;
     umesh_core::write_atomic(&staged.path().join("bench_synth.json"), serde_json::to_string_pretty(&r)?.as_bytes())?;
+    let m = serde_json::json!({ "settings": expected, "ground_truth_fnv": truth_hash(staged.path()) });
+    umesh_core::write_atomic(&staged.path().join("bench_made.json"), serde_json::to_string_pretty(&m)?.as_bytes())?;
     staged.commit().with_context(|| format!("replacing {}", out.display()))?;
     Ok(SynthReport { out, ..r })
 }

@@ -26,7 +26,9 @@ pub struct ImportArgs {
 
 /// Import `file` into the folder `out`, swapped in whole at the end.
 pub fn import_to(file: &Path, out: &Path) -> Result<umesh_core::rgbd::import::ImportReport> {
-    let staged = umesh_core::StagedDir::new(out, &["import.json", "frames.json"]).with_context(|| format!("--out {}", out.display()))?;
+    umesh_core::check_apart(out, &[("FILE", file)])?;
+    let staged = umesh_core::StagedDir::new(out, umesh_core::OutputKind::Recording, &["import.json", "frames.json"])
+        .with_context(|| format!("--out {}", out.display()))?;
     let (pb, progress) = super::output::progress_bar("importing");
     let r = run_rgbd_import(file, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();
@@ -104,17 +106,8 @@ pub struct RealSenseArgs {
     pub hand_eye: Option<PathBuf>,
 }
 
-/// A rigid transform or an error saying how it is not one.
 fn check_rigid(m: &Matrix4<f64>, what: &str) -> Result<()> {
-    let r = m.fixed_view::<3, 3>(0, 0);
-    let err = (r.transpose() * r - nalgebra::Matrix3::identity()).abs().max();
-    if !m.iter().all(|v| v.is_finite()) || err > 1e-3 || (r.determinant() - 1.0).abs() > 1e-3 {
-        bail!("{what}: not a rigid transform (rotation off orthonormal by {err:.2e}, determinant {:.4})", r.determinant());
-    }
-    if m[(3, 0)].abs() + m[(3, 1)].abs() + m[(3, 2)].abs() + (m[(3, 3)] - 1.0).abs() > 1e-9 {
-        bail!("{what}: the last row must be 0 0 0 1");
-    }
-    Ok(())
+    umesh_core::rgbd::check_rigid(m).map_err(|e| anyhow::anyhow!("{what}: {e}"))
 }
 
 /// Where each served frame's pose comes from.
@@ -128,9 +121,8 @@ impl PoseSource {
     fn open(a: &RealSenseArgs) -> Result<(Self, Matrix4<f64>)> {
         let hand_eye = match &a.hand_eye {
             Some(p) => {
-                let m = *read_trajectory_log(p)?.first().with_context(|| format!("--hand-eye {}: no pose", p.display()))?;
-                check_rigid(&m, &format!("--hand-eye {}", p.display()))?;
-                m
+                // read_trajectory_log refuses a pose that is not rigid.
+                *read_trajectory_log(p)?.first().with_context(|| format!("--hand-eye {}: no pose", p.display()))?
             }
             None => Matrix4::identity(),
         };
@@ -139,9 +131,6 @@ impl PoseSource {
                 let poses = read_trajectory_log(p).with_context(|| format!("--pose-file {}", p.display()))?;
                 if poses.is_empty() {
                     bail!("--pose-file {}: no pose", p.display());
-                }
-                for (i, m) in poses.iter().enumerate() {
-                    check_rigid(m, &format!("--pose-file {}, pose {i}", p.display()))?;
                 }
                 PoseSource::File(poses)
             }

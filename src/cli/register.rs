@@ -60,12 +60,14 @@ pub struct Args {
     #[arg(long)]
     pub correction_updates: Option<usize>,
     /// Conjugate-gradient iterations per correction update at most (default: the form's, 6
-    /// subspace where they are not used, 10 tracking).
+    /// subspace where they are not used, 10 tracking). Updates x iterations at most 200 a
+    /// frame (about 0.6 s on the phantom).
     #[arg(long)]
     pub correction_cg: Option<usize>,
     /// Solve each correction update in a basis of the organ's responses to smooth loads on this
     /// many patches of the seen surface (3 vectors each, built at the first frame) instead of
-    /// by conjugate gradients (0; default 64). The tracking form solves by CG.
+    /// by conjugate gradients (0; default 64; at most 128: the basis is built before the first
+    /// frame, 256 patches took 35 s on the phantom). The tracking form solves by CG.
     #[arg(long)]
     pub correction_subspace: Option<usize>,
     /// The correction's form: auto (the model folder's choice from its registration check,
@@ -168,6 +170,14 @@ pub fn run(a: Args) -> Result<()> {
     if a.fe_converged && !a.compare_fe {
         bail!("--fe-converged applies to --compare-fe");
     }
+    // Before any work: --out apart from every input (a recording, a model, a patient).
+    let mut inputs = a.input.paths();
+    inputs.extend(a.recording.iter().map(|p| ("--recording", p.as_path())));
+    inputs.extend(a.model.iter().map(|p| ("--model", p.as_path())));
+    inputs.extend(a.patient.iter().map(|p| ("--patient", p.as_path())));
+    inputs.extend(a.ground_truth.iter().map(|p| ("--ground-truth", p.as_path())));
+    umesh_core::check_apart(&a.out, &inputs)?;
+
     let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
@@ -224,7 +234,8 @@ pub fn run(a: Args) -> Result<()> {
     settings.segment.depth_max_mm = a.depth_max_mm;
     settings.segment.use_mask = !a.no_mask;
     // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
-    let staged = umesh_core::StagedDir::new(&a.out, &["report.json"]).with_context(|| format!("--out {}", a.out.display()))?;
+    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Registration, &["report.json"])
+        .with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
     let mut report =
         register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;

@@ -180,8 +180,11 @@ fn synth(a: SynthArgs) -> Result<()> {
     };
     let (pb, progress) = super::output::progress_bar("synthetic recording");
     // Written beside --out and swapped in whole: no frame of an earlier recording survives.
-    let staged =
-        umesh_core::StagedDir::new(&a.out, &["synth.json", "ground_truth.json"]).with_context(|| format!("--out {}", a.out.display()))?;
+    let mut inputs = a.input.paths();
+    inputs.push(("--model", model_dir.as_path()));
+    umesh_core::check_apart(&a.out, &inputs)?;
+    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Recording, &["synth.json", "ground_truth.json"])
+        .with_context(|| format!("--out {}", a.out.display()))?;
     let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let mut r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;

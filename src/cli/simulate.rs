@@ -148,7 +148,12 @@ pub fn run(a: Args) -> Result<()> {
     let method = a.fe.method()?;
     // Outputs go to a staging folder swapped in whole at the end (a failure leaves the last
     // run's folder as it was); made first, so a folder umesh did not write is refused before any work.
-    let staged = umesh_core::StagedDir::new(&a.out, &["displacement.npz"]).with_context(|| format!("--out {}", a.out.display()))?;
+    let mut inputs = a.input.paths();
+    inputs.extend(a.problem.iter().map(|p| ("--problem", p.as_path())));
+    inputs.extend(a.forces.iter().map(|p| ("--forces", p.as_path())));
+    umesh_core::check_apart(&a.out, &inputs)?;
+    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Simulation, &["displacement.npz"])
+        .with_context(|| format!("--out {}", a.out.display()))?;
     if let Some(p) = &a.problem {
         return run_problem(&a, p, method, staged);
     }

@@ -42,7 +42,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut out = Vec::new();
     // Every surface first, then the folder replaced whole: a label that fails leaves the last
     // run's folder as it was, and no mesh of an earlier run survives beside the new ones.
-    let staged = umesh_core::StagedDir::new(&a.out, &["organ.obj", "organ.ply", "organ.stl"])
+    umesh_core::check_apart(&a.out, &a.input.paths())?;
+    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Surfaces, &["organ.obj", "organ.ply", "organ.stl"])
         .with_context(|| format!("--out {}", a.out.display()))?;
     for (name, labels) in jobs {
         let mask = seg.volume.mask(&labels);

@@ -564,7 +564,10 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     let (ok, _, err) = umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);
     assert!(!ok && err.contains("--pose") && err.contains("tracked"), "{err}");
     // Absurd correction work: one error naming the option, before anything is built.
-    for (flag, value) in [("--doubted-updates", "500"), ("--correction-subspace", "5000")] {
+    // (1000 patches did not finish in 5 minutes; 100 updates of 1000 iterations neither.)
+    for (flag, value) in
+        [("--doubted-updates", "500"), ("--correction-subspace", "5000"), ("--correction-subspace", "1000"), ("--correction-cg", "1000")]
+    {
         let (ok, _, err) = umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);
         assert!(!ok && err.contains(flag) && err.lines().count() == 1, "{flag} {value}: {err}");
     }
@@ -617,7 +620,13 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
         ])
     };
     // Absurd settings in model.json: refused on reading, naming the file and the value.
-    for (key, path, value) in [("band", "/settings/observation/band_mm", 1e30), ("scale", "/normalization/output_scale_mm", 1e38)] {
+    for (key, path, value) in [
+        ("band", "/settings/observation/band_mm", serde_json::json!(1e30)),
+        ("scale", "/normalization/output_scale_mm", serde_json::json!(1e38)),
+        // Each asked for hours or petabytes when the organ model was rebuilt.
+        ("surface-step", "/dataset_config/surface_step", serde_json::json!(100000)),
+        ("fixed-distance", "/dataset_config/fixed/distance_mm", serde_json::json!(1e308)),
+    ] {
         let d = copy(&format!("corrupt-model-{key}"));
         let mut info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("model.json")).unwrap()).unwrap();
         *info.pointer_mut(path).unwrap() = serde_json::json!(value);
@@ -625,13 +634,17 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
         let (ok, out, err) = register(&d);
         assert!(!ok && out.is_empty() && err.contains("model.json"), "{key}: {err}");
     }
-    // A confidence range no organ reaches (it would silence every warning): refused, named.
-    let d = copy("corrupt-model-confidence");
-    let mut c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("confidence.json")).unwrap()).unwrap();
-    c["residual_p95_mm"] = serde_json::json!(1e308);
-    std::fs::write(d.join("confidence.json"), c.to_string()).unwrap();
-    let (ok, out, err) = register(&d);
-    assert!(!ok && out.is_empty() && err.contains("confidence.json") && err.contains("residual_p95_mm"), "{err}");
+    // A confidence range no frame reaches (it would silence every warning: 1e308, 1000 mm, or
+    // above the 20 mm a residual is measured to) or one of zero (measured on nothing):
+    // refused, named.
+    for (key, value) in [("residual_p95_mm", 1e308), ("residual_p95_mm", 1000.0), ("residual_mean_mm", 25.0), ("residual_p95_mm", 0.0)] {
+        let d = copy("corrupt-model-confidence");
+        let mut c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("confidence.json")).unwrap()).unwrap();
+        c[key] = serde_json::json!(value);
+        std::fs::write(d.join("confidence.json"), c.to_string()).unwrap();
+        let (ok, out, err) = register(&d);
+        assert!(!ok && out.is_empty() && err.contains("confidence.json") && err.contains(key), "{key} {value}: {err}");
+    }
     // NaN weights (a run of bytes overwritten in the middle of the weights file; through the
     // ReLU they gave finite, wrong predictions and a TRE) and huge finite ones: refused on
     // loading, naming the weights file, no TRE reported.
@@ -1185,4 +1198,91 @@ fn an_error_names_its_cause_once() {
     assert!(!ok, "{err}");
     assert!(err.contains("/nonexistent-umesh-patient/patient.json"), "{err}");
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
+}
+
+/// Every file under `dir` with its bytes, to compare before and after a refused run.
+fn snapshot(dir: &std::path::Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut v: Vec<(PathBuf, Vec<u8>)> = walk(dir).into_iter().map(|p| (p.clone(), std::fs::read(&p).unwrap())).collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn an_output_never_replaces_an_input_or_an_output_of_another_kind() {
+    let rec = tmp("kinds-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let r = rec.to_str().unwrap();
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "1", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    assert!(ok, "{err}");
+    let marker = std::fs::read_to_string(rec.join(umesh_core::OUTPUT_MARKER)).unwrap();
+    assert!(marker.contains("kind: recording"), "{marker}");
+    let before = snapshot(&rec);
+    // The recording as register's output, or a folder holding it: refused before any work,
+    // naming both paths.
+    for out in [rec.clone(), rec.parent().unwrap().to_path_buf(), rec.join("reg")] {
+        let (ok, _, err) = umesh(&["register", "--recording", r, "--out", out.to_str().unwrap()]);
+        assert!(!ok && err.contains("--recording") && err.contains(&out.display().to_string()), "{}: {err}", out.display());
+    }
+    // Other commands' outputs of another kind: a recording is not surfaces or a simulation.
+    let ph = "assets/phantom.nii.gz";
+    let (ok, _, err) = umesh(&["surface", ph, "--out", r]);
+    assert!(!ok && err.contains("holds a recording") && err.contains("surfaces"), "{err}");
+    let (ok, _, err) = umesh(&["simulate", "--out", r]);
+    assert!(!ok && err.contains("holds a recording"), "{err}");
+    assert_eq!(snapshot(&rec), before, "a refused run changed the recording");
+    // A model (marked as one) is not a recording's output.
+    let model = tmp("kinds-model");
+    let _ = std::fs::remove_dir_all(&model);
+    std::fs::create_dir_all(&model).unwrap();
+    std::fs::write(model.join("model.json"), "{}").unwrap();
+    std::fs::write(model.join(umesh_core::OUTPUT_MARKER), "written by umesh\nkind: model\n").unwrap();
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "1", "--out", model.to_str().unwrap()]);
+    assert!(!ok && err.contains("holds a model"), "{err}");
+    assert!(model.join("model.json").is_file());
+    // A recording written over by a recording: the same kind, replaced.
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "1", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    assert!(ok, "{err}");
+    // A ground truth of another organ (its markers 400 mm away): no TRE of tens of mm that
+    // describes nothing, from register or choose-correction; the model is not written.
+    let truth_path = rec.join("ground_truth.json");
+    let mut truth: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&truth_path).unwrap()).unwrap();
+    for m in truth["markers_rest_mm"].as_array_mut().unwrap() {
+        m[0] = serde_json::json!(m[0].as_f64().unwrap() + 400.0);
+    }
+    std::fs::write(&truth_path, truth.to_string()).unwrap();
+    let (ok, _, err) = umesh(&["register", "--recording", r, "--out", tmp("kinds-other-organ").to_str().unwrap()]);
+    assert!(!ok && err.contains("not of this organ"), "{err}");
+    let model_copy = tmp("kinds-model-copy");
+    let _ = std::fs::remove_dir_all(&model_copy);
+    std::fs::create_dir_all(&model_copy).unwrap();
+    for e in std::fs::read_dir("assets/model").unwrap().flatten() {
+        std::fs::copy(e.path(), model_copy.join(e.file_name())).unwrap();
+    }
+    let before = snapshot(&model_copy);
+    let (ok, _, err) = umesh(&["choose-correction", "--model", model_copy.to_str().unwrap(), "--recording", r]);
+    assert!(!ok && err.contains("not of this organ"), "{err}");
+    assert_eq!(snapshot(&model_copy), before, "choose-correction changed the model on a recording of another organ");
+}
+
+#[test]
+fn training_options_that_give_no_usable_model_are_refused_and_the_old_model_stays() {
+    let model = tmp("train-bad");
+    let _ = std::fs::remove_dir_all(&model);
+    std::fs::create_dir_all(&model).unwrap();
+    std::fs::write(model.join("model.json"), "an earlier model").unwrap();
+    std::fs::write(model.join(umesh_core::OUTPUT_MARKER), "written by umesh\nkind: model\n").unwrap();
+    let before = snapshot(&model);
+    let m = model.to_str().unwrap();
+    for (flag, value) in [
+        ("--learning-rate", "NaN"),
+        ("--learning-rate", "inf"),
+        ("--learning-rate", "1e30"),
+        ("--learning-rate", "0"),
+        ("--learning-rate", "-0.001"),
+        ("--epochs", "0"),
+    ] {
+        let (ok, _, err) = umesh(&["train", "--dataset", "no-such-dataset", "--out", m, &format!("{flag}={value}")]);
+        assert!(!ok && err.contains(flag), "{flag} {value}: {err}");
+        assert_eq!(snapshot(&model), before, "{flag} {value} changed the model folder");
+    }
 }

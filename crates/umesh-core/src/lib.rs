@@ -38,6 +38,7 @@ pub use progress::{Cancel, Progress};
 pub struct StagedDir {
     staging: std::path::PathBuf,
     target: std::path::PathBuf,
+    kind: OutputKind,
     committed: bool,
     keep_on_failure: bool,
 }
@@ -49,7 +50,48 @@ fn beside(target: &std::path::Path, tag: &str) -> std::path::PathBuf {
     parent.join(format!(".{name}.{tag}"))
 }
 
-fn check_replaceable(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<()> {
+/// What an output folder holds. Its marker ([`OUTPUT_MARKER`]) records it, and a command
+/// replaces only a folder of the kind it writes: `register --out` never replaces a recording,
+/// `rgbd synth --out` never a model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutputKind {
+    Recording,
+    Model,
+    Dataset,
+    Registration,
+    Surfaces,
+    Simulation,
+}
+
+impl OutputKind {
+    pub const ALL: [OutputKind; 6] = [
+        OutputKind::Recording,
+        OutputKind::Model,
+        OutputKind::Dataset,
+        OutputKind::Registration,
+        OutputKind::Surfaces,
+        OutputKind::Simulation,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            OutputKind::Recording => "recording",
+            OutputKind::Model => "model",
+            OutputKind::Dataset => "dataset",
+            OutputKind::Registration => "registration",
+            OutputKind::Surfaces => "surfaces",
+            OutputKind::Simulation => "simulation",
+        }
+    }
+
+    /// The kind a marker names (None: a marker written before markers named their kind).
+    fn of_marker(text: &str) -> Option<Self> {
+        let k = text.lines().find_map(|l| l.strip_prefix("kind: "))?.trim();
+        Self::ALL.into_iter().find(|x| x.name() == k)
+    }
+}
+
+fn check_replaceable(target: &std::path::Path, kind: OutputKind, recognised: &[&str]) -> std::io::Result<()> {
     if !target.exists() {
         return Ok(());
     }
@@ -57,41 +99,99 @@ fn check_replaceable(target: &std::path::Path, recognised: &[&str]) -> std::io::
         return Err(std::io::Error::other(format!("{} exists and is not a folder", target.display())));
     }
     let mut entries = std::fs::read_dir(target)?;
-    if entries.next().is_none() || std::iter::once(OUTPUT_MARKER).chain(recognised.iter().copied()).any(|f| target.join(f).exists()) {
+    if entries.next().is_none() {
         return Ok(());
     }
-    Err(std::io::Error::other(format!(
-        "{} holds files umesh did not write; it would be replaced whole: choose another output folder or empty it",
-        target.display()
-    )))
+    let own = || recognised.iter().any(|f| target.join(f).exists());
+    match std::fs::read_to_string(target.join(OUTPUT_MARKER)) {
+        Ok(marker) => match OutputKind::of_marker(&marker) {
+            Some(k) if k == kind => Ok(()),
+            Some(k) => Err(std::io::Error::other(format!(
+                "{} holds a {} umesh wrote; this command writes a {} and would replace it whole: choose another output folder",
+                target.display(),
+                k.name(),
+                kind.name()
+            ))),
+            // Marked before markers named their kind: this command's own files say it is its.
+            None if own() => Ok(()),
+            None => Err(std::io::Error::other(format!(
+                "{} holds another kind of umesh output than the {} this command writes; it would be replaced whole: choose another output folder",
+                target.display(),
+                kind.name()
+            ))),
+        },
+        Err(_) if own() => Ok(()),
+        Err(_) => Err(std::io::Error::other(format!(
+            "{} holds files umesh did not write; it would be replaced whole: choose another output folder or empty it",
+            target.display()
+        ))),
+    }
+}
+
+/// An output folder must stand apart from the command's inputs: not one of them, not inside
+/// one (it would change it), not holding one (replacing it would delete it). `inputs`: the
+/// option's name and its path. Paths that do not exist yet are compared as written.
+pub fn check_apart(out: &std::path::Path, inputs: &[(&str, &std::path::Path)]) -> Result<(), Invalid> {
+    fn absolute(p: &std::path::Path) -> std::path::PathBuf {
+        if let Ok(c) = std::fs::canonicalize(p) {
+            return c;
+        }
+        // Not there yet: its parent resolved, its name kept.
+        match (p.parent().filter(|q| !q.as_os_str().is_empty()), p.file_name()) {
+            (Some(parent), Some(name)) => absolute(parent).join(name),
+            (None, Some(name)) => std::env::current_dir().map(|d| d.join(name)).unwrap_or_else(|_| p.to_path_buf()),
+            _ => p.to_path_buf(),
+        }
+    }
+    let o = absolute(out);
+    for (option, input) in inputs {
+        let i = absolute(input);
+        let how = if o == i {
+            "is"
+        } else if o.starts_with(&i) {
+            "lies inside"
+        } else if i.starts_with(&o) {
+            "holds"
+        } else {
+            continue;
+        };
+        return Err(Invalid(format!(
+            "--out {} {how} the input {option} {}: it would be changed or deleted; choose an output folder apart from the inputs",
+            out.display(),
+            input.display()
+        )));
+    }
+    Ok(())
 }
 
 /// The file a committed [`StagedDir`] carries, so a later run knows the folder is its own.
 pub const OUTPUT_MARKER: &str = ".umesh-output";
 
 impl StagedDir {
-    /// Stage a replacement for `target`. An existing, non-empty target is replaced only when
-    /// umesh wrote it (it holds [`OUTPUT_MARKER`] or one of `recognised`, the files the command
-    /// writes): `--out ~/Documents` must never empty a user's folder.
-    pub fn new(target: &std::path::Path, recognised: &[&str]) -> std::io::Result<Self> {
-        check_replaceable(target, recognised)?;
+    /// Stage a replacement for `target`, an output of `kind`. An existing, non-empty target is
+    /// replaced only when umesh wrote it as that kind (its [`OUTPUT_MARKER`] says so; a folder
+    /// marked before markers named their kind, or not marked, must hold one of `recognised`,
+    /// the files the command writes): `--out ~/Documents` must never empty a user's folder,
+    /// nor `register --out` a recording.
+    pub fn new(target: &std::path::Path, kind: OutputKind, recognised: &[&str]) -> std::io::Result<Self> {
+        check_replaceable(target, kind, recognised)?;
         let staging = beside(target, &format!("staging-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&staging);
         std::fs::create_dir_all(&staging)?;
-        Ok(Self { staging, target: target.to_path_buf(), committed: false, keep_on_failure: false })
+        Ok(Self { staging, target: target.to_path_buf(), kind, committed: false, keep_on_failure: false })
     }
 
     /// Like [`StagedDir::new`], but the staging folder has a fixed name and survives a failure
     /// or a cancel, so long work (training) can resume in it; `resume` reuses one left by an
     /// earlier run, otherwise it starts empty.
-    pub fn resumable(target: &std::path::Path, recognised: &[&str], resume: bool) -> std::io::Result<Self> {
-        check_replaceable(target, recognised)?;
+    pub fn resumable(target: &std::path::Path, kind: OutputKind, recognised: &[&str], resume: bool) -> std::io::Result<Self> {
+        check_replaceable(target, kind, recognised)?;
         let staging = Self::pending_path(target);
         if !resume {
             let _ = std::fs::remove_dir_all(&staging);
         }
         std::fs::create_dir_all(&staging)?;
-        Ok(Self { staging, target: target.to_path_buf(), committed: false, keep_on_failure: true })
+        Ok(Self { staging, target: target.to_path_buf(), kind, committed: false, keep_on_failure: true })
     }
 
     /// Where [`StagedDir::resumable`] stages `target`.
@@ -106,7 +206,9 @@ impl StagedDir {
 
     /// Swap the staging folder in for the target (the old target removed after the swap).
     pub fn commit(mut self) -> std::io::Result<()> {
-        std::fs::write(self.staging.join(OUTPUT_MARKER), b"written by umesh; replaced whole by the next run\n")?;
+        let kind = self.kind.name();
+        let marker = format!("written by umesh; replaced whole by the next run that writes a {kind}\nkind: {kind}\n");
+        std::fs::write(self.staging.join(OUTPUT_MARKER), marker)?;
         let old = beside(&self.target, &format!("old-{}", std::process::id()));
         if self.target.exists() {
             let _ = std::fs::remove_dir_all(&old);

@@ -180,6 +180,21 @@ impl ModelInfo {
         if let Some(o) = &self.settings.observation {
             o.validate()?;
         }
+        // The organ model is rebuilt from these on loading: bounds on what that costs.
+        if let Some(c) = &self.dataset_config {
+            if !(1..=16).contains(&c.surface_step) {
+                return Err(umesh_core::Invalid(format!("dataset_config.surface_step {}: 1 to 16 voxels", c.surface_step)));
+            }
+            if let umesh_core::fem::FixedRegion::Label { distance_mm, .. } = c.fixed
+                && !(distance_mm.is_finite() && (0.0..=umesh_core::fem::bc::MAX_FIX_DISTANCE_MM).contains(&distance_mm))
+            {
+                return Err(umesh_core::Invalid(format!(
+                    "dataset_config.fixed.distance_mm {distance_mm}: between 0 and {} mm",
+                    umesh_core::fem::bc::MAX_FIX_DISTANCE_MM
+                )));
+            }
+            c.material.validate().map_err(|e| umesh_core::Invalid(format!("dataset_config.material: {e}")))?;
+        }
         Ok(())
     }
     pub fn write(&self, dir: &Path) -> Result<(), NetError> {

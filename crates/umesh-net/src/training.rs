@@ -54,8 +54,9 @@ impl EpochPlan {
             return self.asked;
         }
         let per_epoch = self.spent_s / self.run_epochs as f64;
+        // `as usize` saturates (a budget of 1e30 s); the sum must not wrap either.
         let more = ((self.budget_s - self.spent_s) / per_epoch).floor().max(0.0) as usize;
-        (done + more).min(self.asked)
+        done.saturating_add(more).min(self.asked)
     }
 
     /// Why to stop after epoch `done` (`best_epoch` the best so far), if so.
@@ -63,7 +64,7 @@ impl EpochPlan {
         if done >= self.asked {
             return None;
         }
-        if self.patience > 0 && done >= best_epoch + self.patience {
+        if self.patience > 0 && done >= best_epoch.saturating_add(self.patience) {
             return Some(format!(
                 "validation plateau: no better validation loss in the {} epochs after epoch {best_epoch}; stopped after epoch {done} of {}",
                 self.patience, self.asked
@@ -162,6 +163,20 @@ pub fn run_train(
     if !(settings.time_budget_s.is_finite() && settings.time_budget_s >= 0.0) {
         return Err(NetError::Invalid(format!("the time budget must be a finite number of seconds >= 0, got {}", settings.time_budget_s)));
     }
+    // Adam's step: above 1 the weights leave any useful range at the first batch; 0 or less
+    // (or NaN) learns nothing. Either would end without usable weights.
+    if !(settings.learning_rate.is_finite() && settings.learning_rate > 0.0 && settings.learning_rate <= 1.0) {
+        return Err(NetError::Invalid(format!("--learning-rate {}: a finite rate above 0 and at most 1", settings.learning_rate)));
+    }
+    if settings.epochs == 0 || settings.epochs > 100_000 {
+        return Err(NetError::Invalid(format!(
+            "--epochs {}: 1 to 100000 (a model needs trained weights; 100000 epochs of the smallest dataset take weeks here)",
+            settings.epochs
+        )));
+    }
+    if settings.batch_size == 0 {
+        return Err(NetError::Invalid("--batch-size 0: at least one sample a batch".into()));
+    }
     let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
     let mut rest = vec![false; set.len()];
     let refresher = match (&settings.observation, settings.fresh_views) {
@@ -181,8 +196,13 @@ pub fn run_train(
     let final_out = out;
     let pending = umesh_core::StagedDir::pending_path(final_out);
     let continue_pending = resume && pending.join("last.safetensors").exists();
-    let staged = umesh_core::StagedDir::resumable(final_out, &["model.json", "metrics.jsonl", JOB_FILE], continue_pending)
-        .map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
+    let staged = umesh_core::StagedDir::resumable(
+        final_out,
+        umesh_core::OutputKind::Model,
+        &["model.json", "metrics.jsonl", JOB_FILE],
+        continue_pending,
+    )
+    .map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
     let out = staged.path();
     if resume && !continue_pending && final_out.join("last.safetensors").exists() {
         copy_files(final_out, out)?;
@@ -272,7 +292,7 @@ pub fn run_train(
     let mut optim = AdamConfig::new().init();
     let mut best = epochs.iter().map(|e| e.val_loss).fold(f64::INFINITY, f64::min);
     let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
-    let total_batches = settings.epochs * train.len().div_ceil(settings.batch_size.max(1));
+    let total_batches = settings.epochs.saturating_mul(train.len().div_ceil(settings.batch_size.max(1)));
     let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
     let mut plan =
         EpochPlan { asked: settings.epochs, patience: settings.patience, budget_s: settings.time_budget_s, spent_s: 0.0, run_epochs: 0 };
@@ -341,6 +361,16 @@ pub fn run_train(
         stopped_early = plan.stop(epoch, best_epoch);
         on_epoch(&m);
         epochs.push(m);
+    }
+    // Swapped in only when usable: a run whose validation loss was never finite (diverged)
+    // leaves the folder it would replace as it was.
+    if !out.join("model.safetensors").exists() || !best.is_finite() {
+        let last = epochs.last().map(|m| m.val_loss).unwrap_or(f64::NAN);
+        return Err(NetError::Invalid(format!(
+            "training produced no usable weights (validation loss {last} at the last epoch, never finite: the learning rate {} is too large for this dataset?); {} left as it was",
+            settings.learning_rate,
+            final_out.display()
+        )));
     }
     // What registration compares each frame's fit with (camera-view models only).
     if settings.observation.is_some() && out.join("model.safetensors").exists() {

@@ -44,6 +44,14 @@ pub struct InputSpec {
 }
 
 impl InputSpec {
+    /// The files and folders this organ is read from, with the option naming each (for
+    /// `umesh_core::check_apart`).
+    pub fn paths(&self) -> Vec<(&'static str, &std::path::Path)> {
+        let mut v: Vec<(&'static str, &std::path::Path)> = self.seg.iter().map(|p| ("SEG", p.as_path())).collect();
+        v.extend(self.structure_meshes.iter().map(|p| ("--structure-mesh", p.as_path())));
+        v
+    }
+
     /// Reads the segmentation; notes on how masks were combined go to `notes`.
     pub fn load_with_notes(&self, notes: &mut Vec<String>) -> Result<Segmentation, WorkflowError> {
         let Some(path) = &self.seg else {

@@ -113,6 +113,11 @@ impl DatasetContext {
             v.validate().map_err(|r| invalid(&seg_path, r))?;
         }
         config.forces.validate().map_err(|r| invalid(&seg_path, r))?;
+        // The surface's marching step in voxels: beyond 16 a liver is a handful of triangles
+        // (100000 asked for petabytes).
+        if !(1..=16).contains(&config.surface_step) {
+            return Err(invalid(&seg_path, format!("surface_step {}: 1 to 16 voxels", config.surface_step)));
+        }
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
         let surface = extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });

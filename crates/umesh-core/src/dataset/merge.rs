@@ -44,7 +44,8 @@ pub fn run_merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, DatasetE
     }
     // Everything is written into a staging folder beside the target, which replaces it only at
     // the end: a merge that fails leaves the target as it was.
-    let staged = crate::StagedDir::new(out, &["manifest.json"]).map_err(|source| DatasetError::Io { path: out.into(), source })?;
+    let staged = crate::StagedDir::new(out, crate::OutputKind::Dataset, &["manifest.json"])
+        .map_err(|source| DatasetError::Io { path: out.into(), source })?;
     let merged = merge_into(&m0, &sources, first, staged.path(), same)?;
     if out.exists() {
         // Other files of the target (a job record, notes) move along.

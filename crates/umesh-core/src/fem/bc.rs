@@ -18,6 +18,9 @@ pub enum FixedRegion {
     Nodes { nodes: Vec<usize> },
 }
 
+/// The farthest a node may be from a label to be fixed by it (`FixedRegion::Label`).
+pub const MAX_FIX_DISTANCE_MM: f64 = 30.0;
+
 /// Everything the static solve needs besides the grid and the material.
 #[derive(Clone, Debug, Default)]
 pub struct BoundaryConditions {
@@ -47,6 +50,13 @@ impl BoundaryConditions {
                 let sampler = mask.world_sampler();
                 let spacing = mask.world_from_voxel.fixed_view::<3, 3>(0, 0).column(0).norm().max(1e-6);
                 let r = *distance_mm;
+                // The search visits (2r / voxel)^3 voxels a node: beyond 30 mm it takes minutes
+                // a grid (1e308 never ended) and holds most of a liver still.
+                if !(r.is_finite() && (0.0..=MAX_FIX_DISTANCE_MM).contains(&r)) {
+                    return Err(crate::Invalid(format!(
+                        "fixed distance {r} mm from label {label}: between 0 and {MAX_FIX_DISTANCE_MM} mm"
+                    )));
+                }
                 let steps = (r / spacing).ceil() as i64;
                 for n in 0..grid.node_count() {
                     let p = grid.node_position(n);

@@ -56,17 +56,27 @@ impl ConfidenceReference {
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
             return Err(crate::Invalid(format!("{}: the confidence range holds negative or non-finite values", path.display())));
         }
-        // Limits no organ reaches would silence every warning (1e308 was accepted).
-        let mm = [
-            ("residual_p95_mm", r.residual_p95_mm),
-            ("residual_mean_mm", r.residual_mean_mm),
-            ("displacement_max_mm", r.displacement_max_mm),
+        // Limits a frame cannot reach would silence every warning (1e308, then 1000 mm, were
+        // accepted): a residual is measured up to RESIDUAL_CAP_MM; no organ moves 300 mm. A
+        // range of zero was measured on nothing and would flag every frame.
+        let bounds = [
+            ("residual_p95_mm", r.residual_p95_mm, RESIDUAL_CAP_MM),
+            ("residual_mean_mm", r.residual_mean_mm, RESIDUAL_CAP_MM),
+            ("displacement_max_mm", r.displacement_max_mm, 300.0),
         ];
-        if let Some((name, v)) = mm.iter().find(|(_, v)| *v > 1000.0) {
-            return Err(crate::Invalid(format!("{}: {name} = {v} mm, over 1000 mm: not a confidence range", path.display())));
+        if let Some((name, v, max)) = bounds.iter().find(|(_, v, max)| !(*v > 0.0 && v <= max)) {
+            return Err(crate::Invalid(format!(
+                "{}: {name} = {v} mm: a confidence range lies above 0 and at most {max} mm (what a frame can measure)",
+                path.display()
+            )));
         }
-        if r.coverage_min > 1.0 {
-            return Err(crate::Invalid(format!("{}: coverage_min = {} is a share, at most 1", path.display(), r.coverage_min)));
+        if !(r.coverage_min > 0.0 && r.coverage_min <= 1.0) || r.views == 0 {
+            return Err(crate::Invalid(format!(
+                "{}: coverage_min = {} over {} views: a share above 0 and at most 1, measured on at least one view",
+                path.display(),
+                r.coverage_min,
+                r.views
+            )));
         }
         Ok(Some(r))
     }

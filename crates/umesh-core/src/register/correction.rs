@@ -65,6 +65,13 @@ impl Default for CorrectionSettings {
     }
 }
 
+/// The most conjugate-gradient iterations a frame's correction may ask for (updates x
+/// iterations; the defaults ask for 20, a doubted frame for 40).
+pub const MAX_CG_PER_FRAME: usize = 200;
+
+/// The most surface patches of the correction's subspace (3 basis vectors each; 64 by default).
+pub const MAX_SUBSPACE_PATCHES: usize = 128;
+
 impl CorrectionSettings {
     pub fn off() -> Self {
         Self { updates: 0, ..Self::default() }
@@ -83,14 +90,19 @@ impl CorrectionSettings {
             ("--correction-updates / --correction-cg: the correction", self.updates, self.cg_iterations),
             ("--doubted-updates / --doubted-cg: the correction of a doubted frame", self.doubted_updates, self.doubted_cg_iterations),
         ] {
-            if updates > 100 || (updates > 0 && !(1..=1000).contains(&cg)) {
+            // What a frame can afford: about 3 ms a CG iteration on the phantom (20 updates of
+            // 200 took 12.7 s a frame), three times that on a 9000-node liver.
+            if updates > 0 && (!(1..=MAX_CG_PER_FRAME).contains(&cg) || updates.saturating_mul(cg) > MAX_CG_PER_FRAME) {
                 return Err(crate::Invalid(format!(
-                    "{what}: {updates} updates of {cg} CG iterations (at most 100 updates of 1-1000 iterations)"
+                    "{what}: {updates} updates of {cg} CG iterations; at most {MAX_CG_PER_FRAME} iterations a frame in all (about 0.6 s on the phantom)"
                 )));
             }
         }
-        if self.subspace_patches > 1000 {
-            return Err(crate::Invalid(format!("--correction-subspace: {} subspace patches (at most 1000)", self.subspace_patches)));
+        if self.subspace_patches > MAX_SUBSPACE_PATCHES {
+            return Err(crate::Invalid(format!(
+                "--correction-subspace: {} subspace patches; at most {MAX_SUBSPACE_PATCHES} (its basis is built before the first frame: 256 patches took 35 s on the phantom, 1000 did not finish in 5 minutes)",
+                self.subspace_patches
+            )));
         }
         Ok(())
     }
@@ -348,9 +360,18 @@ impl CorrectionChoice {
                 Self::FORMAT
             )));
         }
-        let ok = |x: &FormFigures| [x.late_tre_mm, x.last_tre_mm, x.frame_ms_median].iter().all(|v| v.is_finite() && *v >= 0.0);
+        // A TRE beyond 1000 mm or a frame beyond an hour describes no registration (1e308 mm
+        // was printed as it was).
+        let ok = |x: &FormFigures| {
+            [(x.late_tre_mm, 1000.0), (x.last_tre_mm, 1000.0), (x.frame_ms_median, 3.6e6)]
+                .iter()
+                .all(|(v, max)| v.is_finite() && *v >= 0.0 && v <= max)
+        };
         if !(ok(&c.subspace) && ok(&c.tracking)) {
-            return Err(crate::Invalid(format!("{}: a figure is negative or not finite", path.display())));
+            return Err(crate::Invalid(format!(
+                "{}: a figure is negative, not finite, or beyond what a registration gives (TRE over 1000 mm, a frame over an hour)",
+                path.display()
+            )));
         }
         Ok(Some(c))
     }

@@ -288,6 +288,24 @@ impl GroundTruth {
     pub fn pose(&self) -> Matrix4<f64> {
         Matrix4::from_row_slice(&self.world_from_camera)
     }
+
+    /// The truth must be of the organ it is compared with: its markers were drawn inside that
+    /// organ at rest, so (nearly) all lie within its bounds (with a 10 mm margin). A recording
+    /// of another organ would give TREs of tens of mm that describe nothing.
+    pub fn check_fits(&self, ctx: &RegistrationContext) -> Result<(), crate::Invalid> {
+        let m = self.markers_rest_mm.len();
+        let Some((lo, hi)) = ctx.surface.bounds() else { return Ok(()) };
+        let margin = Vector3::repeat(10.0);
+        let (lo, hi) = (lo - margin, hi + margin);
+        let inside = self.markers_rest_mm.iter().filter(|p| (0..3).all(|a| p[a].is_finite() && p[a] >= lo[a] && p[a] <= hi[a])).count();
+        if m > 0 && (inside as f64) < 0.8 * m as f64 {
+            return Err(crate::Invalid(format!(
+                "the ground truth is not of this organ: {} of its {m} markers lie outside the organ's bounds (a recording made on another organ?)",
+                m - inside
+            )));
+        }
+        Ok(())
+    }
     /// The true camera pose of frame `i`.
     pub fn pose_at(&self, i: usize) -> Matrix4<f64> {
         match self.world_from_camera_frames.get(i) {
@@ -923,6 +941,9 @@ pub fn run_register(
     cancel: &Cancel,
 ) -> Result<RegisterReport, crate::rgbd::RgbdError> {
     let initial = initial_world_from_camera.into();
+    if let Some(t) = truth {
+        t.check_fits(ctx)?;
+    }
     let mut reg = Registrar::new(ctx, settings.clone(), initial.unwrap_or_else(Matrix4::identity));
     if initial.is_none() {
         reg.require_frame_pose();

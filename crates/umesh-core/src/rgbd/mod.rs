@@ -20,6 +20,9 @@ pub enum RgbdError {
     Invalid { path: PathBuf, reason: String },
     #[error("stream: {0}")]
     Stream(String),
+    /// Inputs that do not belong together (a ground truth of another organ, say).
+    #[error(transparent)]
+    Mismatch(#[from] crate::Invalid),
     #[error(transparent)]
     Cancelled(#[from] crate::Cancelled),
 }
@@ -318,6 +321,27 @@ pub fn depth_to_points(depth: &DepthImage, k: &Intrinsics, keep: Option<&[bool]>
 
 pub fn transform_point(m: &Matrix4<f64>, p: &Vector3<f64>) -> Vector3<f64> {
     m.fixed_view::<3, 3>(0, 0) * p + m.fixed_view::<3, 1>(0, 3)
+}
+
+/// A camera pose must be rigid: its rotation orthonormal with determinant 1 (to 1e-3, what a
+/// pose printed to six decimals keeps) and its last row 0 0 0 1. A sheared or scaled "pose"
+/// would place the organ anywhere.
+pub fn check_rigid(m: &Matrix4<f64>) -> Result<(), crate::Invalid> {
+    if !m.iter().all(|v| v.is_finite()) {
+        return Err(crate::Invalid::from("the pose holds a value that is not finite"));
+    }
+    let r = m.fixed_view::<3, 3>(0, 0);
+    let off = (r.transpose() * r - nalgebra::Matrix3::identity()).abs().max();
+    let det = r.determinant();
+    if off > 1e-3 || (det - 1.0).abs() > 1e-3 {
+        return Err(crate::Invalid(format!(
+            "not a rigid pose: its rotation is off orthonormal by {off:.2e} with determinant {det:.4} (sheared, scaled or mirrored)"
+        )));
+    }
+    if m[(3, 0)].abs() + m[(3, 1)].abs() + m[(3, 2)].abs() + (m[(3, 3)] - 1.0).abs() > 1e-9 {
+        return Err(crate::Invalid::from("not a rigid pose: its last row must be 0 0 0 1"));
+    }
+    Ok(())
 }
 
 /// Inverse of a rigid transform.

@@ -106,6 +106,7 @@ pub fn read_trajectory_log(path: &Path) -> Result<Vec<Matrix4<f64>>, RgbdError> 
                 m[(r, c)] = vals[c];
             }
         }
+        super::check_rigid(&m).map_err(|e| invalid(path, format!("frame {f}: {e}")))?;
         for r in 0..3 {
             m[(r, 3)] *= 1000.0;
         }

@@ -999,6 +999,12 @@ fn auto_pose_follows_a_trajectory_with_a_pose_a_frame_and_keeps_icp_for_one_init
         assert_eq!(p, if tracked { PosePolicy::Tracked } else { PosePolicy::IcpFirst }, "{why}");
         assert!(why.starts_with(p.name()), "{why}");
     }
+    // A sheared pose is no camera pose: the recording is refused, naming the file and frame.
+    let mut sheared = pose;
+    sheared[(0, 1)] = 0.3;
+    std::fs::write(dir.join("trajectory.log"), write_trajectory_log(&[pose, sheared, pose])).unwrap();
+    let e = Recording::open(&dir, None).unwrap_err().to_string();
+    assert!(e.contains("trajectory.log") && e.contains("frame 1") && e.contains("rigid"), "{e}");
     // Asked for, the policy is kept whatever the source carries.
     assert_eq!(choose_pose(Some(PosePolicy::IcpEveryFrame), true).0, PosePolicy::IcpEveryFrame);
     let _ = std::fs::remove_dir_all(&dir);

@@ -369,7 +369,7 @@ impl CorrectionChoice {
         };
         if !(ok(&c.subspace) && ok(&c.tracking)) {
             return Err(crate::Invalid(format!(
-                "{}: a figure is negative, not finite, or beyond what a registration gives (TRE over 1000 mm, a frame over an hour)",
+                "{}: a figure is negative or not finite, or beyond what a registration gives (a TRE over 1000 mm, a frame over an hour)",
                 path.display()
             )));
         }

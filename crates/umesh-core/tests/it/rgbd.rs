@@ -826,6 +826,7 @@ fn the_correction_choice_takes_tracking_only_at_a_quarter_less_late_tre_and_its_
         (&serde_json::to_string(&c).unwrap().replace("\"tracking\",", "\"sideways\","), "not a correction choice"),
         (&serde_json::to_string(&c).unwrap().replace("umesh-correction-choice", "other"), "format other"),
         (&serde_json::to_string(&c).unwrap().replace("25.0", "-1.0"), "negative or not finite"),
+        (&serde_json::to_string(&c).unwrap().replace("\"late_tre_mm\":2.0", "\"late_tre_mm\":1e308"), "over 1000 mm"),
     ] {
         std::fs::write(&path, text).unwrap();
         let e = CorrectionChoice::read(&dir).unwrap_err().0;

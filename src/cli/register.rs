@@ -81,12 +81,12 @@ pub struct Args {
     /// On a frame whose prediction the confidence rule doubts (the observed points too far from
     /// it, or it moves beyond the training deformations), correct it as the FE fit instead: its
     /// elastic energy from rest, carried over the doubted frames, this many updates (0: as any
-    /// other frame). Needs a model with a confidence reference.
-    #[arg(long, default_value_t = CorrectionSettings::default().doubted_updates)]
-    pub doubted_updates: usize,
-    /// Conjugate-gradient iterations per update of a doubted frame at most.
-    #[arg(long, default_value_t = CorrectionSettings::default().doubted_cg_iterations)]
-    pub doubted_cg: usize,
+    /// other frame; default 4). Needs a model with a confidence reference and the correction on.
+    #[arg(long)]
+    pub doubted_updates: Option<usize>,
+    /// Conjugate-gradient iterations per update of a doubted frame at most (default 10).
+    #[arg(long)]
+    pub doubted_cg: Option<usize>,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -188,10 +188,15 @@ pub fn run(a: Args) -> Result<()> {
         updates: a.correction_updates.unwrap_or(base.updates),
         cg_iterations: a.correction_cg.unwrap_or(base.cg_iterations),
         subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
-        doubted_updates: a.doubted_updates,
-        doubted_cg_iterations: a.doubted_cg,
+        doubted_updates: a.doubted_updates.unwrap_or(base.doubted_updates),
+        doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
         ..base
     };
+    // A doubted frame is corrected by the correction: asked for with it off, it would be
+    // ignored without a word.
+    if correction.updates == 0 && (a.doubted_updates.is_some() || a.doubted_cg.is_some()) {
+        bail!("--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off");
+    }
     correction.validate()?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
     let requested = match a.pose.as_str() {

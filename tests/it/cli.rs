@@ -571,6 +571,19 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
         let (ok, _, err) = umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);
         assert!(!ok && err.contains(flag) && err.lines().count() == 1, "{flag} {value}: {err}");
     }
+    // The doubted frames' correction asked for with the correction off: said, not ignored.
+    let (ok, _, err) = umesh(&[
+        "register",
+        "--recording",
+        r,
+        "--correction-updates",
+        "0",
+        "--doubted-updates",
+        "4",
+        "--out",
+        tmp("tracked-bad").to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("--doubted-updates") && err.lines().count() == 1, "{err}");
     // A shorter recording written over this one replaces it whole: no frame of the old one left.
     let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--cloud-points", "50", "--out", r]);
     assert!(ok, "{err}");

@@ -53,6 +53,10 @@ pub struct RegisterBenchArgs {
     /// configuration (default: the system's temporary directory).
     #[arg(long)]
     pub recordings: Option<PathBuf>,
+    /// `bench register`: the correction form (subspace, tracking, fast-tracking; default: the
+    /// model's choice, else subspace).
+    #[arg(long)]
+    pub correction_form: Option<String>,
 }
 
 /// The probe's load scale for each family: below the motion asked on the phantom, so that the
@@ -78,9 +82,10 @@ pub fn run(a: &RegisterBenchArgs) -> Result<serde_json::Value> {
     let key = umesh_core::dataset::fnv_hex(format!("{}{}", dctx.grid_hash(), serde_json::to_string(&config)?).as_bytes());
     let root = a.recordings.clone().unwrap_or_else(|| std::env::temp_dir().join("umesh-bench-register")).join(key);
     let ctx = RegistrationContext::new(dctx, &seg)?;
-    let form = match CorrectionChoice::read(&model_dir)? {
-        Some(c) => c.form,
-        None => CorrectionForm::Subspace,
+    let form = match (a.correction_form.as_deref(), CorrectionChoice::read(&model_dir)?) {
+        (Some(f), _) => super::register::parse_form(f).context("--correction-form")?,
+        (None, Some(c)) => c.form,
+        (None, None) => CorrectionForm::Subspace,
     };
     prepare_correction(&ctx, form.settings().basis_patches())?;
     let model_material = config.material;

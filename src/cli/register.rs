@@ -70,14 +70,19 @@ pub struct Args {
     /// frame, 256 patches took 35 s on the phantom). The tracking form solves by CG.
     #[arg(long)]
     pub correction_subspace: Option<usize>,
-    /// The correction's form: auto (the model folder's choice from its registration check,
-    /// `correction.json`, see `umesh choose-correction`; subspace when it has none), subspace
-    /// (each prediction corrected in a basis of smooth surface loads; within the phantom's
-    /// frame budget) or tracking (carried from frame to frame, its elastic energy from rest by
-    /// conjugate gradients, 2 updates of 10 iterations: better on livers and loads the network
-    /// fits poorly, 6-10 times the correction's time; docs/REGISTRATION.md).
+    /// The correction's form: auto (the most accurate form within --frame-budget-ms on the
+    /// model's registration check, `correction.json`, see `umesh choose-correction`; subspace
+    /// when it has none), subspace (each prediction corrected in a basis of smooth surface
+    /// loads), fast-tracking (carried from frame to frame, its elastic energy from rest, in the
+    /// same basis: about the subspace form's frame) or tracking (the same by conjugate
+    /// gradients, 2 updates of 10 iterations: the FE fit, best where the network is weak, 5-10
+    /// times the frame; docs/REGISTRATION.md).
     #[arg(long, default_value = "auto")]
     pub correction_form: String,
+    /// With --correction-form auto: the frame time the form is chosen within (ms), from the
+    /// frame each form took on the model's check; 0: the most accurate whatever its time.
+    #[arg(long, default_value_t = umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)]
+    pub frame_budget_ms: f64,
     /// On a frame whose prediction the confidence rule doubts (the observed points too far from
     /// it, or it moves beyond the training deformations), correct it as the FE fit instead: its
     /// elastic energy from rest, carried over the doubted frames, this many updates (0: as any
@@ -182,7 +187,11 @@ pub fn run(a: Args) -> Result<()> {
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
-    let form = correction_form(&a.correction_form, &model_dir)?;
+    if !(a.frame_budget_ms.is_finite() && (0.0..=3.6e6).contains(&a.frame_budget_ms)) {
+        bail!("--frame-budget-ms {}: between 0 (no limit) and 3600000 (an hour)", a.frame_budget_ms);
+    }
+    let budget = (a.frame_budget_ms > 0.0).then_some(a.frame_budget_ms);
+    let (form, form_reason) = correction_form(&a.correction_form, &model_dir, budget)?;
     let base = form.settings();
     let correction = CorrectionSettings {
         updates: a.correction_updates.unwrap_or(base.updates),
@@ -273,6 +282,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut v = summary(&report);
     v["correction_form"] = serde_json::json!((correction.updates > 0).then_some(form.name()));
+    v["correction_reason"] = serde_json::json!((correction.updates > 0).then_some(&form_reason));
     if let Some(fe) = &fe_report {
         v["fe"] = summary(fe);
     }
@@ -359,20 +369,29 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// The correction form `--correction-form` names; auto: the model folder's choice (said on
-/// stderr), else subspace.
-fn correction_form(asked: &str, model_dir: &Path) -> Result<CorrectionForm> {
+/// The correction form `--correction-form` names, and why; auto: the model folder's choice for
+/// the frame budget (said on stderr), else subspace.
+fn correction_form(asked: &str, model_dir: &Path, budget_ms: Option<f64>) -> Result<(CorrectionForm, String)> {
     Ok(match asked {
-        "subspace" => CorrectionForm::Subspace,
-        "tracking" => CorrectionForm::Tracking,
         "auto" => match CorrectionChoice::read(model_dir)? {
             Some(c) => {
-                eprintln!("correction: the model's check chose the {}", c.describe());
-                c.form
+                let (form, why) = c.choose(budget_ms);
+                eprintln!("correction: {why}");
+                (form, why)
             }
-            None => CorrectionForm::Subspace,
+            None => (CorrectionForm::Subspace, "subspace correction: the model has no registration check (correction.json)".into()),
         },
-        other => bail!("--correction-form {other:?}: auto, subspace or tracking"),
+        other => (parse_form(other).context("--correction-form")?, format!("{other} correction: asked by --correction-form")),
+    })
+}
+
+/// A correction form by name.
+pub fn parse_form(name: &str) -> Result<CorrectionForm> {
+    Ok(match name {
+        "subspace" => CorrectionForm::Subspace,
+        "tracking" => CorrectionForm::Tracking,
+        "fast-tracking" => CorrectionForm::FastTracking,
+        other => bail!("{other:?}: auto, subspace, tracking or fast-tracking"),
     })
 }
 

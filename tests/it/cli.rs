@@ -407,8 +407,10 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let (ok, out, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", rec.to_str().unwrap(), "--json"]);
     assert!(ok, "{err}");
     let c = json(&out);
-    let late = |f: &str| c[f]["late_tre_mm"].as_f64().unwrap();
-    let want = if late("tracking") <= 0.75 * late("subspace") { "tracking" } else { "subspace" };
+    // Each form measured; the choice is the rule's (tested in core) within the default budget.
+    let choice: umesh_core::register::correction::CorrectionChoice = serde_json::from_value(c.clone()).unwrap();
+    assert!(choice.fast_tracking.is_some(), "{c}");
+    let want = choice.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0.name();
     assert_eq!(c["form"], want, "{c}");
     assert!(model.join("correction.json").is_file());
     let reg_c = tmp("synth-reg-chosen");
@@ -426,7 +428,20 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let (ok, out, err) = umesh(&args);
     assert!(ok, "{err}");
     assert_eq!(json(&out)["correction_form"], want, "{err}");
-    assert!(err.contains("the model's check chose the"), "{err}");
+    assert!(err.contains("correction: ") && err.contains("on the check recording"), "{err}");
+    assert!(json(&out)["correction_reason"].as_str().is_some_and(|r| r.contains("within 33 ms") || r.contains("no form met")), "{out}");
+    // No frame budget: the most accurate form whatever its time; a budget that is no time is refused.
+    let mut unlimited = args.to_vec();
+    unlimited.extend(["--frame-budget-ms", "0"]);
+    let (ok, out, err) = umesh(&unlimited);
+    assert!(ok, "{err}");
+    assert_eq!(json(&out)["correction_form"], choice.choose(None).0.name(), "{err}");
+    for bad in ["-1", "NaN", "1e300"] {
+        let mut a = args.to_vec();
+        a.extend(["--frame-budget-ms", bad]);
+        let (ok, _, err) = umesh(&a);
+        assert!(!ok && err.contains("--frame-budget-ms"), "{bad}: {err}");
+    }
     // A damaged choice: one error naming the file, nothing registered.
     std::fs::write(model.join("correction.json"), "{\"form\": 3").unwrap();
     let (ok, _, err) = umesh(&args);
@@ -882,7 +897,7 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     // The check registered its recording with both correction forms and kept the choice in
     // the model folder.
     let form = v["check"]["correction"]["form"].as_str().unwrap_or_default().to_string();
-    assert!(form == "subspace" || form == "tracking", "{v}");
+    assert!(["subspace", "fast-tracking", "tracking"].contains(&form.as_str()), "{v}");
     let kept: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
     assert_eq!(kept["form"], form.as_str());
     // Run again: every stage was done, nothing is recomputed.

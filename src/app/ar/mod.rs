@@ -14,7 +14,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::time::{Duration, Instant};
 use umesh_core::dataset::DatasetContext;
 use umesh_core::register::RegistrationContext;
-use umesh_core::register::correction::CorrectionSettings;
+use umesh_core::register::correction::{CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::{FrameReport, GroundTruth, PosePolicy, RegisterSettings, Registrar, choose_pose};
 use umesh_core::rgbd::realsense::{RealSenseRequest, RealSenseSource};
 use umesh_core::rgbd::recording::Recording;
@@ -519,8 +519,9 @@ pub struct Ar {
     pub show_points: bool,
     /// The physics correction after each prediction (on by default).
     pub correction: bool,
-    /// ... in its tracking form (`CorrectionSettings::tracking`).
-    pub tracking: bool,
+    /// ... in this form (each session starts with the model's choice within the default
+    /// frame budget).
+    pub form: CorrectionForm,
     /// A frame whose prediction the confidence rule doubts is not corrected as the FE fit
     /// (`CorrectionSettings::doubted`, on by default): every frame within the correction's time.
     pub keep_frame_time: bool,

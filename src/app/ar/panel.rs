@@ -88,7 +88,7 @@ fn source_ui(
     }
     if let Some(src) = start {
         // Each session starts with the model's correction form; the box changes it for this session.
-        ar.tracking = model_correction_form(&model.dir, messages) == CorrectionForm::Tracking;
+        ar.form = model_correction_form(&model.dir, messages);
         match &organ.data {
             Some(o) => {
                 let s = ArSession::start(src.clone(), o.seg.clone(), model.clone(), waker);
@@ -270,13 +270,15 @@ fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     }
 }
 
-/// The correction form a model asks for: its registration check's choice (said in the
-/// messages), else the subspace form; a damaged choice is shown as an error.
+/// The correction form a model asks for: its registration check's choice within the default
+/// frame budget (said in the messages, with why), else the subspace form; a damaged choice is
+/// shown as an error.
 pub fn model_correction_form(model_dir: &std::path::Path, messages: &mut UiMessages) -> CorrectionForm {
     match CorrectionChoice::read(model_dir) {
         Ok(Some(c)) => {
-            messages.info(format!("the model's check chose the {}", c.describe()));
-            c.form
+            let (form, why) = c.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS));
+            messages.info(format!("in use: {why}"));
+            form
         }
         Ok(None) => CorrectionForm::Subspace,
         Err(e) => {
@@ -286,13 +288,9 @@ pub fn model_correction_form(model_dir: &std::path::Path, messages: &mut UiMessa
     }
 }
 
-/// The correction the panel's two boxes ask for.
+/// The correction the panel asks for.
 fn correction_settings(ar: &Ar) -> CorrectionSettings {
-    let settings = match (ar.correction, ar.tracking) {
-        (false, _) => CorrectionSettings::off(),
-        (true, false) => CorrectionForm::Subspace.settings(),
-        (true, true) => CorrectionForm::Tracking.settings(),
-    };
+    let settings = if ar.correction { ar.form.settings() } else { CorrectionSettings::off() };
     if ar.keep_frame_time { CorrectionSettings { doubted_updates: 0, ..settings } } else { settings }
 }
 
@@ -309,12 +307,22 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
         )
         .changed();
     ui.add_enabled_ui(ar.correction, |ui| {
-        changed |= ui
-            .checkbox(&mut ar.tracking, "tracking")
-            .on_hover_text(
-                "The correction carried from frame to frame, its elastic energy from rest: better where the network is weak (a liver or loads it fits poorly), 6-10 times the correction's time (2 updates of 10 CG iterations)",
-            )
-            .changed();
+        ui.horizontal(|ui| {
+            ui.label("form");
+            for (form, hover) in [
+                (CorrectionForm::Subspace, "Each prediction corrected in a basis of smooth surface loads: the fastest; good where the network is good"),
+                (
+                    CorrectionForm::FastTracking,
+                    "The correction carried from frame to frame, its elastic energy from rest, in the same basis: about the subspace form's time, better where the network is weak",
+                ),
+                (
+                    CorrectionForm::Tracking,
+                    "The same carried correction by conjugate gradients over the whole grid (the FE fit): the most accurate where the network is weak, 5-10 times the frame",
+                ),
+            ] {
+                changed |= ui.radio_value(&mut ar.form, form, form.name()).on_hover_text(hover).changed();
+            }
+        });
         changed |= ui
             .checkbox(&mut ar.keep_frame_time, "keep the frame time")
             .on_hover_text(

@@ -82,7 +82,13 @@ impl CorrectionSettings {
     /// one update of 6 left gravity at 2.10 and 2.40 mm, two of 10 bring them to 0.95 and 1.81
     /// (all eight 0.39-1.81; the hand-made eight 0.52-1.89 -> 0.37-0.97), about twice its time.
     pub fn tracking() -> Self {
-        Self { updates: 2, cg_iterations: 10, carry: true, from_rest: true, ..Self::default() }
+        Self { updates: 2, cg_iterations: 10, subspace_patches: 0, carry: true, from_rest: true, ..Self::default() }
+    }
+
+    /// The tracking correction solved in the surface-load subspace: carried, its energy from
+    /// rest (linear in the rest stiffness), two updates of one m x m solve each.
+    pub fn fast_tracking() -> Self {
+        Self { updates: 2, carry: true, from_rest: true, ..Self::default() }
     }
 
     pub fn validate(&self) -> Result<(), crate::Invalid> {
@@ -108,9 +114,9 @@ impl CorrectionSettings {
     }
 
     /// The patches of the surface-load basis this correction solves in: none when it is off
-    /// or measures its energy from rest (solved by CG).
+    /// or solved by CG.
     pub fn basis_patches(&self) -> usize {
-        if self.updates == 0 || self.from_rest { 0 } else { self.subspace_patches }
+        if self.updates == 0 { 0 } else { self.subspace_patches }
     }
 
     /// The correction of a frame whose prediction the confidence rule doubts: the FE fit from
@@ -119,6 +125,9 @@ impl CorrectionSettings {
         (self.updates > 0 && self.doubted_updates > 0).then_some(Self {
             updates: self.doubted_updates,
             cg_iterations: self.doubted_cg_iterations,
+            // The tracking forms are the FE fit already: a doubted frame gets more of the same
+            // updates; the correction from the prediction turns to the fit by CG.
+            subspace_patches: if self.from_rest { self.subspace_patches } else { 0 },
             carry: true,
             from_rest: true,
             ..*self
@@ -126,7 +135,14 @@ impl CorrectionSettings {
     }
 
     pub fn work(&self) -> FitWork {
-        FitWork { updates: self.updates, cg_iterations: self.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: !self.from_rest }
+        FitWork {
+            updates: self.updates,
+            cg_iterations: self.cg_iterations,
+            cg_tol: 1e-3,
+            stop_mm: None,
+            from_start: !self.from_rest,
+            rest_in_subspace: self.from_rest && self.subspace_patches > 0,
+        }
     }
 }
 
@@ -262,14 +278,17 @@ impl<'c> SurfaceFit<'c> {
     }
 }
 
-/// The correction's two forms: the subspace update from each prediction (`CorrectionSettings::
-/// default`, within the phantom's frame budget) and the tracking form (`tracking`, 6-10 times
-/// its time, better where the network is weak).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+/// The correction's forms: the subspace update from each prediction (`CorrectionSettings::
+/// default`), the tracking form solved in the same subspace (`fast_tracking`, about the same
+/// frame) and the tracking form by CG (`tracking`, 6-10 times the frame; the FE fit itself,
+/// best where the network is weak).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CorrectionForm {
+    #[default]
     Subspace,
     Tracking,
+    FastTracking,
 }
 
 impl CorrectionForm {
@@ -277,6 +296,7 @@ impl CorrectionForm {
         match self {
             Self::Subspace => CorrectionSettings::default(),
             Self::Tracking => CorrectionSettings::tracking(),
+            Self::FastTracking => CorrectionSettings::fast_tracking(),
         }
     }
 
@@ -284,15 +304,21 @@ impl CorrectionForm {
         match self {
             Self::Subspace => "subspace",
             Self::Tracking => "tracking",
+            Self::FastTracking => "fast-tracking",
         }
     }
 }
 
-/// The tracking form is chosen when, on the check recording, its mean TRE over the second half
-/// of the frames (where the motion is largest) is at most this share of the subspace form's.
-/// Measured ratios: 0.32-0.49 on eight CT recordings, 0.49-0.62 on a model that never saw the
-/// family, 0.61-1.21 (median 0.93) on the phantom's seventeen (docs/REGISTRATION.md).
+/// A form that costs more than twice the frame of the form it would replace is chosen only
+/// when its mean TRE over the second half of the check recording's frames is at most this
+/// share of that form's; a form of about the same cost only has to be more accurate.
+/// Measured ratios (tracking / subspace): 0.32-0.49 on eight CT recordings, 0.49-0.62 on a
+/// model that never saw the family, 0.61-1.21 (median 0.93) on the phantom's seventeen.
 pub const TRACKING_CHOSEN_AT_MOST: f64 = 0.75;
+
+/// The frame budget a form is chosen within unless told otherwise (ms): a camera at 30 frames a
+/// second.
+pub const DEFAULT_FRAME_BUDGET_MS: f64 = 33.0;
 
 /// One correction form's figures on a check recording.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -303,8 +329,9 @@ pub struct FormFigures {
     pub frame_ms_median: f64,
 }
 
-/// The correction form a model's registration check chose for its organ, kept in the model
-/// folder (`CorrectionChoice::FILE`): `register` and the AR view use it unless told otherwise.
+/// The correction forms a model's registration check measured on its organ, kept in the model
+/// folder (`CorrectionChoice::FILE`), and the form chosen within the default frame budget:
+/// `register` and the AR view choose again for the budget they are given.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CorrectionChoice {
     pub format: String,
@@ -312,7 +339,10 @@ pub struct CorrectionChoice {
     pub form: CorrectionForm,
     pub subspace: FormFigures,
     pub tracking: FormFigures,
-    /// The recording the two forms were measured on.
+    /// Absent in choices made before the form existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fast_tracking: Option<FormFigures>,
+    /// The recording the forms were measured on.
     pub recording: String,
 }
 
@@ -320,25 +350,68 @@ impl CorrectionChoice {
     pub const FILE: &'static str = "correction.json";
     const FORMAT: &'static str = "umesh-correction-choice";
 
-    pub fn decide(subspace: FormFigures, tracking: FormFigures, recording: &std::path::Path) -> Self {
-        let form = if tracking.late_tre_mm <= TRACKING_CHOSEN_AT_MOST * subspace.late_tre_mm {
-            CorrectionForm::Tracking
-        } else {
-            CorrectionForm::Subspace
+    pub fn decide(subspace: FormFigures, tracking: FormFigures, fast_tracking: Option<FormFigures>, recording: &std::path::Path) -> Self {
+        let mut c = Self {
+            format: Self::FORMAT.into(),
+            format_version: 1,
+            form: CorrectionForm::Subspace,
+            subspace,
+            tracking,
+            fast_tracking,
+            recording: recording.display().to_string(),
         };
-        Self { format: Self::FORMAT.into(), format_version: 1, form, subspace, tracking, recording: recording.display().to_string() }
+        c.form = c.choose(Some(DEFAULT_FRAME_BUDGET_MS)).0;
+        c
     }
 
-    /// One line: the form and the figures it was chosen on.
+    /// The measured forms, cheapest first.
+    fn forms(&self) -> Vec<(CorrectionForm, FormFigures)> {
+        let mut v = vec![(CorrectionForm::Subspace, self.subspace)];
+        v.extend(self.fast_tracking.map(|f| (CorrectionForm::FastTracking, f)));
+        v.push((CorrectionForm::Tracking, self.tracking));
+        v
+    }
+
+    /// The form for a frame budget (None: accuracy alone) and why, in one sentence: starting
+    /// from the cheapest, a form replaces the one held when its measured frame fits the budget
+    /// and it is more accurate (by `TRACKING_CHOSEN_AT_MOST` when it costs more than twice the
+    /// frame). When no form fits, the cheapest, said so.
+    pub fn choose(&self, budget_ms: Option<f64>) -> (CorrectionForm, String) {
+        let forms = self.forms();
+        let within = |f: &FormFigures| budget_ms.is_none_or(|b| f.frame_ms_median <= b);
+        let (mut best, mut fig) = forms[0];
+        for &(form, f) in &forms[1..] {
+            let share = if f.frame_ms_median > 2.0 * fig.frame_ms_median { TRACKING_CHOSEN_AT_MOST } else { 1.0 };
+            if within(&f) && f.late_tre_mm <= share * fig.late_tre_mm {
+                (best, fig) = (form, f);
+            }
+        }
+        let measured = forms
+            .iter()
+            .map(|(form, f)| format!("{} {:.2} mm at {:.0} ms", form.name(), f.late_tre_mm, f.frame_ms_median))
+            .collect::<Vec<_>>()
+            .join(", ");
+        let why = match budget_ms {
+            Some(b) if !within(&fig) => format!(
+                "{} correction: no form met the {b:.0} ms frame budget on the check recording, this is the fastest (late TRE and frame: {measured})",
+                best.name()
+            ),
+            Some(b) => format!(
+                "{} correction: the most accurate within {b:.0} ms a frame on the check recording (late TRE and frame: {measured}; a form over twice the frame must be {:.0} % better)",
+                best.name(),
+                100.0 * (1.0 - TRACKING_CHOSEN_AT_MOST)
+            ),
+            None => format!(
+                "{} correction: the most accurate on the check recording, the frame time not limited (late TRE and frame: {measured})",
+                best.name()
+            ),
+        };
+        (best, why)
+    }
+
+    /// One line: the form chosen within the default budget and the figures it was chosen on.
     pub fn describe(&self) -> String {
-        let f = |x: &FormFigures| format!("{:.2} mm late, {:.2} last, {:.0} ms a frame", x.late_tre_mm, x.last_tre_mm, x.frame_ms_median);
-        format!(
-            "{} correction (check recording: tracking {}; subspace {}; tracking is chosen at {:.0} % of the subspace's late TRE or less)",
-            self.form.name(),
-            f(&self.tracking),
-            f(&self.subspace),
-            100.0 * TRACKING_CHOSEN_AT_MOST
-        )
+        self.choose(Some(DEFAULT_FRAME_BUDGET_MS)).1
     }
 
     /// The model folder's choice; None when it has none (models from before, or not checked).
@@ -367,7 +440,7 @@ impl CorrectionChoice {
                 .iter()
                 .all(|(v, max)| v.is_finite() && *v >= 0.0 && v <= max)
         };
-        if !(ok(&c.subspace) && ok(&c.tracking)) {
+        if !(ok(&c.subspace) && ok(&c.tracking) && c.fast_tracking.as_ref().is_none_or(ok)) {
             return Err(crate::Invalid(format!(
                 "{}: a figure is negative or not finite, or beyond what a registration gives (a TRE over 1000 mm, a frame over an hour)",
                 path.display()

@@ -803,27 +803,47 @@ impl umesh_core::register::pipeline::DisplacementModel for DoubtingRigid {
 }
 
 #[test]
-fn the_correction_choice_takes_tracking_only_at_a_quarter_less_late_tre_and_its_file_is_checked() {
+fn the_correction_choice_keeps_the_frame_budget_and_takes_a_costlier_form_only_at_a_quarter_less_late_tre() {
     use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures, TRACKING_CHOSEN_AT_MOST};
-    let fig = |late: f64| FormFigures { late_tre_mm: late, last_tre_mm: 1.5 * late, frame_ms_median: 25.0 };
+    let fig = |late: f64, ms: f64| FormFigures { late_tre_mm: late, last_tre_mm: 1.5 * late, frame_ms_median: ms };
+    let (sub, cg) = (|late| fig(late, 25.0), |late| fig(late, 150.0));
     let rec = std::path::Path::new("rec");
-    // The rule at its edge (exact: the stated share), above it and well below it.
-    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(2.0 * TRACKING_CHOSEN_AT_MOST), rec).form, CorrectionForm::Tracking);
-    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(1.52), rec).form, CorrectionForm::Subspace);
-    assert_eq!(CorrectionChoice::decide(fig(2.0), fig(0.8), rec).form, CorrectionForm::Tracking);
-    assert_eq!(CorrectionChoice::decide(fig(1.0), fig(1.2), rec).form, CorrectionForm::Subspace);
-    // Written and read back the same; a folder without one has none.
+    let form = |c: &CorrectionChoice, budget: Option<f64>| c.choose(budget).0;
+    // Within the default budget (33 ms) the CG tracking form (150 ms) is never chosen; without
+    // a budget, at the stated share exactly, above it and well below it.
+    let c = CorrectionChoice::decide(sub(2.0), cg(2.0 * TRACKING_CHOSEN_AT_MOST), None, rec);
+    assert_eq!(c.form, CorrectionForm::Subspace);
+    assert!(c.describe().contains("within 33 ms"), "{}", c.describe());
+    assert_eq!(form(&c, None), CorrectionForm::Tracking);
+    assert_eq!(form(&c, Some(150.0)), CorrectionForm::Tracking);
+    assert_eq!(form(&c, Some(149.0)), CorrectionForm::Subspace);
+    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), cg(1.52), None, rec), None), CorrectionForm::Subspace);
+    assert_eq!(form(&CorrectionChoice::decide(sub(1.0), cg(1.2), None, rec), None), CorrectionForm::Subspace);
+    // A form of about the same frame only has to be more accurate; the costlier one is then
+    // measured against it.
+    let c = CorrectionChoice::decide(sub(2.0), cg(1.5), Some(fig(1.9, 27.0)), rec);
+    assert_eq!(c.form, CorrectionForm::FastTracking);
+    assert_eq!(form(&c, None), CorrectionForm::FastTracking);
+    assert_eq!(CorrectionChoice::decide(sub(2.0), cg(1.5), Some(fig(2.1, 27.0)), rec).form, CorrectionForm::Subspace);
+    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), cg(0.8), Some(fig(1.9, 27.0)), rec), Some(200.0)), CorrectionForm::Tracking);
+    // No form within the budget: the cheapest, said so.
+    let slow = CorrectionChoice::decide(fig(2.0, 40.0), cg(1.0), None, rec);
+    assert_eq!(slow.form, CorrectionForm::Subspace);
+    assert!(slow.describe().contains("no form met the 33 ms"), "{}", slow.describe());
+    // Written and read back the same; a folder without one has none; a file from before the
+    // fast form reads.
     let dir = tmp("choice");
     assert_eq!(CorrectionChoice::read(&dir).unwrap(), None);
-    let c = CorrectionChoice::decide(fig(2.0), fig(1.0), rec);
+    let c = CorrectionChoice::decide(sub(2.0), cg(1.0), None, rec);
     c.write(&dir).unwrap();
+    assert!(!std::fs::read_to_string(dir.join(CorrectionChoice::FILE)).unwrap().contains("fast_tracking"));
     assert_eq!(CorrectionChoice::read(&dir).unwrap(), Some(c.clone()));
-    assert_eq!(c.form.settings(), umesh_core::register::correction::CorrectionSettings::tracking());
+    assert_eq!(form(&c, None).settings(), umesh_core::register::correction::CorrectionSettings::tracking());
     // Damaged files: one error naming the file and the problem.
     let path = dir.join(CorrectionChoice::FILE);
     for (text, says) in [
         ("{", "not a correction choice"),
-        (&serde_json::to_string(&c).unwrap().replace("\"tracking\",", "\"sideways\","), "not a correction choice"),
+        (&serde_json::to_string(&c).unwrap().replace("\"subspace\",", "\"sideways\","), "not a correction choice"),
         (&serde_json::to_string(&c).unwrap().replace("umesh-correction-choice", "other"), "format other"),
         (&serde_json::to_string(&c).unwrap().replace("25.0", "-1.0"), "negative or not finite"),
         (&serde_json::to_string(&c).unwrap().replace("\"late_tre_mm\":2.0", "\"late_tre_mm\":1e308"), "over 1000 mm"),

@@ -331,25 +331,29 @@ pub fn registration_check(
     let dctx = DatasetContext::prepare(seg, config, cancel)?;
     net.info.check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())?;
     let ctx = RegistrationContext::new(dctx, seg).map_err(|e| NetError::Invalid(e.into()))?;
-    let forms = [CorrectionForm::Subspace, CorrectionForm::Tracking];
+    // Each form as it runs at surgery, the overlay drawn: its frame time is what the choice
+    // for a frame budget reads.
+    let forms = [CorrectionForm::Subspace, CorrectionForm::FastTracking, CorrectionForm::Tracking];
+    let n = forms.len() as u64;
     let mut runs = Vec::new();
     for (k, form) in forms.iter().enumerate() {
-        let settings = RegisterSettings { overlay: false, correction: form.settings(), ..Default::default() };
+        let settings = RegisterSettings { overlay: true, correction: form.settings(), ..Default::default() };
         let p = progress.clone();
         let (k, name) = (k as u64, form.name());
-        let inner = Progress::new(move |done, total, msg| p.report(k * total + done, 2 * total, &format!("{name} correction: {msg}")));
+        let inner = Progress::new(move |done, total, msg| p.report(k * total + done, n * total, &format!("{name} correction: {msg}")));
         runs.push(register_recording(recording, &ctx, &mut net, &settings, &inner, cancel)?);
     }
     let figures: Vec<Option<FormFigures>> = runs.iter().map(|r| r.form_figures()).collect();
-    let choice = match (figures[0], figures[1]) {
+    let choice = match (figures[0], figures[2]) {
         (Some(s), Some(t)) => {
-            let c = CorrectionChoice::decide(s, t, recording);
+            let c = CorrectionChoice::decide(s, t, figures[1], recording);
             c.write(model).map_err(|e| NetError::Invalid(e.0))?;
             Some(c)
         }
         _ => None,
     };
-    let r = &runs[usize::from(choice.as_ref().is_some_and(|c| c.form == CorrectionForm::Tracking))];
+    let chosen = choice.as_ref().map_or(CorrectionForm::Subspace, |c| c.form);
+    let r = &runs[forms.iter().position(|f| *f == chosen).unwrap_or(0)];
     let last = r.frames.last();
     Ok(CheckReport {
         summary: (&r.summary).into(),

@@ -95,18 +95,28 @@ pub struct FitWork {
     /// 2.05 mm (pressing, instrument, grasp, gravity) to 2.93, 0.82, 0.90, 1.86 with the same CG
     /// work, and to 2.36, 0.84, 0.84, 1.69 in the 64-patch subspace.
     pub from_start: bool,
+    /// With the energy from rest (`from_start` false), solve each update in the subspace when
+    /// one is set (`PointFit::use_subspace`), as the correction from the start always does.
+    pub rest_in_subspace: bool,
 }
 
 impl FitWork {
     /// The registration's per-frame work.
     pub fn fixed(settings: &PointFitSettings) -> Self {
-        Self { updates: settings.iterations, cg_iterations: settings.cg_iterations, cg_tol: 1e-3, stop_mm: None, from_start: false }
+        Self {
+            updates: settings.iterations,
+            cg_iterations: settings.cg_iterations,
+            cg_tol: 1e-3,
+            stop_mm: None,
+            from_start: false,
+            rest_in_subspace: false,
+        }
     }
 
     /// Tight inner solves until an update moves the nodes by at most `tol_mm` RMS (at most
     /// `max_updates`).
     pub fn converged(tol_mm: f64, max_updates: usize) -> Self {
-        Self { updates: max_updates, cg_iterations: 300, cg_tol: 1e-6, stop_mm: Some(tol_mm), from_start: false }
+        Self { updates: max_updates, cg_iterations: 300, cg_tol: 1e-6, stop_mm: Some(tol_mm), from_start: false, rest_in_subspace: false }
     }
 }
 
@@ -145,6 +155,9 @@ pub struct Subspace {
     phit: Mat<f32>,
     /// The rest stiffness projected on the basis (m x m).
     k_r: Mat<f64>,
+    /// (K Phi)^T (m x free dofs), K the rest stiffness: an update measured from rest needs the
+    /// starting displacement's elastic force in the basis, Phi^T K u, one product.
+    kphit: Mat<f32>,
 }
 
 impl<'g> PointFit<'g> {
@@ -300,13 +313,15 @@ impl<'g> PointFit<'g> {
         work: FitWork,
         freeze: bool,
     ) -> Result<PointFitReport, FemError> {
-        let FitWork { updates: iterations, cg_iterations, cg_tol, stop_mm, from_start } = work;
+        let FitWork { updates: iterations, cg_iterations, cg_tol, stop_mm, from_start, rest_in_subspace } = work;
         let grid = self.solver.grid;
         if u.len() != grid.node_count() {
             return Err(FemError::InvalidInput(format!("point fit: {} displacements for {} nodes", u.len(), grid.node_count())));
         }
-        if from_start && let Some(sub) = self.subspace.take() {
-            let r = self.subspace_updates(&sub, points_mm, u, iterations, freeze);
+        if (from_start || rest_in_subspace)
+            && let Some(sub) = self.subspace.take()
+        {
+            let r = self.subspace_updates(&sub, points_mm, u, iterations, freeze, !from_start);
             self.subspace = Some(sub);
             return Ok(r);
         }
@@ -525,12 +540,14 @@ impl<'g> PointFit<'g> {
         // The rest stiffness (the co-rotational operator at rest) projected on the basis.
         self.solver.asm.assemble(ElementModel::Corotational, &vec![Vector3::zeros(); self.solver.grid.node_count()], false);
         let mut k_r = Mat::<f64>::zeros(m, m);
+        let mut kphit = Mat::<f32>::zeros(m, nf);
         let mut kv = vec![0.0; nf];
         for j in 0..m {
             self.solver.asm.corotational_matvec(&columns[j], &mut kv);
             for i in 0..m {
                 k_r[(i, j)] = columns[i].iter().zip(&kv).map(|(a, b)| a * b).sum();
             }
+            kv.iter().enumerate().for_each(|(f, v)| kphit[(j, f)] = *v as f32);
         }
         for i in 0..m {
             for j in 0..i {
@@ -540,7 +557,7 @@ impl<'g> PointFit<'g> {
             }
         }
         let phit = Mat::from_fn(m, nf, |i, j| columns[i][j] as f32);
-        self.set_basis(Some(Subspace { phit, k_r }));
+        self.set_basis(Some(Subspace { phit, k_r, kphit }));
         Ok(())
     }
 
@@ -582,6 +599,10 @@ impl<'g> PointFit<'g> {
     /// m x m solve, exact for its correspondences, with no assembly of the grid and no line
     /// search: (K_r + G G^T) q = -G rho - K_r q_sum, du = Phi q, where G's column of a matched
     /// sample is sqrt(k) (n^T W Phi)^T and rho its distance to its points along n.
+    /// `from_rest`: the elastic energy measured from rest instead (the tracking correction),
+    /// linear in the rest stiffness: the right side gains -Phi^T K u_start, and the part of
+    /// u_start outside the basis's span stays as it is (no surface load the springs can apply
+    /// reaches it).
     fn subspace_updates(
         &mut self,
         sub: &Subspace,
@@ -589,6 +610,7 @@ impl<'g> PointFit<'g> {
         u: &mut [Vector3<f64>],
         updates: usize,
         freeze: bool,
+        from_rest: bool,
     ) -> PointFitReport {
         use faer::linalg::solvers::Solve;
         let Some(basis_s) = self.sample_basis.take() else { return PointFitReport::default() };
@@ -609,6 +631,21 @@ impl<'g> PointFit<'g> {
         // grid takes the sum of the steps once, at the end.
         let u_start = u.to_vec();
         let mut filled = Vec::new();
+        // Phi^T K u_start (m x 1), the starting elastic force in the basis.
+        let k_start = from_rest.then(|| {
+            let mut v = Mat::<f32>::zeros(nf, 1);
+            for (nd, un) in u_start.iter().enumerate() {
+                for c in 0..3 {
+                    let f = free[3 * nd + c];
+                    if f != NONE {
+                        v[(f as usize, 0)] = un[c] as f32;
+                    }
+                }
+            }
+            let mut k = Mat::<f32>::zeros(m, 1);
+            faer::linalg::matmul::matmul(k.as_mut(), faer::Accum::Replace, sub.kphit.as_ref(), v.as_ref(), 1.0, par);
+            Mat::<f64>::from_fn(m, 1, |i, _| k[(i, 0)] as f64)
+        });
         for it in 0..updates {
             let t = Instant::now();
             if it == 0 {
@@ -687,6 +724,9 @@ impl<'g> PointFit<'g> {
             faer::linalg::matmul::matmul(grho.as_mut(), faer::Accum::Replace, g, rho.as_ref(), -1.0, par);
             let mut b_r = Mat::<f64>::from_fn(m, 1, |i, _| grho[(i, 0)] as f64);
             faer::linalg::matmul::matmul(b_r.as_mut(), faer::Accum::Add, sub.k_r.as_ref(), q_sum.as_ref(), -1.0, par);
+            if let Some(k) = &k_start {
+                b_r -= k;
+            }
             let Ok(llt) = a_r.llt(faer::Side::Lower) else { break };
             let q = llt.solve(&b_r);
             q_sum += &q;

@@ -54,6 +54,8 @@ pub fn run(a: Args) -> Result<()> {
         grid_vtu(&out.grid).write(&vtu).with_context(|| format!("writing {}", vtu.display()))?;
     }
     let err = (s.grid_volume_mm3 - out.segmentation_volume_mm3) / out.segmentation_volume_mm3;
+    // The grid's own hash (its arrays as written); a dataset's adds its surface and camera.
+    let hash = umesh_core::dataset::fnv_hex(&umesh_core::npz::encode_npz_with(&out.grid.to_npz_arrays(), false)?);
     if a.json {
         super::output::print_json(&serde_json::json!({
             "source": seg.source, "cells": s.cells, "nodes": s.nodes, "inside_cells": s.inside_cells,
@@ -61,11 +63,13 @@ pub fn run(a: Args) -> Result<()> {
             "cell_size_mm": s.cell_size_mm, "grid_volume_mm3": s.grid_volume_mm3,
             "segmentation_volume_mm3": out.segmentation_volume_mm3, "volume_error": err,
             "node_dims": s.node_dims, "padded_shape": s.padded_shape, "out": a.out,
+            "organ_labels": seg.organ_labels, "grid_hash": hash,
         }));
     } else {
         println!("grid of {} (organ labels {:?})", seg.source.display(), seg.organ_labels);
         println!("  cells            {:>10} ({} inside, {} boundary)", s.cells, s.inside_cells, s.boundary_cells);
         println!("  nodes            {:>10}", s.nodes);
+        println!("  grid hash        {hash:>10}");
         println!("  quadrature pts   {:>10}", s.quadrature_points);
         println!("  grid volume      {:>10.0} mm^3", s.grid_volume_mm3);
         println!("  segmentation vol {:>10.0} mm^3 (grid error {:+.2} %)", out.segmentation_volume_mm3, 100.0 * err);

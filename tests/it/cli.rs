@@ -51,6 +51,21 @@ fn grid_json_reports_the_documented_keys() {
 }
 
 #[test]
+fn the_bundled_phantom_and_its_file_given_as_a_path_are_the_same_organ_and_grid() {
+    let file = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/phantom.nii.gz");
+    let (ok, bundled, err) = umesh(&["grid", "--json"]);
+    assert!(ok, "{err}");
+    let (ok, given, err) = umesh(&["grid", file.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    let (bundled, given) = (json(&bundled), json(&given));
+    // The vein and tumours the liver encloses are part of the organ either way.
+    assert_eq!(bundled["organ_labels"], serde_json::json!([1, 3, 4, 5, 6]), "{bundled}");
+    for key in ["organ_labels", "cells", "nodes", "grid_hash"] {
+        assert_eq!(bundled[key], given[key], "{key}: bundled {bundled}, given {given}");
+    }
+}
+
+#[test]
 fn bad_inputs_fail_with_one_clear_error_and_a_nonzero_exit() {
     let (ok, _, err) = umesh(&["grid", "/nonexistent/seg.nii.gz"]);
     assert!(!ok && err.contains("/nonexistent/seg.nii.gz"), "{err}");

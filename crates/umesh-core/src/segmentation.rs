@@ -123,7 +123,46 @@ pub fn load_nifti_labels(
     } else {
         by_name.map(|b| b.1).unwrap_or_default()
     };
+    // Labels chosen by default: the structures the organ encloses are part of it, as in a
+    // folder of masks and the bundled phantom (the same file is the same organ however given).
+    let mut organ = organ;
+    if organ_labels.is_empty() {
+        let mut inside: Vec<i64> = structures.iter().copied().filter(|l| !organ.contains(l)).collect();
+        inside.sort_unstable();
+        for l in inside {
+            let voxels: Vec<bool> = volume.data.iter().map(|&v| v.round() as i64 == l).collect();
+            if enclosed_by_organ(&volume, &voxels, &organ) {
+                organ.push(l);
+            }
+        }
+    }
     with_labels(path, volume, organ, structures)
+}
+
+/// The one rule for structures inside the organ, in every input path: a structure is part of
+/// the organ volume when more than half of the voxels bordering it (6-neighbours, the volume's
+/// edge counted as background) are organ voxels: a tumour or an intrahepatic vessel, not the
+/// extrahepatic portal vein. `structure`: the structure's voxels.
+fn enclosed_by_organ(volume: &Volume, structure: &[bool], organ_labels: &[i64]) -> bool {
+    let [nx, ny, nz] = volume.dims;
+    let (mut border, mut border_organ) = (0usize, 0usize);
+    for (idx, _) in structure.iter().enumerate().filter(|(_, h)| **h) {
+        let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
+        for (di, dj, dk) in [(-1i64, 0i64, 0i64), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)] {
+            let (a, b, c) = (i as i64 + di, j as i64 + dj, k as i64 + dk);
+            if a < 0 || b < 0 || c < 0 || a >= nx as i64 || b >= ny as i64 || c >= nz as i64 {
+                border += 1;
+                continue;
+            }
+            let n = a as usize + nx * (b as usize + ny * c as usize);
+            if !structure[n] {
+                border += 1;
+                let v = volume.data[n];
+                border_organ += (v != 0.0 && organ_labels.contains(&(v.round() as i64))) as usize;
+            }
+        }
+    }
+    border_organ * 2 > border
 }
 
 /// The bundled phantom with its default labels.
@@ -331,7 +370,7 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
         }
         let same = m.dims == volume.dims && (m.world_from_voxel - volume.world_from_voxel).abs().max() < 1e-4;
         let sampler = mask.world_sampler();
-        let [nx, ny, nz] = volume.dims;
+        let [nx, ny, _] = volume.dims;
         let hits: Vec<bool> = (0..volume.data.len())
             .map(|idx| {
                 if same {
@@ -347,30 +386,7 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
             })
             .collect();
         let count = hits.iter().filter(|&&h| h).count();
-        // Enclosed by the organ: most of the voxels bordering the structure are organ voxels
-        // (a tumour or an intrahepatic vessel), not background (the extrahepatic portal vein).
-        let (mut border, mut border_organ) = (0usize, 0usize);
-        for (idx, &h) in hits.iter().enumerate() {
-            if !h {
-                continue;
-            }
-            let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
-            for (di, dj, dk) in [(-1i64, 0i64, 0i64), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)] {
-                let (a, b, c) = (i as i64 + di, j as i64 + dj, k as i64 + dk);
-                if a < 0 || b < 0 || c < 0 || a >= nx as i64 || b >= ny as i64 || c >= nz as i64 {
-                    border += 1;
-                    continue;
-                }
-                let n = a as usize + nx * (b as usize + ny * c as usize);
-                if !hits[n] {
-                    border += 1;
-                    border_organ += (volume.data[n] != 0.0
-                        && volume.data[n] != label as f32
-                        && organ_labels.contains(&(volume.data[n] as i64))) as usize;
-                }
-            }
-        }
-        let enclosed = f.role == Role::Structure && border_organ * 2 > border;
+        let enclosed = f.role == Role::Structure && enclosed_by_organ(&volume, &hits, &organ_labels);
         // An anchor vein lying mostly inside the organ mask would otherwise keep only a few
         // voxels (or none) and the organ would silently lose its attachment: it takes its
         // voxels from the organ instead, and the notes say so.

@@ -87,7 +87,7 @@ pub fn run(a: &RegisterBenchArgs) -> Result<serde_json::Value> {
         (None, Some(c)) => c.form,
         (None, None) => CorrectionForm::Subspace,
     };
-    prepare_correction(&ctx, form.settings().basis_patches())?;
+    prepare_correction(&ctx, form.settings().basis())?;
     let model_material = config.material;
     let mut rows = Vec::new();
     let mut seed = a.seed;

@@ -170,6 +170,10 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(ch) = &c.correction {
         println!("registration check: {}", ch.describe());
     }
+    println!("verdict: {}", r.verdict.line());
+    for note in &r.verdict.notes {
+        println!("  note: {note}");
+    }
     println!("report: {}", r.out.join("report.html").display());
     Ok(())
 }

@@ -207,7 +207,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off");
     }
     correction.validate()?;
-    umesh_core::register::correction::prepare_correction(&ctx, correction.basis_patches())?;
+    umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
     let requested = match a.pose.as_str() {
         "auto" => None,
         p => Some(PosePolicy::parse(p).context("--pose (or auto)")?),

@@ -25,3 +25,76 @@ fn a_patient_resumes_with_camera_coordinates_that_have_decimals() {
     other.eval_markers += 1;
     assert!(!same_as_stored(&base, &other).unwrap());
 }
+
+#[test]
+fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_otherwise() {
+    use umesh_net::eval::EvalReport;
+    use umesh_net::training::EpochMetrics;
+    use umesh_workflow::patient::{CheckReport, SummaryRecord, judge};
+    let eval = |tre: f64, motion: f64| EvalReport {
+        samples: 100,
+        markers_per_sample: 20,
+        tre_mean_mm: tre,
+        tre_std_mm: 0.5,
+        tre_max_mm: 3.0 * tre,
+        marker_displacement_mean_mm: motion,
+        per_sample_tre_mm: Vec::new(),
+        per_marker_tre_mm: Vec::new(),
+    };
+    // Validation loss falling to the last epoch, or best at epoch 2 of 4.
+    let epochs = |losses: &[f64]| -> Vec<EpochMetrics> {
+        losses
+            .iter()
+            .enumerate()
+            .map(|(k, &l)| EpochMetrics {
+                epoch: k + 1,
+                train_loss: l,
+                val_loss: l,
+                val_tre_mean_mm: l,
+                val_tre_max_mm: l,
+                seconds: 60.0,
+                train_samples_per_s: 10.0,
+            })
+            .collect()
+    };
+    let check = |tre: f64, rigid: f64, motion: f64| CheckReport {
+        summary: SummaryRecord::default(),
+        last_frame_tre_mm: Some(tre),
+        last_frame_tre_rigid_mm: Some(rigid),
+        last_frame_marker_displacement_mm: Some(motion),
+        log: Vec::new(),
+        warning: None,
+        correction: None,
+    };
+    let dir = std::path::Path::new("/patients/p1");
+    let falling = epochs(&[4.0, 3.0, 2.5, 2.0]);
+    let time = Some("time budget: another epoch (about 60 s) would end after 600 s of training; stopped after epoch 4 of 20");
+    // Ready: 14 % of the motion, the check at 1.2 mm (10 % of rigid).
+    let v = judge(&falling, 20, None, &eval(1.4, 10.0), &check(1.2, 12.0, 12.0), dir);
+    assert!(v.ready && v.problems.is_empty() && v.line() == "ready", "{v:?}");
+    // The new-user case: 4 of 20 epochs, 3.71 mm at 5.9 mm (63 %), a check at 2.96 mm
+    // of motion reading 0.50 mm: not ready, says to train on, and that the check says little.
+    let v = judge(&falling, 20, time, &eval(3.71, 5.9), &check(0.5, 2.9, 2.96), dir);
+    assert!(!v.ready, "{v:?}");
+    assert!(
+        v.line().contains("63 %") && v.line().contains("4 of 20 epochs") && v.line().contains("--init-from /patients/p1/model"),
+        "{}",
+        v.line()
+    );
+    assert!(v.notes.iter().any(|n| n.contains("only 3.0 mm")), "{v:?}");
+    // Stopped by a plateau, not by time: training longer is not the advice.
+    let plateau = epochs(&[4.0, 3.0, 3.2, 3.3]);
+    let v = judge(&plateau, 20, Some("validation plateau: ..."), &eval(3.0, 10.0), &check(1.0, 12.0, 12.0), dir);
+    assert!(!v.ready && !v.line().contains("--init-from") && v.line().contains("30 %"), "{v:?}");
+    // A good network, a check far off at 12 mm of motion: not ready, names the tracking form.
+    let v = judge(&falling, 20, None, &eval(1.4, 10.0), &check(3.0, 12.0, 12.0), dir);
+    assert!(!v.ready && v.line().contains("3.00 mm") && v.line().contains("--correction-form tracking"), "{v:?}");
+    // Good, but cut by time while improving: ready, with a note.
+    let v = judge(&falling, 20, time, &eval(1.4, 10.0), &check(1.2, 12.0, 12.0), dir);
+    assert!(v.ready && v.notes.iter().any(|n| n.contains("4 of 20 epochs")), "{v:?}");
+    // No check: not ready, the reason given.
+    let v = judge(&falling, 20, None, &eval(1.4, 10.0), &CheckReport::not_run("the check recording could not be made".into()), dir);
+    assert!(!v.ready && v.line().contains("could not be made"), "{v:?}");
+    // A validation set that did not move cannot be judged ready.
+    assert!(!judge(&falling, 20, None, &eval(0.0, 0.0), &check(1.2, 12.0, 12.0), dir).ready);
+}

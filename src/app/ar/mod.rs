@@ -174,7 +174,12 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     if !matches!(source, ArSource::Recording(_)) {
         // The correction's subspace before a live source opens (as `umesh register` does): the
         // frames arriving while it is built would be dropped.
-        umesh_core::register::correction::prepare_correction(&ctx, CorrectionSettings::default().basis_patches())?;
+        // The basis of the form the panel starts with (the model's choice), as the panel reads it.
+        let form = match umesh_core::register::correction::CorrectionChoice::read(&am.dir) {
+            Ok(Some(c)) => c.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0,
+            _ => CorrectionForm::Subspace,
+        };
+        umesh_core::register::correction::prepare_correction(&ctx, form.settings().basis())?;
     }
     let (mut src, base_pose, truth, label, fps, tracked) = open_source(&source, &ctx, &log)?;
     let frames = match &src {

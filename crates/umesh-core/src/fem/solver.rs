@@ -474,7 +474,7 @@ pub struct FeSolver<'g> {
     pub settings: SolverSettings,
     asm: Assembler<'g>,
     fact: Factorizer,
-    constrained_nodes: Vec<bool>,
+    pub(crate) constrained_nodes: Vec<bool>,
     /// While probing a load factor: give up on the probe once the iterate's mean nodal
     /// displacement passes this (mm), as it is heading for a collapsed state.
     overshoot_mm: Option<(f64, MeanOver)>,

@@ -113,10 +113,12 @@ impl CorrectionSettings {
         Ok(())
     }
 
-    /// The patches of the surface-load basis this correction solves in: none when it is off
-    /// or solved by CG.
-    pub fn basis_patches(&self) -> usize {
-        if self.updates == 0 { 0 } else { self.subspace_patches }
+    /// The basis this correction solves in: (patches, free body); 0 patches when it is off or
+    /// solved by CG. The tracking form's state lives in the basis, made of free-body responses
+    /// (the rest stiffness alone); the correction from the prediction adds to it responses of a
+    /// body held by the springs.
+    pub fn basis(&self) -> (usize, bool) {
+        if self.updates == 0 { (0, false) } else { (self.subspace_patches, self.from_rest) }
     }
 
     /// The correction of a frame whose prediction the confidence rule doubts: the FE fit from
@@ -160,11 +162,11 @@ pub struct CorrectionReport {
 
 /// Build the physics correction's subspace of `patches` on `ctx` (seconds on a large grid)
 /// before the frames come: a live stream then loses no frame to it.
-pub fn prepare_correction(ctx: &RegistrationContext, patches: usize) -> Result<(), crate::Invalid> {
-    if patches == 0 {
+pub fn prepare_correction(ctx: &RegistrationContext, basis: (usize, bool)) -> Result<(), crate::Invalid> {
+    if basis.0 == 0 {
         return Ok(());
     }
-    SurfaceFit::new(ctx, ctx.material, PointFitSettings::default())?.use_subspace(patches)
+    SurfaceFit::new(ctx, ctx.material, PointFitSettings::default())?.use_subspace(basis)
 }
 
 /// The FE model of a registration context with its current nodal displacement.
@@ -221,16 +223,18 @@ impl<'c> SurfaceFit<'c> {
         }
     }
 
-    /// Solve the updates in a basis of `patches` x 3 surface-load responses (0: by CG).
-    pub fn use_subspace(&mut self, patches: usize) -> Result<(), crate::Invalid> {
-        if let Some((p, sub)) = self.ctx.correction_basis.get()
-            && *p == patches
-        {
-            return Ok(self.fit.set_subspace(sub.clone()).map_err(|e| e.to_string())?);
+    /// Solve the updates in a basis of `patches` x 3 surface-load responses (0: by CG), free
+    /// body or held by the springs (`CorrectionSettings::basis`); built once per context.
+    pub fn use_subspace(&mut self, basis: (usize, bool)) -> Result<(), crate::Invalid> {
+        let ctx = self.ctx;
+        let cached =
+            ctx.correction_basis.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|(k, _)| *k == basis).map(|(_, s)| s.clone());
+        if let Some(sub) = cached {
+            return Ok(self.fit.set_subspace(sub).map_err(|e| e.to_string())?);
         }
-        self.fit.use_subspace(patches).map_err(|e| e.to_string())?;
+        self.fit.use_subspace(basis.0, basis.1).map_err(|e| e.to_string())?;
         if let Some(sub) = self.fit.subspace() {
-            let _ = self.ctx.correction_basis.set((patches, sub.clone()));
+            ctx.correction_basis.lock().unwrap_or_else(|e| e.into_inner()).push((basis, sub.clone()));
         }
         Ok(())
     }

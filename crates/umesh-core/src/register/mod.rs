@@ -83,7 +83,8 @@ pub struct RegistrationContext {
     /// The physics correction's subspace (patches, basis), built once (before the frames by
     /// the correction's `prepare_correction`, or at the first corrected frame) and shared by
     /// every registration on this context.
-    pub(crate) correction_basis: std::sync::OnceLock<(usize, crate::fem::solver::fit::Subspace)>,
+    /// The correction's bases built so far, by (patches, free body): built once per context.
+    pub(crate) correction_basis: std::sync::Mutex<Vec<((usize, bool), crate::fem::solver::fit::Subspace)>>,
 }
 
 fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, crate::Invalid> {
@@ -180,7 +181,7 @@ impl RegistrationContext {
             node_neighbours,
             icp_target,
             gate_grid,
-            correction_basis: std::sync::OnceLock::new(),
+            correction_basis: Default::default(),
         })
     }
 

@@ -430,6 +430,10 @@ impl<'c> Registrar<'c> {
     /// Change the physics correction between frames; a carried correction starts again.
     pub fn set_correction(&mut self, correction: CorrectionSettings) {
         if correction != self.settings.correction {
+            // Another basis: the fit is built again (the context keeps each basis built).
+            if correction.basis() != self.settings.correction.basis() {
+                self.corrector = None;
+            }
             self.settings.correction = correction;
             self.carried.clear();
         }
@@ -582,7 +586,7 @@ impl<'c> Registrar<'c> {
             let t = Instant::now();
             if self.corrector.is_none() {
                 let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
-                fit.use_subspace(self.settings.correction.basis_patches())?;
+                fit.use_subspace(self.settings.correction.basis())?;
                 self.corrector = Some(fit);
             }
             let settings = self.settings.correction;

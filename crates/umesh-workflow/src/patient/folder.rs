@@ -167,6 +167,8 @@ pub struct PrepareReport {
     pub eval: eval::EvalReport,
     pub check_recording: Option<SynthReport>,
     pub check: CheckReport,
+    /// Ready for the operating room, or what is wrong and what to do.
+    pub verdict: super::Verdict,
     pub seconds: f64,
 }
 

@@ -262,8 +262,18 @@ pub fn run_prepare(
     // The report is rewritten on every run (its timings change).
     let t = Instant::now();
     patient.stages.entry(Stage::Report).or_default().done = true;
-    let html =
-        crate::report::patient_html(&patient, &stats, &metrics, &eval, synth.as_ref(), &check, &out.join("dataset").join("grid.npz"));
+    let stopped_early = patient.stages.get(&Stage::Train).and_then(|r| r.note.clone());
+    let verdict = super::judge(&metrics, settings.train.epochs, stopped_early.as_deref(), &eval, &check, out);
+    let html = crate::report::patient_html(
+        &patient,
+        &verdict,
+        &stats,
+        &metrics,
+        &eval,
+        synth.as_ref(),
+        &check,
+        &out.join("dataset").join("grid.npz"),
+    );
     umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     let rec = patient.stages.entry(Stage::Report).or_default();
     rec.done = true;
@@ -276,10 +286,11 @@ pub fn run_prepare(
         dataset: stats,
         dataset_samples_per_minute: samples_per_minute,
         final_epoch: metrics.last().cloned(),
-        training_stopped_early: patient.stages.get(&Stage::Train).and_then(|r| r.note.clone()),
+        training_stopped_early: stopped_early,
         eval,
         check_recording: synth,
         check,
+        verdict,
         seconds: start.elapsed().as_secs_f64(),
     })
 }

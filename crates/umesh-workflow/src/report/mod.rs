@@ -20,7 +20,7 @@ const STYLE: &str = "body{font-family:sans-serif;max-width:1100px;margin:1em aut
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
 td:first-child,th:first-child{text-align:left}figure{display:inline-block;margin:.5em 1em .5em 0;vertical-align:top}
 figcaption{font-size:12px;color:#555}pre{background:#f5f5f5;padding:.5em;overflow:auto;font-size:11px}
-.ok{color:#2ca02c}.bad{color:#d62728}";
+.ok{color:#2ca02c}.bad{color:#d62728}.problem{color:#d62728;font-weight:bold}";
 
 fn nice(v: f64) -> String {
     if v.abs() >= 100.0 {
@@ -240,6 +240,7 @@ fn dot(color: &str) -> El {
 /// The whole page.
 pub fn patient_html(
     patient: &Patient,
+    verdict: &crate::patient::Verdict,
     stats: &DatasetStats,
     metrics: &[EpochMetrics],
     eval: &EvalReport,
@@ -259,6 +260,14 @@ pub fn patient_html(
         if patient.structures.is_empty() { "none".to_string() } else { patient.structures.join(", ") },
         patient.segmentation_hash
     )));
+    // The verdict first: what a reader needs before any figure.
+    body = body.child(el("h2").text(if verdict.ready { "Verdict: ready" } else { "Verdict: not ready" }));
+    for problem in &verdict.problems {
+        body = body.child(el("p").attr("class", "problem").text(problem));
+    }
+    for note in &verdict.notes {
+        body = body.child(p(note.clone()));
+    }
 
     body = body.child(el("h2").text("Inputs")).child(table(
         &["file", "bytes", "hash (FNV-1a 64)"],

@@ -432,12 +432,12 @@ fn the_ar_view_starts_with_the_correction_form_the_models_check_chose() {
     assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Subspace);
     assert!(messages.list.is_empty(), "{:?}", messages.list);
     let fig = |late: f64, ms: f64| FormFigures { late_tre_mm: late, last_tre_mm: late, frame_ms_median: ms };
-    CorrectionChoice::decide(fig(2.0, 25.0), fig(1.0, 30.0), Some(fig(1.5, 27.0)), &dir).write(&dir).unwrap();
+    CorrectionChoice::decide(fig(2.0, 25.0), fig(1.0, 30.0), &dir).write(&dir).unwrap();
     assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Tracking);
     assert!(format!("{:?}", messages.list).contains("tracking correction"), "{:?}", messages.list);
     // Over the default frame budget (33 ms) the CG tracking form gives way, and the view says why.
-    CorrectionChoice::decide(fig(2.0, 25.0), fig(1.0, 140.0), Some(fig(1.5, 27.0)), &dir).write(&dir).unwrap();
-    assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::FastTracking);
+    CorrectionChoice::decide(fig(2.0, 25.0), fig(1.0, 140.0), &dir).write(&dir).unwrap();
+    assert_eq!(model_correction_form(&dir, &mut messages), CorrectionForm::Subspace);
     assert!(format!("{:?}", messages.list).contains("within 33 ms"), "{:?}", messages.list);
     // A damaged file: the subspace form and an error naming the file.
     std::fs::write(dir.join(CorrectionChoice::FILE), "[]").unwrap();

@@ -424,7 +424,6 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let c = json(&out);
     // Each form measured; the choice is the rule's (tested in core) within the default budget.
     let choice: umesh_core::register::correction::CorrectionChoice = serde_json::from_value(c.clone()).unwrap();
-    assert!(choice.fast_tracking.is_some(), "{c}");
     let want = choice.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0.name();
     assert_eq!(c["form"], want, "{c}");
     assert!(model.join("correction.json").is_file());
@@ -912,7 +911,7 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     // The check registered its recording with both correction forms and kept the choice in
     // the model folder.
     let form = v["check"]["correction"]["form"].as_str().unwrap_or_default().to_string();
-    assert!(["subspace", "fast-tracking", "tracking"].contains(&form.as_str()), "{v}");
+    assert!(form == "subspace" || form == "tracking", "{v}");
     let kept: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
     assert_eq!(kept["form"], form.as_str());
     // Run again: every stage was done, nothing is recomputed.

@@ -312,12 +312,8 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
             for (form, hover) in [
                 (CorrectionForm::Subspace, "Each prediction corrected in a basis of smooth surface loads: the fastest; good where the network is good"),
                 (
-                    CorrectionForm::FastTracking,
-                    "The correction carried from frame to frame, its elastic energy from rest, in the same basis: about the subspace form's time, better where the network is weak",
-                ),
-                (
                     CorrectionForm::Tracking,
-                    "The same carried correction by conjugate gradients over the whole grid (the FE fit): the most accurate where the network is weak, 5-10 times the frame",
+                    "The correction carried from frame to frame, its elastic energy from rest, by conjugate gradients over the whole grid (the FE fit): the most accurate where the network is weak, 5-10 times the frame",
                 ),
             ] {
                 changed |= ui.radio_value(&mut ar.form, form, form.name()).on_hover_text(hover).changed();

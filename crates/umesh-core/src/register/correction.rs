@@ -283,9 +283,9 @@ impl<'c> SurfaceFit<'c> {
 }
 
 /// The correction's forms: the subspace update from each prediction (`CorrectionSettings::
-/// default`), the tracking form solved in the same subspace (`fast_tracking`, about the same
-/// frame) and the tracking form by CG (`tracking`, 6-10 times the frame; the FE fit itself,
-/// best where the network is weak).
+/// default`), the tracking form by CG (`tracking`, 5-10 times the frame; the FE fit itself,
+/// best where the network is weak) and, asked for by name, the tracking form in a subspace
+/// (`fast_tracking`, about the subspace form's frame; not yet as accurate as either).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CorrectionForm {
@@ -343,9 +343,6 @@ pub struct CorrectionChoice {
     pub form: CorrectionForm,
     pub subspace: FormFigures,
     pub tracking: FormFigures,
-    /// Absent in choices made before the form existed.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub fast_tracking: Option<FormFigures>,
     /// The recording the forms were measured on.
     pub recording: String,
 }
@@ -354,26 +351,23 @@ impl CorrectionChoice {
     pub const FILE: &'static str = "correction.json";
     const FORMAT: &'static str = "umesh-correction-choice";
 
-    pub fn decide(subspace: FormFigures, tracking: FormFigures, fast_tracking: Option<FormFigures>, recording: &std::path::Path) -> Self {
+    pub fn decide(subspace: FormFigures, tracking: FormFigures, recording: &std::path::Path) -> Self {
         let mut c = Self {
             format: Self::FORMAT.into(),
             format_version: 1,
             form: CorrectionForm::Subspace,
             subspace,
             tracking,
-            fast_tracking,
             recording: recording.display().to_string(),
         };
         c.form = c.choose(Some(DEFAULT_FRAME_BUDGET_MS)).0;
         c
     }
 
-    /// The measured forms, cheapest first.
+    /// The measured forms, cheapest first (fast-tracking is asked for by name only: on the CT
+    /// patient's benchmark it met the bar on 3 of 8 draws where the subspace form met it on 7).
     fn forms(&self) -> Vec<(CorrectionForm, FormFigures)> {
-        let mut v = vec![(CorrectionForm::Subspace, self.subspace)];
-        v.extend(self.fast_tracking.map(|f| (CorrectionForm::FastTracking, f)));
-        v.push((CorrectionForm::Tracking, self.tracking));
-        v
+        vec![(CorrectionForm::Subspace, self.subspace), (CorrectionForm::Tracking, self.tracking)]
     }
 
     /// The form for a frame budget (None: accuracy alone) and why, in one sentence: starting
@@ -444,7 +438,7 @@ impl CorrectionChoice {
                 .iter()
                 .all(|(v, max)| v.is_finite() && *v >= 0.0 && v <= max)
         };
-        if !(ok(&c.subspace) && ok(&c.tracking) && c.fast_tracking.as_ref().is_none_or(ok)) {
+        if !(ok(&c.subspace) && ok(&c.tracking)) {
             return Err(crate::Invalid(format!(
                 "{}: a figure is negative or not finite, or beyond what a registration gives (a TRE over 1000 mm, a frame over an hour)",
                 path.display()

@@ -811,32 +811,26 @@ fn the_correction_choice_keeps_the_frame_budget_and_takes_a_costlier_form_only_a
     let form = |c: &CorrectionChoice, budget: Option<f64>| c.choose(budget).0;
     // Within the default budget (33 ms) the CG tracking form (150 ms) is never chosen; without
     // a budget, at the stated share exactly, above it and well below it.
-    let c = CorrectionChoice::decide(sub(2.0), cg(2.0 * TRACKING_CHOSEN_AT_MOST), None, rec);
+    let c = CorrectionChoice::decide(sub(2.0), cg(2.0 * TRACKING_CHOSEN_AT_MOST), rec);
     assert_eq!(c.form, CorrectionForm::Subspace);
     assert!(c.describe().contains("within 33 ms"), "{}", c.describe());
     assert_eq!(form(&c, None), CorrectionForm::Tracking);
     assert_eq!(form(&c, Some(150.0)), CorrectionForm::Tracking);
     assert_eq!(form(&c, Some(149.0)), CorrectionForm::Subspace);
-    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), cg(1.52), None, rec), None), CorrectionForm::Subspace);
-    assert_eq!(form(&CorrectionChoice::decide(sub(1.0), cg(1.2), None, rec), None), CorrectionForm::Subspace);
-    // A form of about the same frame only has to be more accurate; the costlier one is then
-    // measured against it.
-    let c = CorrectionChoice::decide(sub(2.0), cg(1.5), Some(fig(1.9, 27.0)), rec);
-    assert_eq!(c.form, CorrectionForm::FastTracking);
-    assert_eq!(form(&c, None), CorrectionForm::FastTracking);
-    assert_eq!(CorrectionChoice::decide(sub(2.0), cg(1.5), Some(fig(2.1, 27.0)), rec).form, CorrectionForm::Subspace);
-    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), cg(0.8), Some(fig(1.9, 27.0)), rec), Some(200.0)), CorrectionForm::Tracking);
+    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), cg(1.52), rec), None), CorrectionForm::Subspace);
+    assert_eq!(form(&CorrectionChoice::decide(sub(1.0), cg(1.2), rec), None), CorrectionForm::Subspace);
+    // A costlier form within twice the frame only has to be more accurate.
+    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), fig(1.9, 45.0), rec), Some(50.0)), CorrectionForm::Tracking);
+    assert_eq!(form(&CorrectionChoice::decide(sub(2.0), fig(2.1, 45.0), rec), Some(50.0)), CorrectionForm::Subspace);
     // No form within the budget: the cheapest, said so.
-    let slow = CorrectionChoice::decide(fig(2.0, 40.0), cg(1.0), None, rec);
+    let slow = CorrectionChoice::decide(fig(2.0, 40.0), cg(1.0), rec);
     assert_eq!(slow.form, CorrectionForm::Subspace);
     assert!(slow.describe().contains("no form met the 33 ms"), "{}", slow.describe());
-    // Written and read back the same; a folder without one has none; a file from before the
-    // fast form reads.
+    // Written and read back the same; a folder without one has none.
     let dir = tmp("choice");
     assert_eq!(CorrectionChoice::read(&dir).unwrap(), None);
-    let c = CorrectionChoice::decide(sub(2.0), cg(1.0), None, rec);
+    let c = CorrectionChoice::decide(sub(2.0), cg(1.0), rec);
     c.write(&dir).unwrap();
-    assert!(!std::fs::read_to_string(dir.join(CorrectionChoice::FILE)).unwrap().contains("fast_tracking"));
     assert_eq!(CorrectionChoice::read(&dir).unwrap(), Some(c.clone()));
     assert_eq!(form(&c, None).settings(), umesh_core::register::correction::CorrectionSettings::tracking());
     // Damaged files: one error naming the file and the problem.

@@ -1,7 +1,11 @@
 //! How commands report: a progress bar on stderr, cancellation, one JSON line on stdout.
 
+/// How often a job without a terminal says how far it is.
+const LOG_EVERY: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// A progress bar on stderr fed by core's progress callback; hidden when stderr is not a
-/// terminal-like sink (indicatif handles that).
+/// terminal-like sink (indicatif handles that), plain lines then instead.
+
 pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progress) {
     let pb = indicatif::ProgressBar::new(0);
     pb.set_style(
@@ -11,6 +15,14 @@ pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progr
     );
     pb.set_message(message.to_string());
     let p = pb.clone();
+    // Without a terminal (a log file, CI) the bar is hidden: a plain line at most every
+    // LOG_EVERY instead, with the elapsed time and an estimate of what is left.
+    use std::io::IsTerminal;
+    let log = !std::io::stderr().is_terminal();
+    let start = std::time::Instant::now();
+    // (last line, any printed, the end said): a job shorter than LOG_EVERY prints nothing.
+    let last = std::sync::Mutex::new((start, false, false));
+    let what = message.to_string();
     let progress = umesh_core::Progress::new(move |done, total, msg| {
         if total > 0 {
             p.set_length(total);
@@ -18,6 +30,20 @@ pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progr
         p.set_position(done);
         if !msg.is_empty() {
             p.set_message(msg.to_string());
+        }
+        if log {
+            let mut last = last.lock().unwrap_or_else(|e| e.into_inner());
+            let now = std::time::Instant::now();
+            let finished = total > 0 && done >= total;
+            if (!finished && now - last.0 >= LOG_EVERY) || (finished && last.1 && !last.2) {
+                *last = (now, true, finished);
+                let elapsed = start.elapsed().as_secs_f64();
+                let eta = (total > 0 && done > 0 && done < total)
+                    .then(|| format!(", about {:.0} s left", elapsed * (total - done) as f64 / done as f64))
+                    .unwrap_or_default();
+                let msg = if msg.is_empty() { what.as_str() } else { msg };
+                eprintln!("{msg}: {done}/{total} ({elapsed:.0} s{eta})");
+            }
         }
     });
     (pb, progress)

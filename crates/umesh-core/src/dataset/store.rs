@@ -87,8 +87,54 @@ impl Manifest {
                 ),
             ));
         }
+        m.check_samples().map_err(|reason| invalid(&path, reason))?;
         Ok(m)
     }
+
+    /// The sample list agrees with the shards and holds figures a solve can give: every sample
+    /// once, in a listed shard, within its range; each shard's accepted count that of its
+    /// samples; displacements finite and non-negative. A manifest edited by hand (or damaged)
+    /// was read as it was: `dataset stats`, `train` and `eval` went on with what it claimed.
+    fn check_samples(&self) -> Result<(), String> {
+        let mut seen = std::collections::HashSet::new();
+        let mut accepted = std::collections::HashMap::<&str, usize>::new();
+        for s in &self.samples {
+            if !seen.insert(s.index) {
+                return Err(format!("sample {} is listed twice", s.index));
+            }
+            let Some(shard) = self.shards.iter().find(|r| r.file == s.shard) else {
+                return Err(format!("sample {} names the shard {}, which the manifest does not list", s.index, s.shard));
+            };
+            if !(shard.first..shard.first + shard.count).contains(&s.index) {
+                return Err(format!(
+                    "sample {} lies outside its shard {} (samples {}..{})",
+                    s.index,
+                    s.shard,
+                    shard.first,
+                    shard.first + shard.count
+                ));
+            }
+            let figures = [s.max_displacement_mm, s.mean_displacement_mm].into_iter().chain(s.target_displacement_mm);
+            if s.accepted && !figures.clone().all(|v| v.is_finite() && v >= 0.0) {
+                return Err(format!("sample {}: a displacement figure is negative or not finite", s.index));
+            }
+            *accepted.entry(s.shard.as_str()).or_default() += s.accepted as usize;
+        }
+        for r in &self.shards {
+            let listed = self.samples.iter().filter(|s| s.shard == r.file).count();
+            if listed != r.count || accepted.get(r.file.as_str()).copied().unwrap_or(0) != r.accepted {
+                return Err(format!(
+                    "{} holds {} samples, {} accepted, but the sample list gives it {listed}, {} accepted",
+                    r.file,
+                    r.count,
+                    r.accepted,
+                    accepted.get(r.file.as_str()).copied().unwrap_or(0)
+                ));
+            }
+        }
+        Ok(())
+    }
+
     pub fn write(&self, dir: &Path) -> Result<(), DatasetError> {
         let path = dir.join("manifest.json");
         let text = serde_json::to_string_pretty(self).map_err(|e| invalid(&path, e.to_string()))?;

@@ -268,6 +268,9 @@ pub struct GroundTruth {
     pub markers_mm: Vec<Vec<[f64; 3]>>,
 }
 
+/// The farthest a ground-truth position may lie from the world's origin (mm): 10 m.
+pub const MAX_COORDINATE_MM: f64 = 1e4;
+
 impl GroundTruth {
     pub fn read(path: &Path) -> Result<Self, crate::Invalid> {
         let t = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -282,6 +285,25 @@ impl GroundTruth {
         }
         if g.markers_mm.iter().any(|f| f.len() != g.markers_rest_mm.len()) {
             return Err(crate::Invalid(format!("{}: a frame has a different number of markers", path.display())));
+        }
+        // Positions and poses a recording can have: a marker within 10 m of the origin, a pose
+        // of finite numbers. Huge values gave TREs of 1e300 mm reported as a result.
+        let far = |p: &[f64; 3]| !p.iter().all(|v| v.is_finite() && v.abs() <= MAX_COORDINATE_MM);
+        if g.markers_rest_mm.iter().chain(g.markers_mm.iter().flatten()).any(far) {
+            return Err(crate::Invalid(format!(
+                "{}: a marker position is not finite or lies over {MAX_COORDINATE_MM} mm from the origin",
+                path.display()
+            )));
+        }
+        if g.world_from_camera
+            .iter()
+            .chain(g.world_from_camera_frames.iter().flatten())
+            .any(|v| !v.is_finite() || v.abs() > MAX_COORDINATE_MM)
+        {
+            return Err(crate::Invalid(format!(
+                "{}: a camera pose holds a value that is not finite or over {MAX_COORDINATE_MM}",
+                path.display()
+            )));
         }
         Ok(g)
     }

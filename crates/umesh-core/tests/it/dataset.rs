@@ -197,6 +197,54 @@ fn corrupted_or_truncated_shards_are_detected_on_load() {
 }
 
 #[test]
+fn a_manifest_whose_sample_list_lies_or_holds_nan_is_refused_naming_it() {
+    let seg = phantom();
+    let config = small_config(2);
+    let dir = tmp("lying-manifest");
+    run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let path = dir.join("manifest.json");
+    let good: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    assert!(Dataset::open(&dir).is_ok());
+    let edits: [(&str, fn(&mut serde_json::Value)); 5] = [
+        ("listed twice", |m| {
+            let first = m["samples"][0].clone();
+            m["samples"].as_array_mut().unwrap().push(first);
+        }),
+        ("does not list", |m| m["samples"][0]["shard"] = "shard_000099.npz".into()),
+        ("outside its shard", |m| m["samples"][0]["index"] = 1000.into()),
+        ("sample list gives it", |m| {
+            let accepted = m["shards"][0]["accepted"].as_u64().unwrap();
+            m["shards"][0]["accepted"] = (accepted + 1).into();
+        }),
+        ("not finite", |m| {
+            // serde_json writes NaN as null, which the reader takes for a missing number:
+            // the hostile file's text carries it instead (below).
+            let k = m["samples"].as_array().unwrap().iter().position(|s| s["accepted"] == true).unwrap();
+            m["samples"][k]["max_displacement_mm"] = (-1.0).into();
+        }),
+    ];
+    for (says, edit) in edits {
+        let mut m = good.clone();
+        edit(&mut m);
+        std::fs::write(&path, serde_json::to_string(&m).unwrap()).unwrap();
+        let e = Dataset::open(&dir).unwrap_err().to_string();
+        assert!(e.contains("manifest.json") && e.contains(says), "{says}: {e}");
+    }
+    // A NaN or an infinity written into the file's text is refused as well.
+    let text = serde_json::to_string(&good).unwrap();
+    let key = "\"max_displacement_mm\":";
+    let at = text.find(key).unwrap() + key.len();
+    let end = at + text[at..].find([',', '}']).unwrap();
+    for bad in ["NaN", "1e999"] {
+        std::fs::write(&path, format!("{}{bad}{}", &text[..at], &text[end..])).unwrap();
+        let e = Dataset::open(&dir).unwrap_err().to_string();
+        assert!(e.contains("manifest.json"), "{bad}: {e}");
+    }
+    std::fs::write(&path, serde_json::to_string_pretty(&good).unwrap()).unwrap();
+    assert!(Dataset::open(&dir).is_ok());
+}
+
+#[test]
 fn calibrated_loads_land_within_a_quarter_of_each_samples_target() {
     let seg = phantom();
     let mut config = small_config(6);

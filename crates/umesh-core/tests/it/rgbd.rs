@@ -1024,3 +1024,28 @@ fn auto_pose_follows_a_trajectory_with_a_pose_a_frame_and_keeps_icp_for_one_init
     assert_eq!(choose_pose(Some(PosePolicy::IcpEveryFrame), true).0, PosePolicy::IcpEveryFrame);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_ground_truth_with_huge_or_non_finite_values_is_refused_naming_the_file() {
+    use umesh_core::register::pipeline::GroundTruth;
+    let dir = tmp("huge-truth");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("ground_truth.json");
+    let pose = "[1,0,0,0, 0,1,0,0, 0,0,1,300, 0,0,0,1]";
+    let write = |marker: &str, pose: &str| {
+        let text = format!(
+            "{{\"world_from_camera\": {pose}, \"world_from_camera_frames\": [], \"markers_rest_mm\": [[1,2,3]], \"markers_mm\": [[{marker}]]}}"
+        );
+        std::fs::write(&path, text).unwrap();
+    };
+    write("[1,2,4]", pose);
+    assert!(GroundTruth::read(&path).is_ok());
+    for marker in ["[1e300,2,4]", "[1,-2e4,4]"] {
+        write(marker, pose);
+        let e = GroundTruth::read(&path).unwrap_err().0;
+        assert!(e.contains("ground_truth.json") && e.contains("marker position"), "{marker}: {e}");
+    }
+    write("[1,2,4]", "[1,0,0,0, 0,1,0,0, 0,0,1,1e300, 0,0,0,1]");
+    let e = GroundTruth::read(&path).unwrap_err().0;
+    assert!(e.contains("ground_truth.json") && e.contains("camera pose"), "{e}");
+}

@@ -168,8 +168,25 @@ pub struct PrepareReport {
     pub check_recording: Option<SynthReport>,
     pub check: CheckReport,
     /// Ready for the operating room, or what is wrong and what to do.
-    pub verdict: super::Verdict,
+    pub verdict: Verdict,
     pub seconds: f64,
+}
+
+/// The verdict on a prepared patient (`patient::judge`).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Verdict {
+    pub ready: bool,
+    /// One sentence each: what is wrong and what to do.
+    pub problems: Vec<String>,
+    /// Things to know that do not stop the patient being ready.
+    pub notes: Vec<String>,
+}
+
+impl Verdict {
+    /// "ready" or "not ready: ..." in one line.
+    pub fn line(&self) -> String {
+        if self.ready { "ready".into() } else { format!("not ready: {}", self.problems.join(" ")) }
+    }
 }
 
 /// The registration check on the synthetic recording (last frame and mean over frames).

@@ -2,7 +2,7 @@
 //! what to do: read from its figures, never from a single number a reader could mistake (the
 //! check recording's TRE at a few millimetres of motion says little about the model).
 
-use super::CheckReport;
+use super::{CheckReport, Verdict};
 use umesh_net::eval::EvalReport;
 use umesh_net::training::EpochMetrics;
 
@@ -17,23 +17,6 @@ pub const CHECK_RIGID_SHARE_READY: f64 = 0.2;
 /// Below this motion (mm) the check recording cannot judge the model: rigid alignment alone
 /// is nearly as good.
 pub const CHECK_MOTION_MIN_MM: f64 = 5.0;
-
-/// The verdict on a prepared patient.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Verdict {
-    pub ready: bool,
-    /// One sentence each: what is wrong and what to do.
-    pub problems: Vec<String>,
-    /// Things to know that do not stop the patient being ready.
-    pub notes: Vec<String>,
-}
-
-impl Verdict {
-    /// "ready" or "not ready: ..." in one line.
-    pub fn line(&self) -> String {
-        if self.ready { "ready".into() } else { format!("not ready: {}", self.problems.join(" ")) }
-    }
-}
 
 /// The verdict from the training's epochs (`asked_epochs` asked, `stopped_early` why it
 /// stopped before them), the validation evaluation and the registration check.

@@ -119,6 +119,21 @@ pub fn parse_input(s: &str) -> Result<Option<umesh_core::observation::Observatio
 }
 
 pub fn run(a: Args) -> Result<()> {
+    // A model folder inside a patient folder is that patient's: only its own dataset trains it
+    // (another dataset's model there would be registered as the patient's).
+    if let Some(patient) = a.out.parent().filter(|p| p.join("patient.json").is_file()) {
+        let own = patient.join("dataset");
+        let same = matches!((a.dataset.canonicalize(), own.canonicalize()), (Ok(x), Ok(y)) if x == y);
+        if !same {
+            anyhow::bail!(
+                "--out {}: the model of the patient {}, trained only on its own dataset ({}), not on {}; choose another --out",
+                a.out.display(),
+                patient.display(),
+                own.display(),
+                a.dataset.display()
+            );
+        }
+    }
     let mut model = match a.preset.as_str() {
         "cpu" => UNetConfig::cpu(),
         "paper" => UNetConfig::paper(),

@@ -939,6 +939,13 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     let (ok, _, stderr) = umesh(&["prepare", "--samples", "12", "--epochs", "1", "--out", out.to_str().unwrap()]);
     assert!(!ok && stderr.contains("other settings") && stderr.contains("samples: 10 -> 12"), "{stderr}");
     assert_eq!(before, std::fs::read(out.join("patient.json")).unwrap());
+    // The patient's model is trained only on the patient's own dataset: another dataset's
+    // training into it is refused before any work, the model left as it was.
+    let weights = std::fs::read(out.join("model/model.json")).unwrap();
+    let other = tmp("patient-other-dataset");
+    let (ok, _, stderr) = umesh(&["train", "--dataset", other.to_str().unwrap(), "--out", out.join("model").to_str().unwrap()]);
+    assert!(!ok && stderr.contains("patient") && stderr.contains("its own dataset"), "{stderr}");
+    assert_eq!(weights, std::fs::read(out.join("model/model.json")).unwrap());
     // The same voxels under other label names: another patient, refused naming the names.
     let mut renamed: serde_json::Value = serde_json::from_slice(&before).unwrap();
     renamed["structures"] = serde_json::json!(["renamed"]);

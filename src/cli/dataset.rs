@@ -195,7 +195,14 @@ fn generate(a: GenerateArgs) -> Result<()> {
         Some(s) => ShardSelection::parse(s).with_context(|| format!("--shard {s:?}: expected k/N with 0 <= k < N"))?,
         None => ShardSelection::all(),
     };
-    anyhow::ensure!(a.samples > 0, "--samples must be positive");
+    // Ten million samples would take years here; the bound keeps every count and shard
+    // index far from overflow.
+    anyhow::ensure!(
+        (1..=umesh_core::dataset::MAX_SAMPLES).contains(&a.samples),
+        "--samples {}: between 1 and {}",
+        a.samples,
+        umesh_core::dataset::MAX_SAMPLES
+    );
     let seg = a.input.load()?;
     let (config, fixed) = a.config(&seg)?;
     if !a.json {

@@ -172,6 +172,19 @@ fn is_realsense_file(p: &Path) -> bool {
     p.is_file() && p.extension().is_some_and(|e| e.eq_ignore_ascii_case("db3") || e.eq_ignore_ascii_case("bag"))
 }
 
+/// The frame segmentation the options ask for.
+fn segment_settings(a: &Args, s: &RegisterSettings) -> umesh_core::rgbd::segment::SegmentSettings {
+    umesh_core::rgbd::segment::SegmentSettings {
+        depth_min_mm: a.depth_min_mm,
+        depth_max_mm: a.depth_max_mm,
+        use_mask: !a.no_mask,
+        ..s.segment.clone()
+    }
+}
+
+/// The files that make a folder a registration's output (see `check_replaceable`).
+const REGISTRATION_FILES: &[&str] = &["report.json"];
+
 pub fn run(a: Args) -> Result<()> {
     if a.fe_converged && !a.compare_fe {
         bail!("--fe-converged applies to --compare-fe");
@@ -183,14 +196,26 @@ pub fn run(a: Args) -> Result<()> {
     inputs.extend(a.patient.iter().map(|p| ("--patient", p.as_path())));
     inputs.extend(a.ground_truth.iter().map(|p| ("--ground-truth", p.as_path())));
     umesh_core::check_apart(&a.out, &inputs)?;
+    umesh_core::check_replaceable(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
+        .with_context(|| format!("--out {}", a.out.display()))?;
+
+    if !(a.frame_budget_ms.is_finite() && (0.0..=3.6e6).contains(&a.frame_budget_ms)) {
+        bail!("--frame-budget-ms {}: between 0 (no limit) and 3600000 (an hour)", umesh_core::shown(a.frame_budget_ms));
+    }
+    // The options that do not depend on the model, checked before it loads (seconds on a big
+    // liver); the correction's are checked once the model's form is known.
+    let early = RegisterSettings { iterations: a.iterations, pose_bound_mm: a.pose_bound_mm, min_coverage: a.min_coverage, ..Default::default() };
+    let early = RegisterSettings { segment: segment_settings(&a, &early), ..early };
+    early.validate()?;
+    let requested = match a.pose.as_str() {
+        "auto" => None,
+        p => Some(PosePolicy::parse(p).context("--pose (or auto)")?),
+    };
 
     let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
-    if !(a.frame_budget_ms.is_finite() && (0.0..=3.6e6).contains(&a.frame_budget_ms)) {
-        bail!("--frame-budget-ms {}: between 0 (no limit) and 3600000 (an hour)", a.frame_budget_ms);
-    }
     let budget = (a.frame_budget_ms > 0.0).then_some(a.frame_budget_ms);
     let (form, form_reason) = correction_form(&a.correction_form, &model_dir, budget)?;
     let base = form.settings();
@@ -209,10 +234,6 @@ pub fn run(a: Args) -> Result<()> {
     }
     correction.validate()?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
-    let requested = match a.pose.as_str() {
-        "auto" => None,
-        p => Some(PosePolicy::parse(p).context("--pose (or auto)")?),
-    };
     let imported = match &a.recording {
         Some(f) if is_realsense_file(f) => {
             let name = a.out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
@@ -244,12 +265,10 @@ pub fn run(a: Args) -> Result<()> {
         correction,
         ..Default::default()
     };
+    settings.segment = segment_settings(&a, &settings);
     settings.validate()?;
-    settings.segment.depth_min_mm = a.depth_min_mm;
-    settings.segment.depth_max_mm = a.depth_max_mm;
-    settings.segment.use_mask = !a.no_mask;
     // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
-    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Registration, &["report.json"])
+    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
         .with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
     let mut report =

@@ -27,9 +27,9 @@ pub struct FeArgs {
     /// Solver: newton, linear or corotational.
     #[arg(long, default_value = "newton")]
     pub method: String,
-    /// Initial number of load increments (halved adaptively on failure).
-    #[arg(long, default_value_t = 1)]
-    pub increments: usize,
+    /// Initial number of load increments (halved adaptively on failure), 1 to 1000.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub increments: u32,
     #[arg(long, default_value_t = SolverSettings::default().max_iterations)]
     pub max_iterations: usize,
 }
@@ -51,7 +51,7 @@ impl FeArgs {
         })
     }
     pub fn solver(&self) -> SolverSettings {
-        SolverSettings { initial_increments: self.increments.max(1), max_iterations: self.max_iterations, ..Default::default() }
+        SolverSettings { initial_increments: self.increments as usize, max_iterations: self.max_iterations, ..Default::default() }
     }
 }
 

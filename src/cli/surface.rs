@@ -38,7 +38,11 @@ pub fn run(a: Args) -> Result<()> {
             jobs.push((seg.label_name(l), vec![l]));
         }
     }
-    let settings = SurfaceSettings { step: a.step.max(1), ..Default::default() };
+    // One voxel (every voxel) to 16 (a coarse preview); the same bounds as a model's surface step.
+    if !(1..=16).contains(&a.step) {
+        anyhow::bail!("--step {}: between 1 (every voxel) and 16 voxels", a.step);
+    }
+    let settings = SurfaceSettings { step: a.step, ..Default::default() };
     let mut out = Vec::new();
     // Every surface first, then the folder replaced whole: a label that fails leaves the last
     // run's folder as it was, and no mesh of an earlier run survives beside the new ones.

@@ -119,21 +119,7 @@ pub fn parse_input(s: &str) -> Result<Option<umesh_core::observation::Observatio
 }
 
 pub fn run(a: Args) -> Result<()> {
-    // A model folder inside a patient folder is that patient's: only its own dataset trains it
-    // (another dataset's model there would be registered as the patient's).
-    if let Some(patient) = a.out.parent().filter(|p| p.join("patient.json").is_file()) {
-        let own = patient.join("dataset");
-        let same = matches!((a.dataset.canonicalize(), own.canonicalize()), (Ok(x), Ok(y)) if x == y);
-        if !same {
-            anyhow::bail!(
-                "--out {}: the model of the patient {}, trained only on its own dataset ({}), not on {}; choose another --out",
-                a.out.display(),
-                patient.display(),
-                own.display(),
-                a.dataset.display()
-            );
-        }
-    }
+    umesh_workflow::patient::check_model_out(&a.out, &a.dataset).map_err(|e| anyhow::anyhow!("--out {e}"))?;
     let mut model = match a.preset.as_str() {
         "cpu" => UNetConfig::cpu(),
         "paper" => UNetConfig::paper(),
@@ -149,7 +135,7 @@ pub fn run(a: Args) -> Result<()> {
     let mut settings = TrainSettings {
         model,
         epochs: a.epochs,
-        batch_size: a.batch_size.max(1),
+        batch_size: a.batch_size,
         learning_rate: a.learning_rate,
         seed: a.seed,
         observation,

@@ -208,6 +208,13 @@ fn the_work_queue_refuses_two_jobs_writing_the_same_folder() {
     assert!(err.contains("already writes there"), "{err}");
     let train = WorkKind::Train { dataset: dir.clone(), settings: Default::default(), resume: false };
     assert!(q.submit(train, dir.clone()).is_err(), "a training may not write into a queued job's folder");
+    // A patient's model folder takes only that patient's dataset (the CLI's rule).
+    let patient = tmp_dir("queue-patient");
+    std::fs::create_dir_all(patient.join("dataset")).unwrap();
+    std::fs::write(patient.join("patient.json"), "{}").unwrap();
+    let train = WorkKind::Train { dataset: dir.clone(), settings: Default::default(), resume: false };
+    let err = format!("{:#}", q.submit(train, patient.join("model")).unwrap_err());
+    assert!(err.contains("its own dataset"), "{err}");
     // Cancelling a queued job frees its folder.
     let id = q.items[0].id;
     q.cancel(id);

@@ -986,6 +986,24 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     let (ok, stdout, stderr) = register_patient_check(&out, "patient-reg");
     assert!(ok, "{stderr}");
     assert!(json(&stdout)["frames"].as_u64().unwrap() >= 2);
+    // A structure renamed in patient.json would vanish from the overlay: refused, naming it.
+    let before = std::fs::read(out.join("patient.json")).unwrap();
+    let mut renamed: serde_json::Value = serde_json::from_slice(&before).unwrap();
+    renamed["structures"] = serde_json::json!(["renamed"]);
+    std::fs::write(out.join("patient.json"), renamed.to_string()).unwrap();
+    let (ok, _, stderr) = register_patient_check(&out, "patient-reg-renamed");
+    assert!(!ok && stderr.contains("renamed") && stderr.contains("not labels"), "{stderr}");
+    std::fs::write(out.join("patient.json"), &before).unwrap();
+    // Voxels edited in the stored segmentation: not what the model learnt, refused.
+    let seg_path = out.join("segmentation.nii.gz");
+    let seg_bytes = std::fs::read(&seg_path).unwrap();
+    let mut seg = umesh_core::nifti_io::read_volume(&seg_path, &Default::default()).unwrap();
+    let i = seg.data.iter().position(|&v| v != 0.0).unwrap();
+    seg.data[i] = 0.0;
+    umesh_core::nifti_io::write_volume(&seg_path, &seg, umesh_core::nifti_io::WriteType::I16).unwrap();
+    let (ok, _, stderr) = register_patient_check(&out, "patient-reg-edited");
+    assert!(!ok && stderr.contains("not the segmentation this patient was prepared from"), "{stderr}");
+    std::fs::write(&seg_path, &seg_bytes).unwrap();
 }
 
 #[test]

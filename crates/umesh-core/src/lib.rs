@@ -84,6 +84,14 @@ impl OutputKind {
         }
     }
 
+    /// The kind with its article, for messages: "a model", "surfaces".
+    pub fn with_article(self) -> String {
+        match self {
+            OutputKind::Surfaces => "surfaces".into(),
+            k => format!("a {}", k.name()),
+        }
+    }
+
     /// The kind a marker names (None: a marker written before markers named their kind).
     fn of_marker(text: &str) -> Option<Self> {
         let k = text.lines().find_map(|l| l.strip_prefix("kind: "))?.trim();
@@ -91,7 +99,9 @@ impl OutputKind {
     }
 }
 
-fn check_replaceable(target: &std::path::Path, kind: OutputKind, recognised: &[&str]) -> std::io::Result<()> {
+/// Whether a command writing `kind` may replace `target` (see [`StagedDir::new`]): commands
+/// that work long before they stage their output ask first, so a refusal comes before any work.
+pub fn check_replaceable(target: &std::path::Path, kind: OutputKind, recognised: &[&str]) -> std::io::Result<()> {
     if !target.exists() {
         return Ok(());
     }
@@ -107,10 +117,10 @@ fn check_replaceable(target: &std::path::Path, kind: OutputKind, recognised: &[&
         Ok(marker) => match OutputKind::of_marker(&marker) {
             Some(k) if k == kind => Ok(()),
             Some(k) => Err(std::io::Error::other(format!(
-                "{} holds a {} umesh wrote; this command writes a {} and would replace it whole: choose another output folder",
+                "{} holds {} umesh wrote; this command writes {} and would replace it whole: choose another output folder",
                 target.display(),
-                k.name(),
-                kind.name()
+                k.with_article(),
+                kind.with_article()
             ))),
             // Marked before markers named their kind: this command's own files say it is its.
             None if own() => Ok(()),
@@ -126,6 +136,11 @@ fn check_replaceable(target: &std::path::Path, kind: OutputKind, recognised: &[&
             target.display()
         ))),
     }
+}
+
+/// A user's number for a message: large or tiny ones in exponent form (`1e308`, not 309 digits).
+pub fn shown(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && !(1e-4..1e7).contains(&v.abs()) { format!("{v:e}") } else { format!("{v}") }
 }
 
 /// An output folder must stand apart from the command's inputs: not one of them, not inside

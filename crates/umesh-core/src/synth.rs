@@ -289,6 +289,9 @@ pub fn render_frame(
     (DepthImage { width: k.width, height: k.height, depth_mm: depth }, color, mask)
 }
 
+/// The most markers a recording carries (`--markers`).
+pub const MAX_MARKERS: usize = 100_000;
+
 /// Write a synthetic recording of `seg` to `out`.
 pub fn run_rgbd_synth(
     seg: &Segmentation,
@@ -350,6 +353,11 @@ pub fn run_rgbd_synth(
     }
     if !finite_in(settings.first_load, 0.0, 1.0) {
         return Err(bad(format!("first-frame load {}: between 0 and 1 (a share of the final load)", settings.first_load)));
+    }
+    // Markers measure the TRE: none gives a recording whose every figure is empty; each is
+    // written to the ground truth of every frame.
+    if !(1..=MAX_MARKERS).contains(&settings.markers) {
+        return Err(bad(format!("{} markers: between 1 and {MAX_MARKERS}", settings.markers)));
     }
     if settings.cloud_points > crate::rgbd::MAX_POINTS {
         return Err(bad(format!("{} cloud points: at most {}", settings.cloud_points, crate::rgbd::MAX_POINTS)));
@@ -484,6 +492,7 @@ pub fn run_rgbd_synth(
         world_from_camera_frames: if moving { poses.iter().map(row_major).collect() } else { Vec::new() },
         markers_rest_mm: markers.iter().map(|m| [m.x, m.y, m.z]).collect(),
         markers_mm: Vec::new(),
+        grid_hash: Some(reg.grid_hash.clone()),
     };
     let mut solve_ms = 0.0;
     let mut disp = Vec::new();

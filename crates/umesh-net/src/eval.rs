@@ -20,6 +20,10 @@ pub struct EvalReport {
 }
 
 pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> Result<EvalReport, NetError> {
+    // The TRE needs markers; each one is interpolated in every validation sample.
+    if !(1..=10_000).contains(&markers_per_sample) {
+        return Err(NetError::Invalid(format!("--markers {markers_per_sample}: between 1 and 10000 a sample")));
+    }
     let mut predictor = Predictor::load(model_dir)?;
     let set = SampleSet::load_inputs(dataset, predictor.info.settings.observation.as_ref())?;
     if set.shape != predictor.info.padded_shape {

@@ -23,6 +23,10 @@ pub struct UNetConfig {
     pub out_channels: usize,
 }
 
+/// Bounds of `UNetConfig::channels` and `steps` (see `check_shape`).
+pub const MAX_CHANNELS: usize = 256;
+pub const MAX_STEPS: usize = 6;
+
 impl UNetConfig {
     /// The paper's setting: 3 steps, 128 channels in the first layer.
     pub fn paper() -> Self {
@@ -57,6 +61,14 @@ impl UNetConfig {
 
     /// Check an input shape [B, C, X, Y, Z]; the error says what is wrong.
     pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), umesh_core::Invalid> {
+        // The widest layer has channels x 2^steps channels: the paper's 128 x 2^3 is about
+        // what 24 GiB trains; beyond these bounds a layer cannot be allocated.
+        if !(1..=MAX_CHANNELS).contains(&self.channels) {
+            return Err(umesh_core::Invalid(format!("--channels {}: between 1 and {MAX_CHANNELS} (the paper uses 128)", self.channels)));
+        }
+        if !(1..=MAX_STEPS).contains(&self.steps) {
+            return Err(umesh_core::Invalid(format!("--steps {}: between 1 and {MAX_STEPS} (the paper uses 3)", self.steps)));
+        }
         let m = 1usize << self.steps;
         if shape[1] != self.in_channels {
             return Err(umesh_core::Invalid(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels)));

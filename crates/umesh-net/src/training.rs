@@ -166,7 +166,7 @@ pub fn run_train(
     // Adam's step: above 1 the weights leave any useful range at the first batch; 0 or less
     // (or NaN) learns nothing. Either would end without usable weights.
     if !(settings.learning_rate.is_finite() && settings.learning_rate > 0.0 && settings.learning_rate <= 1.0) {
-        return Err(NetError::Invalid(format!("--learning-rate {}: a finite rate above 0 and at most 1", settings.learning_rate)));
+        return Err(NetError::Invalid(format!("--learning-rate {}: a finite rate above 0 and at most 1", umesh_core::shown(settings.learning_rate))));
     }
     if settings.epochs == 0 || settings.epochs > 100_000 {
         return Err(NetError::Invalid(format!(
@@ -177,6 +177,17 @@ pub fn run_train(
     if settings.batch_size == 0 {
         return Err(NetError::Invalid("--batch-size 0: at least one sample a batch".into()));
     }
+    // The model (and its staging folder beside it) must not be written into a dataset or a
+    // model it reads. Fine-tuning a model in place (`--init-from M --out M`) is safe: its
+    // weights are read before the new folder is swapped in, and only when training succeeds.
+    let mut inputs: Vec<(&str, &Path)> = vec![("--dataset", dataset)];
+    if let Some(init) = &settings.init_from {
+        let same = matches!((init.canonicalize(), out.canonicalize()), (Ok(a), Ok(b)) if a == b);
+        if !same {
+            inputs.push(("--init-from", init.as_path()));
+        }
+    }
+    umesh_core::check_apart(out, &inputs).map_err(|e| NetError::Invalid(e.0))?;
     let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
     let mut rest = vec![false; set.len()];
     let refresher = match (&settings.observation, settings.fresh_views) {

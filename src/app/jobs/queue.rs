@@ -154,6 +154,9 @@ impl WorkQueue {
         {
             anyhow::bail!("{}: the model folder must differ from the dataset folder", out.display());
         }
+        if let WorkKind::Train { dataset, .. } = &kind {
+            umesh_workflow::patient::check_model_out(&out, dataset)?;
+        }
         let (settings, command) = describe(&kind, &out);
         self.next_id += 1;
         let id = self.next_id;

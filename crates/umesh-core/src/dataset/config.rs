@@ -87,6 +87,10 @@ impl DatasetConfig {
 }
 
 /// FNV-1a 64-bit, hex: a cheap content hash for change and corruption detection.
+/// The most samples a dataset holds (a million take months on 2 cores); keeps every count and
+/// shard index far from overflow.
+pub const MAX_SAMPLES: usize = 1_000_000;
+
 pub fn fnv_hex(bytes: &[u8]) -> String {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for &b in bytes {

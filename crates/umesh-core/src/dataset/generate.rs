@@ -95,6 +95,30 @@ pub fn run_generate(
 /// `run_generate` with a pre-flight check: a fresh job with more samples than the check first
 /// solves a few of its samples in parallel and, when their acceptance is below the check's
 /// threshold, stops with `DatasetError::Refused` before anything is written (unless forced).
+/// A new dataset is written into an empty folder: files of anything else there (a model, a
+/// recording, a user's documents) would be mixed with the shards, or taken for a dataset by a
+/// later run. Shards left without a manifest get their own message further on.
+fn check_new_dataset_folder(out: &Path) -> Result<(), DatasetError> {
+    let Ok(entries) = std::fs::read_dir(out) else { return Ok(()) };
+    let foreign: Vec<String> = entries
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| !(n.starts_with("shard_") || n == "grid.npz" || (n.starts_with('.') && n.ends_with(".tmp"))))
+        .collect();
+    if foreign.is_empty() {
+        return Ok(());
+    }
+    let shown: Vec<&str> = foreign.iter().take(4).map(String::as_str).collect();
+    Err(invalid(
+        out,
+        &format!(
+            "holds {} ({} entries) but no dataset (no manifest.json); a dataset is written into an empty folder: choose another --out",
+            shown.join(", "),
+            foreign.len()
+        ),
+    ))
+}
+
 pub fn run_generate_checked(
     seg: &Segmentation,
     out: &Path,
@@ -105,8 +129,17 @@ pub fn run_generate_checked(
     cancel: &Cancel,
 ) -> Result<GenerateReport, DatasetError> {
     let start = Instant::now();
-    let ctx = DatasetContext::prepare(seg, config, cancel)?;
+    if !(1..=super::MAX_SAMPLES).contains(&config.samples) || config.shard_size == 0 {
+        return Err(invalid(
+            out,
+            format!("{} samples in shards of {}: between 1 and {} samples, shards of at least 1", config.samples, config.shard_size, super::MAX_SAMPLES),
+        ));
+    }
     let fresh = !out.join("manifest.json").exists();
+    if fresh {
+        check_new_dataset_folder(out)?;
+    }
+    let ctx = DatasetContext::prepare(seg, config, cancel)?;
     // Each reference solve single-threaded like the samples, so every machine finds the same factor.
     progress.report(0, config.samples as u64, "calibrating the load");
     let mut softening: Option<f64> = None;

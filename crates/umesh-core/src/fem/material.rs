@@ -59,8 +59,13 @@ impl MaterialParams {
         (e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu)))
     }
     pub fn validate(&self) -> Result<(), crate::Invalid> {
-        if !(self.young_pa.is_finite() && self.young_pa > 0.0) {
-            return Err(crate::Invalid(format!("Young's modulus {} Pa must be positive", self.young_pa)));
+        if !(self.young_pa.is_finite() && YOUNG_RANGE_PA.contains(&self.young_pa)) {
+            return Err(crate::Invalid(format!(
+                "Young's modulus {} Pa must lie in [{}, {:e}] Pa: liver tissue is 1-100 kPa; the load calibration scales forces with it, and at 1e308 Pa they overflow and the solve never ends",
+                crate::shown(self.young_pa),
+                YOUNG_RANGE_PA.start(),
+                YOUNG_RANGE_PA.end()
+            )));
         }
         if !(POISSON_RANGE.contains(&self.poisson)) {
             return Err(crate::Invalid(format!(
@@ -77,6 +82,9 @@ impl MaterialParams {
         Material { kind: self.kind, lambda, mu }
     }
 }
+
+/// The Young's moduli a solve can afford (see `MaterialParams::validate`).
+pub const YOUNG_RANGE_PA: std::ops::RangeInclusive<f64> = 1.0..=1e9;
 
 /// The Poisson's ratios a solve can afford (see `MaterialParams::validate`).
 pub const POISSON_RANGE: std::ops::RangeInclusive<f64> = 0.0..=0.495;
@@ -104,8 +112,11 @@ impl MaterialVariation {
         let ok = |v: f64| POISSON_RANGE.contains(&v);
         if !(ok(self.poisson_min) && ok(self.poisson_max) && self.poisson_min <= self.poisson_max) {
             return Err(crate::Invalid(format!(
-                "the Poisson's ratio range {}-{} must be ordered and lie in (-1, 0.5)",
-                self.poisson_min, self.poisson_max
+                "the Poisson's ratio range {}-{} must be ordered and lie in [{}, {}]",
+                self.poisson_min,
+                self.poisson_max,
+                POISSON_RANGE.start(),
+                POISSON_RANGE.end()
             )));
         }
         if !(self.neo_hookean_fraction.is_finite() && (0.0..=1.0).contains(&self.neo_hookean_fraction)) {

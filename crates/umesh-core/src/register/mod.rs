@@ -63,6 +63,9 @@ pub fn structure_surfaces(seg: &Segmentation) -> Vec<(i64, String, [u8; 3], TriM
 #[derive(Debug)]
 pub struct RegistrationContext {
     pub grid: ImmersedGrid,
+    /// The hash of the grid (`DatasetContext::grid_hash`): a synthetic recording's ground truth
+    /// carries the hash of the grid it was made on.
+    pub grid_hash: String,
     /// The rest organ surface (world, mm).
     pub surface: TriMesh,
     pub surface_normals: Vec<Vector3<f64>>,
@@ -121,6 +124,7 @@ fn clip_to_grid(grid: &ImmersedGrid, mesh: &TriMesh) -> Option<(TriMesh, Vec<Emb
 impl RegistrationContext {
     /// From the dataset context of the model's grid, with the structures of `seg`.
     pub fn new(ctx: DatasetContext, seg: &Segmentation) -> Result<Self, crate::Invalid> {
+        let grid_hash = ctx.grid_hash();
         let mut structures = Vec::new();
         for (label, name, color, mesh) in structure_surfaces(seg) {
             // A structure may leave the organ (TotalSegmentator's portal vein runs on to the
@@ -182,6 +186,7 @@ impl RegistrationContext {
             icp_target,
             gate_grid,
             correction_basis: Default::default(),
+            grid_hash,
         })
     }
 

@@ -221,6 +221,14 @@ impl RegisterSettings {
         if self.iterations == 0 || self.iterations > 100 {
             return Err(crate::Invalid(format!("--iterations {}: between 1 and 100", self.iterations)));
         }
+        let (lo, hi) = (self.segment.depth_min_mm, self.segment.depth_max_mm);
+        // A depth camera sees from centimetres to a few metres: a window outside that, or
+        // empty, keeps no pixel of any frame.
+        if !(lo.is_finite() && hi.is_finite() && 0.0 <= lo && lo < hi && hi <= 100_000.0) {
+            return Err(crate::Invalid(format!(
+                "--depth-min-mm {lo} / --depth-max-mm {hi}: a window 0 <= min < max <= 100000 mm (the depths a camera measures)"
+            )));
+        }
         self.icp.validate()?;
         // Its messages name the options.
         self.correction.validate()
@@ -266,6 +274,9 @@ pub struct GroundTruth {
     pub markers_rest_mm: Vec<[f64; 3]>,
     /// True marker positions per frame (world, mm).
     pub markers_mm: Vec<Vec<[f64; 3]>>,
+    /// The hash of the grid the truth was computed on (absent in older recordings).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid_hash: Option<String>,
 }
 
 /// The farthest a ground-truth position may lie from the world's origin (mm): 10 m.
@@ -315,6 +326,16 @@ impl GroundTruth {
     /// organ at rest, so (nearly) all lie within its bounds (with a 10 mm margin). A recording
     /// of another organ would give TREs of tens of mm that describe nothing.
     pub fn check_fits(&self, ctx: &RegistrationContext) -> Result<(), crate::Invalid> {
+        // A synthetic truth knows its organ's grid: another grid is another organ (or the same
+        // file made into another organ), whose markers may still lie within these bounds.
+        if let Some(h) = &self.grid_hash
+            && *h != ctx.grid_hash
+        {
+            return Err(crate::Invalid(format!(
+                "the ground truth was made on another organ's grid (grid hash {h}; this model's grid is {}): register a recording made on this model's organ",
+                ctx.grid_hash
+            )));
+        }
         let m = self.markers_rest_mm.len();
         let Some((lo, hi)) = ctx.surface.bounds() else { return Ok(()) };
         let margin = Vector3::repeat(10.0);

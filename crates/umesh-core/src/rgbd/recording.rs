@@ -157,21 +157,36 @@ impl Recording {
         let color = list(&dir.join("color"), &["png", "jpg", "jpeg"])?;
         let mask = list(&dir.join("mask"), &["png"])?;
         let mut warnings = Vec::new();
-        let find = |v: &[(String, PathBuf)], stem: &str| v.iter().find(|(s, _)| s == stem).map(|(_, p)| p.clone());
-        let mut frames: Vec<FrameFiles> = if !depth.is_empty() {
-            depth
-                .iter()
-                .map(|(s, p)| FrameFiles { stem: s.clone(), depth: Some(p.clone()), points: None, color: None, mask: None })
-                .collect()
-        } else {
-            points
-                .iter()
-                .map(|(s, p)| FrameFiles { stem: s.clone(), depth: None, points: Some(p.clone()), color: None, mask: None })
-                .collect()
-        };
-        if frames.is_empty() {
+        // Sorted by stem (`list`): a binary search per frame.
+        let find = |v: &[(String, PathBuf)], stem: &str| v.binary_search_by(|(s, _)| s.as_str().cmp(stem)).ok().map(|k| v[k].1.clone());
+        if depth.is_empty() && points.is_empty() {
             return Err(invalid(dir, "no frames: depth/*.png or points/*.ply expected"));
         }
+        // The ground truth and the trajectory are indexed by frame position: a frame whose depth
+        // file is missing (its colour or mask still there, or its number skipped) keeps its
+        // place, and is skipped with a message when read, rather than shifting every later
+        // frame onto the truth of the one before.
+        let mut stems: std::collections::BTreeSet<String> =
+            depth.iter().chain(&points).chain(&color).chain(&mask).map(|(s, _)| s.clone()).collect();
+        let width = stems.first().map(|s| s.len()).unwrap_or(0);
+        let numbered: Option<Vec<u64>> =
+            stems.iter().map(|s| if s.len() == width { s.parse::<u64>().ok() } else { None }).collect();
+        if let Some(n) = numbered
+            && let (Some(&lo), Some(&hi)) = (n.iter().min(), n.iter().max())
+            && hi - lo < 1_000_000
+        {
+            stems.extend((lo..=hi).map(|i| format!("{i:0width$}")));
+        }
+        let mut frames: Vec<FrameFiles> = stems
+            .into_iter()
+            .map(|s| FrameFiles {
+                depth: find(&depth, &s),
+                points: if depth.is_empty() { find(&points, &s) } else { None },
+                stem: s,
+                color: None,
+                mask: None,
+            })
+            .collect();
         for f in &mut frames {
             f.color = find(&color, &f.stem);
             f.mask = find(&mask, &f.stem);
@@ -236,7 +251,9 @@ impl Recording {
                 cloud = Some(pts);
                 d
             }
-            (None, None) => return Err(invalid(&self.dir, format!("frame {} has neither depth nor points", f.stem))),
+            (None, None) => {
+                return Err(invalid(&self.dir, format!("frame {}: its depth image (or point cloud) is missing", f.stem)));
+            }
         };
         let color = match &f.color {
             Some(p) => {

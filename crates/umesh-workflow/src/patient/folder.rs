@@ -98,6 +98,10 @@ pub struct Patient {
     pub segmentation_hash: String,
     pub organ_labels: Vec<String>,
     pub structures: Vec<String>,
+    /// The hash of `segmentation.nii.gz` as read back with these names (the file keeps its
+    /// affine in single precision, so it is not `segmentation_hash`); absent in older folders.
+    #[serde(default)]
+    pub stored_segmentation_hash: Option<String>,
     pub settings: PrepareSettings,
     pub stages: std::collections::BTreeMap<Stage, StageRecord>,
 }
@@ -128,8 +132,39 @@ impl Patient {
     }
     /// The segmentation the job used, with its organ and structure labels.
     pub fn segmentation(&self, dir: &Path) -> Result<Segmentation, NetError> {
+        let seg = self.read_segmentation(dir)?;
+        // Labels swapped between names, or voxels edited: not the segmentation the model learnt.
+        let hash = umesh_core::dataset::segmentation_hash(&seg);
+        if let Some(stored) = &self.stored_segmentation_hash
+            && hash != *stored
+        {
+            return Err(NetError::Invalid(format!(
+                "{}: not the segmentation this patient was prepared from (hash {hash}, patient.json says {stored}); prepare the patient again",
+                seg.source.display()
+            )));
+        }
+        Ok(seg)
+    }
+
+    /// `segmentation.nii.gz` with the labels named in `patient.json`, unchecked against its hash.
+    pub(super) fn read_segmentation(&self, dir: &Path) -> Result<Segmentation, NetError> {
         let path = dir.join("segmentation.nii.gz");
         let volume = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| NetError::Invalid(e.to_string()))?;
+        // A name the segmentation does not have (renamed in patient.json or in the file) would
+        // drop that structure from every overlay without a word.
+        let missing: Vec<&String> = self
+            .organ_labels
+            .iter()
+            .chain(&self.structures)
+            .filter(|n| !volume.label_names.iter().any(|(_, v)| v == *n))
+            .collect();
+        if !missing.is_empty() {
+            return Err(NetError::Invalid(format!(
+                "{}: names {missing:?} in patient.json are not labels of {} (renamed?); prepare the patient again",
+                dir.display(),
+                path.display()
+            )));
+        }
         let by_name = |names: &[String]| -> Vec<i64> {
             names.iter().filter_map(|n| volume.label_names.iter().find(|(_, v)| *v == n).map(|(l, _)| *l)).collect()
         };
@@ -344,4 +379,22 @@ pub fn read_figures(dir: &Path) -> Result<PatientFigures, NetError> {
         has_model: model.join("model.json").exists() && model.join("model.safetensors").exists(),
         patient,
     })
+}
+
+/// A model folder inside a patient folder is that patient's: only its own dataset trains it
+/// (another dataset's model there would be registered as the patient's). Err names both paths.
+pub fn check_model_out(out: &Path, dataset: &Path) -> Result<(), NetError> {
+    let Some(patient) = out.parent().filter(|p| p.join("patient.json").is_file()) else { return Ok(()) };
+    let own = patient.join("dataset");
+    let same = matches!((dataset.canonicalize(), own.canonicalize()), (Ok(x), Ok(y)) if x == y);
+    if same {
+        return Ok(());
+    }
+    Err(NetError::Invalid(format!(
+        "{}: the model of the patient {}, trained only on its own dataset ({}), not on {}; choose another output folder",
+        out.display(),
+        patient.display(),
+        own.display(),
+        dataset.display()
+    )))
 }

@@ -88,6 +88,7 @@ pub fn run_prepare(
         segmentation_hash: seg_hash.clone(),
         organ_labels: names(&seg.organ_labels),
         structures: names(&seg.structure_labels),
+        stored_segmentation_hash: None,
         settings: settings.clone(),
         stages: Default::default(),
     };
@@ -120,6 +121,7 @@ pub fn run_prepare(
             )));
         }
         patient.stages = old.stages;
+        patient.stored_segmentation_hash = old.stored_segmentation_hash;
         // A resumed job's budget counts the time its earlier runs spent.
         patient.settings.time_budget_s = settings.time_budget_s;
     } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
@@ -151,6 +153,10 @@ pub fn run_prepare(
         }
         umesh_core::nifti_io::write_volume(&seg_path, &vol, umesh_core::nifti_io::WriteType::I16)
             .map_err(|e| NetError::Io { path: seg_path.to_path_buf(), source: e })?;
+    }
+    if patient.stored_segmentation_hash.is_none() {
+        let stored = patient.read_segmentation(out)?;
+        patient.stored_segmentation_hash = Some(umesh_core::dataset::segmentation_hash(&stored));
     }
     patient.write(out)?;
 

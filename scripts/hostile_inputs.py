@@ -157,7 +157,7 @@ def main():
     add("train --time-budget-min 1e30", ["train", "--dataset", D, "--out", new("t-tb"), "--epochs", "1", "--time-budget-min", "1e30"], expect="either")
     add("train --patience u64::MAX", ["train", "--dataset", D, "--out", new("t-pat"), "--epochs", "1", "--patience", "18446744073709551615"], expect="either")
     add("train --batch-size 0", ["train", "--dataset", D, "--out", new("t-b0"), "--batch-size", "0"])
-    add("train --batch-size u64::MAX", ["train", "--dataset", D, "--out", new("t-bmax"), "--epochs", "1", "--batch-size", "18446744073709551615"])
+    add("train --batch-size u64::MAX", ["train", "--dataset", D, "--out", new("t-bmax"), "--epochs", "1", "--batch-size", "18446744073709551615"], expect="either")
     add("train --channels 0", ["train", "--dataset", D, "--out", new("t-c0"), "--channels", "0"])
     add("train --channels 100000", ["train", "--dataset", D, "--out", new("t-cbig"), "--channels", "100000"])
     add("train --steps 40", ["train", "--dataset", D, "--out", new("t-s40"), "--steps", "40"])
@@ -205,7 +205,6 @@ def main():
         ("--markers", "18446744073709551615"),
         ("--cloud-points", "18446744073709551615"),
         ("--camera-motion-mm", "1e308"),
-        ("--holes", "2"),
         ("--material", "rubber"),
         ("--attachment-shift-mm", "NaN,0,0"),
     ]:
@@ -246,7 +245,7 @@ def main():
     add("surface --step 100000", ["surface", "--step", "100000", "--out", new("surf-n")])
     add("eval --markers 0", ["eval", "--model", M, "--dataset", D, "--markers", "0"])
     add("eval --markers u64::MAX", ["eval", "--model", M, "--dataset", D, "--markers", "18446744073709551615"])
-    add("prepare --time-budget-min 1e30", ["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--time-budget-min", "1e30", "--out", P], expect="either")
+    add("prepare --time-budget-min 1e30", ["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--time-budget-min", "1e30", "--out", P], protect=[M, R, D, S, P + "/model", P + "/dataset"], expect="either")
     add("simulate --increments 0", ["simulate", "--increments", "0", "--out", new("sim-n")])
 
     # Corrupt or edited files, each in its own copy.
@@ -276,13 +275,13 @@ def main():
 
     model_case("correction.json figures 1e308", huge_correction)
 
-    def rec_case(name, edit):
+    def rec_case(name, edit, expect="refuse"):
         def setup():
             r = c.copy(R, "r-" + name.replace(" ", "-")[:40])
             edit(r)
             return r
 
-        cases.append((f"recording: {name}", None, None, "refuse", ("recording", setup)))
+        cases.append((f"recording: {name}", None, None, expect, ("recording", setup)))
 
     def shear(r):
         lines = open(r + "/trajectory.log").read().splitlines()
@@ -292,8 +291,9 @@ def main():
         open(r + "/trajectory.log", "w").write("\n".join(lines) + "\n")
 
     rec_case("sheared pose", shear)
-    rec_case("depth png truncated", lambda r: open(r + "/depth/00001.png", "r+b").truncate(100))
-    rec_case("depth png missing", lambda r: os.remove(r + "/depth/00001.png"))
+    # A damaged frame is skipped with its reason, the others registered against their own truth.
+    rec_case("depth png truncated", lambda r: open(r + "/depth/00001.png", "r+b").truncate(100), expect="either")
+    rec_case("depth png missing", lambda r: os.remove(r + "/depth/00001.png"), expect="either")
     rec_case("intrinsics negative focal", lambda r: corrupt_json(r + "/intrinsics.json", lambda v: v["intrinsic_matrix"].__setitem__(0, -525.0)))
     def nan_focal(r):
         text = open(r + "/intrinsics.json").read().replace("525.0", "NaN", 1)
@@ -304,7 +304,7 @@ def main():
     rec_case("ground truth huge", lambda r: corrupt_json(r + "/ground_truth.json", lambda v: v["markers_rest_mm"][0].__setitem__(0, 1e300)))
     rec_case("ground truth not JSON", lambda r: open(r + "/ground_truth.json", "w").write("["))
     rec_case("trajectory empty", lambda r: open(r + "/trajectory.log", "w").write(""))
-    rec_case("color frame of another size", lambda r: shutil.copy(os.path.join(ROOT, "assets", "model", "..", "..", "screenshots", [f for f in sorted(os.listdir(os.path.join(ROOT, "screenshots"))) if f.endswith(".png")][0]), r + "/color/00001.png"))
+    rec_case("color frame of another size", expect="either", edit= lambda r: shutil.copy(os.path.join(ROOT, "assets", "model", "..", "..", "screenshots", [f for f in sorted(os.listdir(os.path.join(ROOT, "screenshots"))) if f.endswith(".png")][0]), r + "/color/00001.png"))
 
     def manifest_case(name, edit):
         def setup():
@@ -330,7 +330,9 @@ def main():
     add("register --patient with another organ's recording", ["register", "--patient", P, "--recording", other, "--no-overlay", "--out", new("reg-other")])
     add("register --ground-truth of another recording", reg + ["--ground-truth", other + "/ground_truth.json", "--out", new("reg-gt")])
     add("register --intrinsics garbage", reg + ["--intrinsics", S + "/organ.obj", "--out", new("reg-int")])
-    add("segmentation not NIfTI", ["grid", S + "/organ.obj.nii.gz"])
+    not_nifti = new("organ-mesh.nii.gz")
+    shutil.copy(S + "/organ.obj", not_nifti)
+    add("segmentation not NIfTI", ["grid", not_nifti])
     garbage = new("garbage.nii.gz")
     open(garbage, "wb").write(b"\x1f\x8b" + os.urandom(3000))
     add("segmentation random gzip", ["grid", garbage])

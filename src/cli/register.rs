@@ -204,7 +204,8 @@ pub fn run(a: Args) -> Result<()> {
     }
     // The options that do not depend on the model, checked before it loads (seconds on a big
     // liver); the correction's are checked once the model's form is known.
-    let early = RegisterSettings { iterations: a.iterations, pose_bound_mm: a.pose_bound_mm, min_coverage: a.min_coverage, ..Default::default() };
+    let early =
+        RegisterSettings { iterations: a.iterations, pose_bound_mm: a.pose_bound_mm, min_coverage: a.min_coverage, ..Default::default() };
     let early = RegisterSettings { segment: segment_settings(&a, &early), ..early };
     early.validate()?;
     let requested = match a.pose.as_str() {

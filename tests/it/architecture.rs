@@ -519,3 +519,45 @@ fn every_file_and_module_the_docs_name_exists() {
     }
     assert!(missing.is_empty(), "named in the docs but not in the tree:\n{}", missing.join("\n"));
 }
+
+/// The README, ARCHITECTURE.md and docs/ speak to users of the program: how the figures got
+/// there belongs in CHANGELOG.md. No issue numbers or references to the issue tracker, no
+/// numbered rounds of work or sessions, no "the build before".
+#[test]
+fn the_docs_name_no_issues_rounds_of_work_or_earlier_builds() {
+    let root = workspace();
+    let mut docs = vec![root.join("README.md"), root.join("ARCHITECTURE.md")];
+    for entry in std::fs::read_dir(root.join("docs")).expect("read docs/") {
+        let p = entry.expect("a docs/ entry").path();
+        if p.extension().is_some_and(|e| e == "md") {
+            docs.push(p);
+        }
+    }
+    let ordinals = ["first", "second", "third", "fourth", "fifth", "sixth", "seventh", "eighth", "ninth", "tenth"];
+    let mut found = Vec::new();
+    for doc in &docs {
+        let text = std::fs::read_to_string(doc).expect("read the doc").to_lowercase();
+        let words: Vec<&str> = text.split(|c: char| !(c.is_alphanumeric() || c == '#' || c == '\'')).filter(|w| !w.is_empty()).collect();
+        for (k, w) in words.iter().enumerate() {
+            let next = words.get(k + 1).copied().unwrap_or("");
+            let numbered = |s: &str| s.trim_start_matches('#').chars().next().is_some_and(|c| c.is_ascii_digit());
+            let ordinal = |s: &str| ordinals.contains(&s) || (s.ends_with("th") && s.chars().next().is_some_and(|c| c.is_ascii_digit()));
+            let hit = match *w {
+                "issue" | "issues" | "issue's" => true,
+                "session" | "sessions" | "round" | "rounds" => numbered(next) || k > 0 && ordinal(words[k - 1]),
+                w if w.starts_with('#') && numbered(w) => true,
+                _ => false,
+            };
+            if hit {
+                let context = words[k.saturating_sub(3)..(k + 3).min(words.len())].join(" ");
+                found.push(format!("{}: \"{context}\"", doc.strip_prefix(&root).unwrap_or(doc).display()));
+            }
+        }
+        for phrase in ["the build before", "the model before", "the builds before", "round of work", "rounds of work"] {
+            if text.contains(phrase) {
+                found.push(format!("{}: \"{phrase}\"", doc.strip_prefix(&root).unwrap_or(doc).display()));
+            }
+        }
+    }
+    assert!(found.is_empty(), "development history in the user docs (it belongs in CHANGELOG.md):\n{}", found.join("\n"));
+}

@@ -1354,3 +1354,78 @@ fn training_options_that_give_no_usable_model_are_refused_and_the_old_model_stay
         assert_eq!(snapshot(&model), before, "{flag} {value} changed the model folder");
     }
 }
+
+#[test]
+fn counts_and_sizes_no_run_can_afford_are_refused_naming_the_option() {
+    let out = tmp("absurd-out");
+    let _ = std::fs::remove_dir_all(&out);
+    let o = out.to_str().unwrap();
+    let u64max = "18446744073709551615";
+    // (command, what the message must name); each refused before any work, within seconds.
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--channels", "0"], "--channels 0"),
+        (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--channels", "100000"], "--channels 100000"),
+        (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--steps", "40"], "--steps 40"),
+        (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--batch-size", "0"], "--batch-size 0"),
+        (vec!["train", "--dataset", "no-such-dataset", "--out", "no-such-dataset/model"], "lies inside the input --dataset"),
+        (vec!["surface", "--step", "0", "--out", o], "--step 0"),
+        (vec!["surface", "--step", "100000", "--out", o], "--step 100000"),
+        (vec!["eval", "--dataset", "no-such-dataset", "--markers", "0"], "--markers 0"),
+        (vec!["eval", "--dataset", "no-such-dataset", "--markers", u64max], "--markers"),
+        (vec!["rgbd", "synth", "--markers", "0", "--out", o], "0 markers"),
+        (vec!["rgbd", "synth", "--markers", u64max, "--out", o], "markers: between 1"),
+        (vec!["rgbd", "synth", "--young-pa", "1e308", "--out", o], "Young's modulus 1e308"),
+        (vec!["dataset", "generate", "--samples", u64max, "--out", o], "--samples"),
+        (vec!["simulate", "--increments", "0", "--out", o], "--increments"),
+        (vec!["register", "--recording", "no-such-recording", "--depth-min-mm", "1e308", "--out", o], "--depth-min-mm"),
+        (vec!["register", "--recording", "no-such-recording", "--pose", "sideways", "--out", o], "--pose"),
+    ];
+    for (args, needle) in cases {
+        let t = std::time::Instant::now();
+        let (ok, _, err) = umesh(&args);
+        assert!(!ok && err.contains(needle) && !err.contains("panicked"), "{args:?}: {err}");
+        assert!(t.elapsed().as_secs_f64() < 30.0, "{args:?} took {:?} to refuse", t.elapsed());
+        assert!(!out.exists(), "{args:?} wrote {}", out.display());
+    }
+    // A folder that holds something else never receives a dataset's shards.
+    let foreign = tmp("absurd-foreign");
+    let _ = std::fs::remove_dir_all(&foreign);
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("model.json"), "a user's file").unwrap();
+    let before = snapshot(&foreign);
+    let (ok, _, err) = umesh(&["dataset", "generate", "--samples", "2", "--out", foreign.to_str().unwrap()]);
+    assert!(!ok && err.contains("model.json") && err.contains("no dataset"), "{err}");
+    assert_eq!(snapshot(&foreign), before);
+}
+
+#[test]
+fn a_recording_made_on_another_organs_grid_is_refused_by_register_and_choose_correction() {
+    let rec = tmp("other-grid-rec");
+    let _ = std::fs::remove_dir_all(&rec);
+    let r = rec.to_str().unwrap();
+    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    assert!(ok, "{err}");
+    // The truth names the grid it was made on; another hash is another organ (a scaled copy of
+    // this one keeps its markers within this organ's bounds, so the bounds check cannot see it).
+    let gt = rec.join("ground_truth.json");
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&gt).unwrap()).unwrap();
+    assert!(v["grid_hash"].is_string(), "a synthetic truth records its grid: {}", v["grid_hash"]);
+    v["grid_hash"] = serde_json::json!("0123456789abcdef");
+    std::fs::write(&gt, v.to_string()).unwrap();
+    let model = tmp("other-grid-model");
+    let _ = std::fs::remove_dir_all(&model);
+    std::fs::create_dir_all(&model).unwrap();
+    for e in std::fs::read_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/model")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), model.join(e.file_name())).unwrap();
+    }
+    let before = snapshot(&model);
+    let out = tmp("other-grid-reg");
+    let (ok, _, err) =
+        umesh(&["register", "--model", model.to_str().unwrap(), "--recording", r, "--no-overlay", "--out", out.to_str().unwrap()]);
+    assert!(!ok && err.contains("another organ's grid") && err.contains("0123456789abcdef"), "{err}");
+    let (ok, _, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", r]);
+    assert!(!ok && err.contains("another organ's grid"), "{err}");
+    assert_eq!(snapshot(&model), before, "the model folder changed");
+    assert!(!out.exists());
+}

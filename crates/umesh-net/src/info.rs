@@ -178,7 +178,9 @@ impl ModelInfo {
             return Err(umesh_core::Invalid(format!("padded grid {:?}: empty or over 2^26 cells", self.padded_shape)));
         }
         let p = self.padded_shape;
-        self.config.check_shape([1, self.config.in_channels, p[0], p[1], p[2]]).map_err(|e| umesh_core::Invalid(format!("config: {}", e.0)))?;
+        self.config
+            .check_shape([1, self.config.in_channels, p[0], p[1], p[2]])
+            .map_err(|e| umesh_core::Invalid(format!("config: {}", e.0)))?;
         if !(1..=16).contains(&self.config.in_channels) || self.config.out_channels != 3 {
             return Err(umesh_core::Invalid(format!(
                 "config: {} input and {} output channels (a displacement network has 3 to 16 in, 3 out)",

@@ -60,15 +60,20 @@ impl UNetConfig {
     }
 
     /// Check an input shape [B, C, X, Y, Z]; the error says what is wrong.
-    pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), umesh_core::Invalid> {
-        // The widest layer has channels x 2^steps channels: the paper's 128 x 2^3 is about
-        // what 24 GiB trains; beyond these bounds a layer cannot be allocated.
+    /// The network's width and depth within what can be allocated: the widest layer has
+    /// channels x 2^steps channels (the paper's 128 x 2^3 is about what 24 GiB trains).
+    pub fn check_size(&self) -> Result<(), umesh_core::Invalid> {
         if !(1..=MAX_CHANNELS).contains(&self.channels) {
             return Err(umesh_core::Invalid(format!("--channels {}: between 1 and {MAX_CHANNELS} (the paper uses 128)", self.channels)));
         }
         if !(1..=MAX_STEPS).contains(&self.steps) {
             return Err(umesh_core::Invalid(format!("--steps {}: between 1 and {MAX_STEPS} (the paper uses 3)", self.steps)));
         }
+        Ok(())
+    }
+
+    pub fn check_shape(&self, shape: [usize; 5]) -> Result<(), umesh_core::Invalid> {
+        self.check_size()?;
         let m = 1usize << self.steps;
         if shape[1] != self.in_channels {
             return Err(umesh_core::Invalid(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels)));

@@ -166,7 +166,10 @@ pub fn run_train(
     // Adam's step: above 1 the weights leave any useful range at the first batch; 0 or less
     // (or NaN) learns nothing. Either would end without usable weights.
     if !(settings.learning_rate.is_finite() && settings.learning_rate > 0.0 && settings.learning_rate <= 1.0) {
-        return Err(NetError::Invalid(format!("--learning-rate {}: a finite rate above 0 and at most 1", umesh_core::shown(settings.learning_rate))));
+        return Err(NetError::Invalid(format!(
+            "--learning-rate {}: a finite rate above 0 and at most 1",
+            umesh_core::shown(settings.learning_rate)
+        )));
     }
     if settings.epochs == 0 || settings.epochs > 100_000 {
         return Err(NetError::Invalid(format!(
@@ -177,6 +180,7 @@ pub fn run_train(
     if settings.batch_size == 0 {
         return Err(NetError::Invalid("--batch-size 0: at least one sample a batch".into()));
     }
+    settings.network().check_size().map_err(|e| NetError::Invalid(e.0))?;
     // The model (and its staging folder beside it) must not be written into a dataset or a
     // model it reads. Fine-tuning a model in place (`--init-from M --out M`) is safe: its
     // weights are read before the new folder is swapped in, and only when training succeeds.

@@ -132,7 +132,12 @@ pub fn run_generate_checked(
     if !(1..=super::MAX_SAMPLES).contains(&config.samples) || config.shard_size == 0 {
         return Err(invalid(
             out,
-            format!("{} samples in shards of {}: between 1 and {} samples, shards of at least 1", config.samples, config.shard_size, super::MAX_SAMPLES),
+            format!(
+                "{} samples in shards of {}: between 1 and {} samples, shards of at least 1",
+                config.samples,
+                config.shard_size,
+                super::MAX_SAMPLES
+            ),
         ));
     }
     let fresh = !out.join("manifest.json").exists();

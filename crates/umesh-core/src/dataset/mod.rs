@@ -24,8 +24,8 @@ mod store;
 pub use calibrate::{Rejection, SampleResult, SolvedLoad, first_load_factor, generate_sample};
 pub use check::{PreflightCheck, run_preflight};
 pub use config::{
-    MAX_SAMPLES,
-    CALIBRATION_TOLERANCE, DatasetConfig, FORMAT, FORMAT_VERSION, MIN_VISIBLE_FRACTION, fnv_hex, sample_material, segmentation_hash,
+    CALIBRATION_TOLERANCE, DatasetConfig, FORMAT, FORMAT_VERSION, MAX_SAMPLES, MIN_VISIBLE_FRACTION, fnv_hex, sample_material,
+    segmentation_hash,
 };
 pub use context::{DatasetContext, LOCAL_STRAIN_FACTOR, LinearStrain, ObservationSetup, STRAIN_QUANTILE, observation_setup};
 pub use error::DatasetError;

@@ -169,8 +169,7 @@ impl Recording {
         let mut stems: std::collections::BTreeSet<String> =
             depth.iter().chain(&points).chain(&color).chain(&mask).map(|(s, _)| s.clone()).collect();
         let width = stems.first().map(|s| s.len()).unwrap_or(0);
-        let numbered: Option<Vec<u64>> =
-            stems.iter().map(|s| if s.len() == width { s.parse::<u64>().ok() } else { None }).collect();
+        let numbered: Option<Vec<u64>> = stems.iter().map(|s| if s.len() == width { s.parse::<u64>().ok() } else { None }).collect();
         if let Some(n) = numbered
             && let (Some(&lo), Some(&hi)) = (n.iter().min(), n.iter().max())
             && hi - lo < 1_000_000

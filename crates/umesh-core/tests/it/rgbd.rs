@@ -332,6 +332,22 @@ fn recordings_with_bad_files_give_clear_errors() {
     assert!(matches!(src.poll(Duration::ZERO), Poll::Ended(None)));
     assert_eq!(src.dropped(), 2);
     assert_eq!(src.take_log().len(), 2);
+    // A depth file missing (its colour still there), or a whole frame's number skipped: the
+    // frame keeps its place (the truth is indexed by position) and is read as an error.
+    let gap = tmp("gap");
+    run_rgbd_synth(&seg, &small_config(&seg), &SynthSettings { frames: 4, ..s.clone() }, &gap, &Progress::none(), &Cancel::new()).unwrap();
+    std::fs::remove_file(gap.join("depth/00001.png")).unwrap();
+    for dir in ["depth", "color", "mask"] {
+        std::fs::remove_file(gap.join(dir).join("00002.png")).unwrap();
+    }
+    let holed = Recording::open(&gap, None).unwrap();
+    assert_eq!(holed.len(), 4, "frames 1 and 2 keep their places");
+    assert_eq!(holed.frame_name(3), "00003");
+    for i in [1, 2] {
+        let e = holed.read_frame(i).unwrap_err().to_string();
+        assert!(e.contains(&format!("frame 0000{i}")) && e.contains("missing"), "{e}");
+    }
+    assert!(holed.read_frame(3).is_ok());
     // Missing intrinsics.
     std::fs::remove_file(d.join("intrinsics.json")).unwrap();
     let e = Recording::open(&d, None).unwrap_err().to_string();

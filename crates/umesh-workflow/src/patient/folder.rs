@@ -152,12 +152,8 @@ impl Patient {
         let volume = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| NetError::Invalid(e.to_string()))?;
         // A name the segmentation does not have (renamed in patient.json or in the file) would
         // drop that structure from every overlay without a word.
-        let missing: Vec<&String> = self
-            .organ_labels
-            .iter()
-            .chain(&self.structures)
-            .filter(|n| !volume.label_names.iter().any(|(_, v)| v == *n))
-            .collect();
+        let missing: Vec<&String> =
+            self.organ_labels.iter().chain(&self.structures).filter(|n| !volume.label_names.iter().any(|(_, v)| v == *n)).collect();
         if !missing.is_empty() {
             return Err(NetError::Invalid(format!(
                 "{}: names {missing:?} in patient.json are not labels of {} (renamed?); prepare the patient again",

@@ -120,10 +120,12 @@ pub fn run_prepare(
                 settings_differences(&old.settings, settings).join(", ")
             )));
         }
+        // A resumed job's budget counts the time its earlier runs spent; a finished job run
+        // again only rewrites its report, and keeps the budget its work was done under.
+        let finished = Stage::ALL.iter().all(|s| *s == Stage::Report || old.done(*s));
+        patient.settings.time_budget_s = if finished { old.settings.time_budget_s } else { settings.time_budget_s };
         patient.stages = old.stages;
         patient.stored_segmentation_hash = old.stored_segmentation_hash;
-        // A resumed job's budget counts the time its earlier runs spent.
-        patient.settings.time_budget_s = settings.time_budget_s;
     } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
         return Err(NetError::Invalid(format!(
             "{}: the folder is not empty and holds no patient.json; choose an empty folder",

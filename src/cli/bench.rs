@@ -318,7 +318,7 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
         let fast = umesh_net::fast::FastUNet::from_model(&model).ok();
         let c = cfg.in_channels;
         let (mut times, mut burn_times) = (Vec::new(), Vec::new());
-        let mut rng = umesh_core::phantom::SplitMix64(1);
+        let mut rng = umesh_core::rng::SplitMix64(1);
         let mut y_fast = Vec::new();
         for i in 0..reps + 1 {
             let values: Vec<f32> = (0..c * x * y * z).map(|_| rng.next_f64() as f32).collect();

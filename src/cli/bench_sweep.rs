@@ -11,7 +11,7 @@ use std::time::Instant;
 use umesh_core::dataset::{DatasetConfig, ShardSelection, run_generate, run_stats};
 use umesh_core::fem::FixedRegion;
 use umesh_core::grid::ImmersedGrid;
-use umesh_core::phantom::SplitMix64;
+use umesh_core::rng::SplitMix64;
 use umesh_core::segmentation::{self, Segmentation};
 use umesh_core::visible::Camera;
 use umesh_core::{Cancel, Progress};

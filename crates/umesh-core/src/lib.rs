@@ -18,6 +18,7 @@ pub mod phantom;
 pub mod progress;
 pub mod register;
 pub mod rgbd;
+pub mod rng;
 pub mod segmentation;
 pub mod simulate;
 pub mod slices;

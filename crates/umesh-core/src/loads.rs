@@ -4,7 +4,7 @@ use crate::fem::solver::MeanOver;
 use crate::fem::{BoundaryConditions, FixedRegion, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::mesh::TriMesh;
-use crate::phantom::SplitMix64;
+use crate::rng::SplitMix64;
 use crate::segmentation::Segmentation;
 use nalgebra::Vector3;
 

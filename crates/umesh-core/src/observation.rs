@@ -551,7 +551,7 @@ pub fn simulated_view(
     deformed: &TriMesh,
     camera: &crate::visible::Camera,
     settings: &ViewSettings,
-    rng: &mut crate::phantom::SplitMix64,
+    rng: &mut crate::rng::SplitMix64,
 ) -> Result<Vec<Vector3<f64>>, crate::Invalid> {
     let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
     let unit = |rng_f: &mut dyn FnMut(f64, f64) -> f64| loop {
@@ -570,14 +570,14 @@ pub fn simulated_view(
         &crate::visible::VisibilitySettings { camera: Some(cam), max_fraction: fraction, resolution: 256 },
     )?;
     let seen = crate::visible::sample_points(deformed, &vis.visible, settings.points, rng);
-    let gauss = |rng: &mut crate::phantom::SplitMix64| {
+    let gauss = |rng: &mut crate::rng::SplitMix64| {
         // Box-Muller.
         let (a, b) = (rng.next_f64().max(1e-12), rng.next_f64());
         (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
     };
     let n_holes = (rng.next_u64() % (settings.max_holes as u64 + 1)) as usize;
     let n_tools = (rng.next_u64() % (settings.max_instruments as u64 + 1)) as usize;
-    let pick = |rng: &mut crate::phantom::SplitMix64| seen[(rng.next_u64() % seen.len().max(1) as u64) as usize].0;
+    let pick = |rng: &mut crate::rng::SplitMix64| seen[(rng.next_u64() % seen.len().max(1) as u64) as usize].0;
     let holes: Vec<(Vector3<f64>, f64)> =
         if seen.is_empty() { Vec::new() } else { (0..n_holes).map(|_| (pick(rng), 8.0 + 12.0 * rng.next_f64())).collect() };
     // An instrument: a shaft from beside the camera to a seen point (its tip on the organ).
@@ -640,7 +640,7 @@ mod tests {
 
     #[test]
     fn buckets_find_the_same_nearest_point_within_the_band_as_a_brute_force_search() {
-        let mut rng = crate::phantom::SplitMix64(7);
+        let mut rng = crate::rng::SplitMix64(7);
         let mut r = |s: f64| s * rng.next_f64();
         let points = sphere_points(&mut r);
         // 0.05 mm on an 80 mm lattice: cells far larger than half the band (about 2^20 of them at most).
@@ -675,7 +675,7 @@ mod tests {
 
     #[test]
     fn buckets_find_after_a_move_the_same_nearest_point_as_buckets_filled_anew() {
-        let mut rng = crate::phantom::SplitMix64(11);
+        let mut rng = crate::rng::SplitMix64(11);
         let mut r = |s: f64| s * rng.next_f64();
         let filled = sphere_points(&mut r);
         let band = 10.0;

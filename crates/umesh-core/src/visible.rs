@@ -193,12 +193,7 @@ impl VisibilitySettings {
 }
 
 /// `n` points uniformly distributed by area over the visible triangles, with their normals.
-pub fn sample_points(
-    mesh: &TriMesh,
-    visible: &[bool],
-    n: usize,
-    rng: &mut crate::phantom::SplitMix64,
-) -> Vec<(Vector3<f64>, Vector3<f64>)> {
+pub fn sample_points(mesh: &TriMesh, visible: &[bool], n: usize, rng: &mut crate::rng::SplitMix64) -> Vec<(Vector3<f64>, Vector3<f64>)> {
     let mut cum = Vec::new();
     let mut ids = Vec::new();
     let mut acc = 0.0;

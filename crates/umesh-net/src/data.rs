@@ -181,7 +181,7 @@ impl ViewRefresher {
         rest: &mut [bool],
     ) -> Result<usize, umesh_core::Invalid> {
         use rayon::prelude::*;
-        use umesh_core::phantom::SplitMix64;
+        use umesh_core::rng::SplitMix64;
         let grid = &set.grid;
         Observer::new(grid, &self.surface, self.observation.clone())?;
         let fresh: Vec<(usize, bool, Option<Vec<f32>>)> = ids

@@ -11,7 +11,7 @@ use burn::optim::{AdamConfig, GradientsParams};
 use burn::prelude::*;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use umesh_core::phantom::SplitMix64;
+use umesh_core::rng::SplitMix64;
 use umesh_core::{Cancel, Progress};
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -2,7 +2,7 @@
 
 use nalgebra::Vector3;
 use umesh_core::grid::ImmersedGrid;
-use umesh_core::phantom::SplitMix64;
+use umesh_core::rng::SplitMix64;
 
 /// `count` marker points inside the organ (in fully inside cells), fixed by `seed`.
 pub fn markers(grid: &ImmersedGrid, count: usize, seed: u64) -> Vec<Vector3<f64>> {

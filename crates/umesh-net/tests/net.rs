@@ -79,7 +79,7 @@ fn the_fast_forward_pass_matches_burns_within_1e_4_of_the_largest_output() {
         let info = info_for(cfg.clone(), shape);
         let mut p = Predictor::from_model(info, cfg.init(&device), device.clone());
         let n = cfg.in_channels * shape.iter().product::<usize>();
-        let mut rng = umesh_core::phantom::SplitMix64(seed);
+        let mut rng = umesh_core::rng::SplitMix64(seed);
         // Inputs as sparse as an encoded view: most voxels zero.
         let input: Vec<f32> = (0..n).map(|_| if rng.next_f64() < 0.3 { (rng.next_f64() * 4.0 - 2.0) as f32 } else { 0.0 }).collect();
         let fast = p.predict(&input, shape).unwrap().to_vec();
@@ -102,7 +102,7 @@ fn a_tiny_network_overfits_a_handful_of_samples() {
     // displacement fields, and a target the network can express: a scaled copy.
     // Inputs from our own generator: the backend's RNG is global and shared with the tests
     // running beside this one.
-    let mut rng = umesh_core::phantom::SplitMix64(11);
+    let mut rng = umesh_core::rng::SplitMix64(11);
     let vals: Vec<f32> = (0..4 * 3 * 8).map(|_| (rng.next_f64() * 2.0 - 1.0) as f32).collect();
     let coarse = Tensor::<5>::from_data(TensorData::new(vals, [4, 3, 2, 2, 2]), &ad);
     let x = coarse.repeat_dim(2, 4).reshape([4, 3, 4, 2, 2, 2]).swap_dims(2, 3).reshape([4, 3, 8, 2, 2]);
@@ -236,7 +236,7 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     };
     let base = predict(&view);
     let mut shuffled = view.clone();
-    let mut rng = umesh_core::phantom::SplitMix64(5);
+    let mut rng = umesh_core::rng::SplitMix64(5);
     for i in (1..shuffled.len()).rev() {
         shuffled.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }

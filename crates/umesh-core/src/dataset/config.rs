@@ -5,7 +5,7 @@ use crate::fem::solver::SolverSettings;
 use crate::fem::{FixedRegion, MaterialParams};
 use crate::grid::GridSettings;
 use crate::loads::{ForceSettings, LoadFamily};
-use crate::phantom::SplitMix64;
+use crate::rng::SplitMix64;
 use crate::segmentation::Segmentation;
 use crate::visible::VisibilitySettings;
 

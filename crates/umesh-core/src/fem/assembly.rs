@@ -527,7 +527,7 @@ mod tests {
     fn svk_closed_form_element_tangent_equals_the_generic_contraction_to_1e_12() {
         let mat = Material { kind: MaterialKind::StVenantKirchhoff, lambda: 0.07, mu: 0.0015 };
         let g = super::super::element::gradients([0.2, -0.4, 0.7], 5.0);
-        let mut r = crate::phantom::SplitMix64(7);
+        let mut r = crate::rng::SplitMix64(7);
         for _ in 0..5 {
             let f = Matrix3::identity() + Matrix3::from_fn(|_, _| 0.6 * (r.next_f64() - 0.5));
             let (_, a) = mat.pk1_and_tangent(&f);

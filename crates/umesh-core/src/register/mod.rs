@@ -249,7 +249,7 @@ pub fn displacement_at(grid: &ImmersedGrid, field: &[f32], e: &Embedding) -> Vec
 }
 
 /// `count` uniformly random points in the grid's fully inside cells (all cells if none is).
-pub fn inside_markers(grid: &ImmersedGrid, count: usize, rng: &mut crate::phantom::SplitMix64) -> Vec<Vector3<f64>> {
+pub fn inside_markers(grid: &ImmersedGrid, count: usize, rng: &mut crate::rng::SplitMix64) -> Vec<Vector3<f64>> {
     let inside: Vec<usize> = (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
     let cells = if inside.is_empty() { (0..grid.cells.len()).collect() } else { inside };
     (0..count)
@@ -265,7 +265,7 @@ pub fn inside_markers(grid: &ImmersedGrid, count: usize, rng: &mut crate::phanto
 /// Virtual markers for the TRE: `count` points inside the organ (inside cells) and, when the
 /// segmentation has internal structures, as many points on them; fixed by `seed`.
 pub fn virtual_markers(ctx: &RegistrationContext, count: usize, seed: u64) -> Vec<Vector3<f64>> {
-    let mut rng = crate::phantom::SplitMix64(seed);
+    let mut rng = crate::rng::SplitMix64(seed);
     let mut out = inside_markers(&ctx.grid, count, &mut rng);
     let verts: Vec<&Vector3<f64>> = ctx.structures.iter().flat_map(|s| s.mesh.positions.iter()).collect();
     if !verts.is_empty() {

@@ -7,7 +7,7 @@ use umesh_core::dataset::{Dataset, DatasetConfig, ShardSelection, run_generate, 
 use umesh_core::fem::{BoundaryConditions, FixedRegion};
 use umesh_core::grid::GridSettings;
 use umesh_core::mesh::TriMesh;
-use umesh_core::phantom::SplitMix64;
+use umesh_core::rng::SplitMix64;
 use umesh_core::segmentation::{Segmentation, bundled_phantom};
 use umesh_core::surface::{SurfaceSettings, extract_surface};
 use umesh_core::visible::{Camera, VisibilitySettings, sample_points, visible_surface};

@@ -22,7 +22,7 @@ fn mat(kind: MaterialKind) -> MaterialParams {
 }
 
 fn rand_f(seed: u64) -> Matrix3<f64> {
-    let mut r = umesh_core::phantom::SplitMix64(seed);
+    let mut r = umesh_core::rng::SplitMix64(seed);
     Matrix3::identity() + Matrix3::from_fn(|_, _| 0.2 * (r.next_f64() - 0.5))
 }
 
@@ -98,7 +98,7 @@ fn assembled_tangent_matches_finite_differences_of_internal_forces() {
         let m = mat(kind).material();
         let lin = mat(MaterialKind::Linear).material();
         let mut asm = Assembler::new(&g, &constrained, lin, 1e-4);
-        let mut r = umesh_core::phantom::SplitMix64(3);
+        let mut r = umesh_core::rng::SplitMix64(3);
         let u: Vec<Vector3<f64>> = (0..n).map(|_| Vector3::new(r.next_f64() - 0.5, r.next_f64() - 0.5, r.next_f64() - 0.5) * 0.3).collect();
         asm.assemble(ElementModel::Hyperelastic(m), &u, true);
         let k = asm.matrix().to_dense();

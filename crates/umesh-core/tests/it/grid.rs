@@ -62,7 +62,7 @@ fn cells_are_classified_and_quadrature_weights_match_fractions() {
 #[test]
 fn embedding_weights_sum_to_one_and_reproduce_positions() {
     let g = ellipsoid_grid(Vector3::new(40.0, 30.0, 20.0), 5.0, 1);
-    let mut rng = phantom::SplitMix64(5);
+    let mut rng = umesh_core::rng::SplitMix64(5);
     let mut checked = 0;
     for _ in 0..2000 {
         let p =

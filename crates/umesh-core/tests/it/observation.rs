@@ -5,7 +5,7 @@ use nalgebra::Vector3;
 use umesh_core::grid::{GridSettings, ImmersedGrid};
 use umesh_core::mesh::TriMesh;
 use umesh_core::observation::{CHANNELS, Encoding, ObservationSettings, Observer};
-use umesh_core::phantom::SplitMix64;
+use umesh_core::rng::SplitMix64;
 use umesh_core::segmentation::{Segmentation, bundled_phantom};
 use umesh_core::surface::{SurfaceSettings, extract_surface};
 use umesh_core::visible::{VisibilitySettings, sample_points, visible_surface};

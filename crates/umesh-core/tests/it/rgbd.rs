@@ -162,7 +162,7 @@ fn a_tracked_refinement_trims_the_deformed_part_and_never_moves_past_its_bound()
 fn a_streamed_frame_carries_its_cloud_and_tracked_pose_and_the_cloud_is_used_whole() {
     let k = Intrinsics { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5 };
     // 500 points on a plane 400 mm away: more than the image's 3072 pixels hold at a stride.
-    let mut rng = umesh_core::phantom::SplitMix64(5);
+    let mut rng = umesh_core::rng::SplitMix64(5);
     let cloud: Vec<Vector3<f64>> = (0..500)
         .map(|_| {
             let (u, v) = (rng.next_f64() * 60.0 + 2.0, rng.next_f64() * 44.0 + 2.0);
@@ -552,7 +552,7 @@ fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on()
     // thinned to MAX_FRAME_POINTS evenly, and the report says so.
     let keep = umesh_core::rgbd::segment::segment_frame(&good, &Default::default()).unwrap();
     let organ = good.organ_points(&keep, 1);
-    let mut rng = umesh_core::phantom::SplitMix64(3);
+    let mut rng = umesh_core::rng::SplitMix64(3);
     let mut dense = good.clone();
     dense.points =
         Some((0..200_000).map(|i| organ[i % organ.len()] + Vector3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 0.1).collect());
@@ -867,7 +867,7 @@ fn the_correction_choice_keeps_the_frame_budget_and_takes_a_costlier_form_only_a
 #[test]
 fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_organ() {
     use umesh_core::loads::{ForceSettings, LoadFamily, family_forces, family_points};
-    use umesh_core::phantom::SplitMix64;
+    use umesh_core::rng::SplitMix64;
     let seg = phantom();
     let mut config = small_config(&seg);
     config.forces = ForceSettings::default();
@@ -976,8 +976,8 @@ fn a_truth_too_soft_for_its_load_holds_the_largest_load_that_converges_and_says_
 /// 1e-12 mm) for queries on, near and far from a cloud, within and beyond the radius.
 #[test]
 fn the_point_grid_finds_the_same_nearest_point_as_a_brute_force_search() {
-    use umesh_core::phantom::SplitMix64;
     use umesh_core::register::nn::PointGrid;
+    use umesh_core::rng::SplitMix64;
     let mut r = SplitMix64(7);
     let mut rnd = |s: f64| Vector3::new(r.next_f64() - 0.5, r.next_f64() - 0.5, r.next_f64() - 0.5) * s;
     let points: Vec<Vector3<f64>> = (0..2000).map(|_| rnd(100.0)).collect();

@@ -82,6 +82,12 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
         v.line()
     );
     assert!(v.notes.iter().any(|n| n.contains("only 3.0 mm")), "{v:?}");
+    // Cut by time at 5 of 20 epochs with one noisy last epoch (a 2.15 l liver prepared beside
+    // other jobs: 6.8, 5.8, 5.2, 4.0, 4.1 mm): still falling, the advice is to train on.
+    let noisy = epochs(&[6.8, 5.81, 5.22, 4.04, 4.13]);
+    let five = Some("time budget: another epoch (about 368 s) would end after 1807 s of training; stopped after epoch 5 of 20");
+    let v = judge(&noisy, 20, five, &eval(4.04, 9.69), &check(1.48, 8.46, 8.45), dir);
+    assert!(!v.ready && v.line().contains("5 of 20 epochs") && v.line().contains("--init-from"), "{}", v.line());
     // Stopped by a plateau, not by time: training longer is not the advice.
     let plateau = epochs(&[4.0, 3.0, 3.2, 3.3]);
     let v = judge(&plateau, 20, Some("validation plateau: ..."), &eval(3.0, 10.0), &check(1.0, 12.0, 12.0), dir);

@@ -111,7 +111,7 @@ fn check_new_dataset_folder(out: &Path) -> Result<(), DatasetError> {
     let shown: Vec<&str> = foreign.iter().take(4).map(String::as_str).collect();
     Err(invalid(
         out,
-        &format!(
+        format!(
             "holds {} ({} entries) but no dataset (no manifest.json); a dataset is written into an empty folder: choose another --out",
             shown.join(", "),
             foreign.len()

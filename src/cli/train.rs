@@ -38,11 +38,6 @@ pub struct Args {
     /// mean offsets), as registration encodes each frame.
     #[arg(long, default_value = "corner")]
     pub input: String,
-    /// How far from the organ's rest surface an observed point is still taken as that surface
-    /// moved (mm; the observation's band, default 10): a surface pushed further is seen as
-    /// unobserved there. Stored in the model; registration encodes frames with it.
-    #[arg(long)]
-    pub band_mm: Option<f64>,
     /// Train on the stored camera view of each sample only (default: a new simulated view of
     /// each training sample every epoch after the first).
     #[arg(long)]
@@ -136,12 +131,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(s) = a.steps {
         model.steps = s;
     }
-    let mut observation = parse_input(&a.input)?;
-    if let Some(band) = a.band_mm {
-        let Some(o) = observation.as_mut() else { anyhow::bail!("--band-mm applies to an observation input, not --input exact") };
-        o.band_mm = band;
-        o.validate().map_err(|e| anyhow::anyhow!("--band-mm: {e}"))?;
-    }
+    let observation = parse_input(&a.input)?;
     let mut settings = TrainSettings {
         model,
         epochs: a.epochs,

@@ -5,7 +5,6 @@ const LOG_EVERY: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// A progress bar on stderr fed by core's progress callback; hidden when stderr is not a
 /// terminal-like sink (indicatif handles that), plain lines then instead.
-
 pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progress) {
     let pb = indicatif::ProgressBar::new(0);
     pb.set_style(
@@ -38,9 +37,11 @@ pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progr
             if (!finished && now - last.0 >= LOG_EVERY) || (finished && last.1 && !last.2) {
                 *last = (now, true, finished);
                 let elapsed = start.elapsed().as_secs_f64();
-                let eta = (total > 0 && done > 0 && done < total)
-                    .then(|| format!(", about {:.0} s left", elapsed * (total - done) as f64 / done as f64))
-                    .unwrap_or_default();
+                let eta = if total > 0 && done > 0 && done < total {
+                    format!(", about {:.0} s left", elapsed * (total - done) as f64 / done as f64)
+                } else {
+                    String::new()
+                };
                 let msg = if msg.is_empty() { what.as_str() } else { msg };
                 eprintln!("{msg}: {done}/{total} ({elapsed:.0} s{eta})");
             }

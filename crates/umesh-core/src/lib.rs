@@ -180,6 +180,9 @@ pub fn check_apart(out: &std::path::Path, inputs: &[(&str, &std::path::Path)]) -
     Ok(())
 }
 
+/// The app's record of a job's settings, written beside the job's output before it runs.
+pub const JOB_FILE: &str = "umesh-job.json";
+
 /// The file a committed [`StagedDir`] carries, so a later run knows the folder is its own.
 pub const OUTPUT_MARKER: &str = ".umesh-output";
 

@@ -108,7 +108,7 @@ fn target_batch(set: &SampleSet, ids: &[usize], rest: &[bool], scale: f32, devic
 }
 
 /// The settings of the app's job that made a folder (written there before the job runs).
-pub const JOB_FILE: &str = "umesh-job.json";
+pub use umesh_core::JOB_FILE;
 
 /// Copy the files (not folders) of `from` into `to`: a resumed model continues in its staging copy.
 fn copy_files(from: &Path, to: &Path) -> Result<(), NetError> {

@@ -103,8 +103,8 @@ fn check_new_dataset_folder(out: &Path) -> Result<(), DatasetError> {
     let foreign: Vec<String> = entries
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
-        // The app's job record (`umesh-job.json`) is written beside its output before the job runs.
-        .filter(|n| !(n.starts_with("shard_") || n == "grid.npz" || n == "umesh-job.json" || (n.starts_with('.') && n.ends_with(".tmp"))))
+        // The app's job record is written beside its output before the job runs.
+        .filter(|n| !(n.starts_with("shard_") || n == "grid.npz" || n == crate::JOB_FILE || (n.starts_with('.') && n.ends_with(".tmp"))))
         .collect();
     if foreign.is_empty() {
         return Ok(());

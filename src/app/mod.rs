@@ -1,13 +1,16 @@
 //! The desktop app (Bevy + egui): one folder per view (`model/`, `jobs/`, `qa/`, `ar/`), each
-//! with its state, systems and panel; the shell (`shell/`: menus, 3-D view, camera, core <->
-//! Bevy conversions, background tasks, headless screenshots) apart; the state the views share in
-//! `state.rs`. Heavy work runs in background tasks.
+//! with its state, systems and panel; the shell (`shell/`: the view registry, 3-D view, camera,
+//! core <-> Bevy conversions, background tasks) apart and knowing no view; the window's frame
+//! (`frame.rs`: menus, status bar, dialogs) and the headless scenes (`screenshot.rs`) over them;
+//! the state the views share in `state.rs`. Heavy work runs in background tasks.
 
 pub mod ar;
 pub mod ct;
+pub mod frame;
 pub mod jobs;
 pub mod model;
 pub mod qa;
+pub mod screenshot;
 pub mod setup;
 pub mod shell;
 pub mod state;
@@ -62,9 +65,9 @@ impl Plugin for ViewPlugins {
                 qa::scene::QaViewPlugin,
                 setup::SetupViewPlugin,
             ))
-            .init_resource::<shell::ui::UiState>()
+            .init_resource::<frame::UiState>()
             .init_resource::<jobs::panel::JobsUi>()
-            .add_systems(EguiPrimaryContextPass, shell::ui::ui_system)
+            .add_systems(EguiPrimaryContextPass, frame::ui_system)
             .insert_resource(ClearColor(Color::srgb(0.11, 0.12, 0.14)))
             .insert_resource(RenderErrorHandler(render_error_policy));
     }

@@ -17,7 +17,8 @@ use umesh_core::{Cancel, Progress};
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// What to measure: grid, fe, dataset, net, ui (frame time while an SVK solve runs) or
-    /// register (registration over load families and materials).
+    /// register (registration over load families and materials); or `page`, the benchmarks
+    /// page made from saved `--json` results.
     pub what: String,
     /// Repetitions (grid) or load cases (fe); medians are reported.
     #[arg(long, default_value_t = 5)]
@@ -39,6 +40,15 @@ pub struct Args {
     pub only: Option<String>,
     #[arg(long)]
     pub json: bool,
+    /// `bench page`: the folder of result files (`--json` outputs) the page is made from.
+    #[arg(long, default_value = "docs/benchmarks")]
+    pub results: std::path::PathBuf,
+    /// `bench page`: the page to write.
+    #[arg(long, default_value = "docs/BENCHMARKS.md")]
+    pub out: std::path::PathBuf,
+    /// `bench page`: write nothing; fail when the page is not the one the results make.
+    #[arg(long)]
+    pub check: bool,
     #[command(flatten)]
     pub register: super::bench_register::RegisterBenchArgs,
 }
@@ -58,7 +68,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 pub fn run(a: Args) -> Result<()> {
     let repeat = a.repeat.max(1);
+    let kind = if a.what == "dataset" && a.sweep { "sweep" } else { a.what.as_str() };
     let value = match a.what.as_str() {
+        "page" => return super::bench_page::run(&a.results, &a.out, a.check),
         "grid" => bench_grid(repeat)?,
         "fe" => bench_fe(repeat, a.export_matrix.as_deref())?,
         "dataset" if a.sweep => super::bench_sweep::run(a.samples, a.only.as_deref(), a.json)?,
@@ -73,10 +85,10 @@ pub fn run(a: Args) -> Result<()> {
             }
             v
         }
-        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui, register)"),
+        w => anyhow::bail!("unknown benchmark {w:?} (grid, fe, dataset, net, ui, register, page)"),
     };
     if a.json {
-        super::output::print_json(&value);
+        super::output::print_json(&super::bench_page::stamped(kind, value));
     } else if let serde_json::Value::Object(m) = &value {
         for (k, v) in m {
             println!("{k:28} {v}");
@@ -375,7 +387,7 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
 /// The app's frame time (offscreen, 1280x800, egui panels) while an SVK solve runs in the
 /// background, while a training job runs, and the AR view's playback rate.
 fn bench_ui() -> Result<serde_json::Value> {
-    use crate::app::shell::screenshot::{ar_playback, frame_times_during_solve, frame_times_during_training};
+    use crate::app::screenshot::{ar_playback, frame_times_during_solve, frame_times_during_training};
     use crate::app::state::Mode;
     let stats = |mut t: Vec<f64>| -> serde_json::Value {
         t.sort_by(f64::total_cmp);

@@ -1,6 +1,7 @@
 //! Command-line interface: one file per command; all of them call umesh-core's `run_*`.
 
 pub mod bench;
+mod bench_page;
 mod bench_register;
 mod bench_sweep;
 mod camera;

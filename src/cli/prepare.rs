@@ -124,7 +124,7 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w} (the model is trained and usable; the check's figures are missing)");
     }
     if a.json {
-        super::output::print_json(&serde_json::json!({
+        let value = serde_json::json!({
             "out": r.out, "seconds": r.seconds,
             "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
             "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
@@ -134,7 +134,9 @@ pub fn run(a: Args) -> Result<()> {
             "val_tre_mean_mm": r.eval.tre_mean_mm, "val_tre_max_mm": r.eval.tre_max_mm,
             "val_marker_displacement_mean_mm": r.eval.marker_displacement_mean_mm,
             "check": r.check, "check_recording": r.check_recording,
-        }));
+            "verdict": { "ready": r.verdict.ready, "problems": r.verdict.problems, "notes": r.verdict.notes },
+        });
+        super::output::print_json(&super::bench_page::stamped("prepare", value));
         return Ok(());
     }
     println!("patient folder {} ({:.0} s)", r.out.display(), r.seconds);

@@ -25,7 +25,7 @@ pub fn parse_size(s: &str) -> Result<(u32, u32)> {
 
 pub fn run(a: Args) -> Result<()> {
     let (w, h) = parse_size(&a.size)?;
-    crate::app::shell::screenshot::render_scene(&a.scene, w, h, &a.out, a.warmup)?;
+    crate::app::screenshot::render_scene(&a.scene, w, h, &a.out, a.warmup)?;
     println!("{}", a.out.display());
     exit_now()
 }

@@ -343,26 +343,39 @@ fn file_cycles(krate: &Crate) -> Vec<String> {
         .collect()
 }
 
-/// Core's top-level modules (a file or a folder) as one node each.
-fn folder_cycles(krate: &Crate) -> Vec<String> {
-    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    for (from, targets) in import_graph(krate) {
-        let Some(top) = from.first() else { continue };
-        let edges = graph.entry(top.clone()).or_default();
-        for to in targets {
-            if let Some(other) = to.first()
-                && other != top
-            {
-                edges.insert(other.clone());
+/// Module cycles at every level: for each module with submodules, its children as one node
+/// each (a child stands for everything under it), an edge where anything under one imports
+/// anything under another.
+fn module_cycles(krate: &Crate) -> Vec<String> {
+    let graph = import_graph(krate);
+    let mut parents: BTreeSet<Vec<String>> = BTreeSet::new();
+    for m in krate.files.keys() {
+        for len in 0..m.len() {
+            parents.insert(m[..len].to_vec());
+        }
+    }
+    let mut found = Vec::new();
+    for parent in parents {
+        let child_of = |m: &[String]| (m.len() > parent.len() && m.starts_with(&parent)).then(|| m[parent.len()].clone());
+        let mut level: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        for (from, targets) in &graph {
+            let Some(a) = child_of(from) else { continue };
+            level.entry(a.clone()).or_default();
+            for to in targets {
+                if let Some(b) = child_of(to)
+                    && b != a
+                {
+                    level.entry(a.clone()).or_default().insert(b.clone());
+                    level.entry(b).or_default();
+                }
             }
         }
-    }
-    for targets in graph.clone().values() {
-        for t in targets {
-            graph.entry(t.clone()).or_default();
+        for c in cycles(&level) {
+            let full = |name: &String| show(&[parent.clone(), vec![name.clone()]].concat());
+            found.push(format!("{}: modules {}", krate.name, c.iter().map(full).collect::<Vec<_>>().join(" <-> ")));
         }
     }
-    cycles(&graph).into_iter().map(|c| format!("{}: folders {}", krate.name, c.join(" <-> "))).collect()
+    found
 }
 
 #[test]
@@ -376,10 +389,12 @@ fn no_file_of_a_crate_imports_a_file_that_imports_it_back() {
 }
 
 #[test]
-fn no_top_level_module_of_core_imports_one_that_imports_it_back() {
-    let core = &crates()[0];
-    let found = folder_cycles(core);
-    assert!(found.is_empty(), "import cycles between core's modules:\n{}", found.join("\n"));
+fn no_module_of_any_crate_imports_a_sibling_that_imports_it_back() {
+    let mut found = Vec::new();
+    for krate in crates() {
+        found.extend(module_cycles(&krate));
+    }
+    assert!(found.is_empty(), "import cycles between modules:\n{}", found.join("\n"));
 }
 
 #[test]
@@ -405,7 +420,7 @@ fn the_app_never_reaches_into_the_cli_and_the_network_holds_no_workflow() {
 /// ARCHITECTURE.md's rule for the app: a view (model, jobs, qa, ar) imports the shared state,
 /// the set-up, the scan and the shell's services, never another view; views are imported by
 /// the app's plugin list and view list (`app/views.rs`), the screenshot scenes and the CLI,
-/// and the shell's ui imports the model view only (the File menu opens organs and sessions).
+/// and the window's frame imports the model view only (the File menu opens organs and sessions).
 #[test]
 fn no_view_of_the_app_imports_another_view() {
     let app = &crates()[2];
@@ -415,8 +430,8 @@ fn no_view_of_the_app_imports_another_view() {
     let may_import = |m: &[String], view: &str| {
         m == ["app"]
             || m == ["app", "views"]
-            || m == ["app", "shell", "screenshot"]
-            || (m == ["app", "shell", "ui"] && view == "model")
+            || m == ["app", "screenshot"]
+            || (m == ["app", "frame"] && view == "model")
             || m.first().map(String::as_str) == Some("cli")
     };
     let mut wrong = Vec::new();
@@ -459,7 +474,7 @@ fn the_cycle_check_finds_a_cycle_added_through_a_use_group_and_super() {
         ("b", "use crate::{a::Deep, Thing};\nfn f() { crate::a::x::Deep; }\n#[cfg(test)]\nmod tests { use crate::b; }\n"),
     ]);
     assert!(file_cycles(&acyclic).is_empty(), "{:?}", file_cycles(&acyclic));
-    assert!(folder_cycles(&acyclic).is_empty());
+    assert!(module_cycles(&acyclic).is_empty(), "{:?}", module_cycles(&acyclic));
     let cyclic = make(&[
         ("", "pub mod a;\npub mod b;\n"),
         ("a", "pub mod x;\n"),
@@ -468,7 +483,7 @@ fn the_cycle_check_finds_a_cycle_added_through_a_use_group_and_super() {
     ]);
     let found = file_cycles(&cyclic);
     assert_eq!(found, vec!["made-up: a::x <-> b".to_string()], "{found:?}");
-    assert_eq!(folder_cycles(&cyclic), vec!["made-up: folders a <-> b".to_string()]);
+    assert_eq!(module_cycles(&cyclic), vec!["made-up: modules a <-> b".to_string()]);
 }
 
 /// Every source or script file that README.md, ARCHITECTURE.md and docs/ name in backticks exists (as

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 use std::process::Command;
-use umesh::app::shell::screenshot::{DATA_SCENES, SCENES, image_difference, shared_data};
+use umesh::app::screenshot::{DATA_SCENES, SCENES, image_difference, shared_data};
 
 const SIZE: &str = "960x600";
 /// A pixel differs when a channel moves by more than this (0-255)...

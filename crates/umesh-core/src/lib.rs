@@ -12,6 +12,7 @@ pub mod loads;
 pub mod mesh;
 pub mod mesh_io;
 pub mod nifti_io;
+pub mod nn;
 pub mod npz;
 pub mod observation;
 pub mod phantom;

@@ -21,6 +21,7 @@
 
 use crate::grid::ImmersedGrid;
 use crate::mesh::TriMesh;
+use crate::nn::PointIndex;
 use nalgebra::Vector3;
 
 /// Channels of the encoded observation: offset x, y, z (mm) and the observed mask (0 or h/2).
@@ -92,7 +93,7 @@ pub struct Observer {
     acc: Vec<Vector3<f64>>,
     wsum: Vec<f64>,
     wmax: Vec<f64>,
-    buckets: Buckets,
+    buckets: PointIndex,
 }
 
 /// What one encoding used.
@@ -124,7 +125,7 @@ impl Observer {
             acc: vec![Vector3::zeros(); cells],
             wsum: vec![0.0; cells],
             wmax: vec![0.0; cells],
-            buckets: Buckets::default(),
+            buckets: PointIndex::default(),
             settings,
         };
         o.rest_points = dense_surface_points(rest_surface, o.settings.rest_density_per_mm2);
@@ -276,192 +277,6 @@ impl Observer {
 
 /// `nearest`: an offset whose tangential part exceeds this plus its normal part is ignored (mm).
 const TANGENTIAL_MM: f64 = 3.0;
-
-const MAX_BUCKETS: f64 = (1 << 20) as f64;
-
-/// Points bucketed on a uniform grid of cells half the `band` wide, for nearest-point queries
-/// searched in shells: a query near a point stops after 27 cells of band/2, an eighth of the
-/// volume of the 27 band-wide cells it scanned before (the physics correction's closest-sample
-/// search was a quarter of its time).
-#[derive(Default)]
-pub(crate) struct Buckets {
-    origin: Vector3<f64>,
-    size: f64,
-    dims: [usize; 3],
-    start: Vec<u32>,
-    points: Vec<Vector3<f64>>,
-    /// Index of each bucketed point in the filled slice.
-    index: Vec<u32>,
-    /// The points of the filled slice the box left out (non-finite or beyond the band).
-    outside: Vec<u32>,
-}
-
-impl Buckets {
-    pub(crate) fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
-        // The lattice's box grown by the band: points beyond cannot be nearest to a node.
-        self.origin = lattice_origin - Vector3::repeat(band);
-        let extent = Vector3::new(shape[0] as f64, shape[1] as f64, shape[2] as f64) * h + Vector3::repeat(2.0 * band);
-        // Cells of half the band, but at most about MAX_BUCKETS of them (a small band on a
-        // large organ): the shell search finds the same nearest point with any cell size.
-        self.size = (0.5 * band).max((extent.x * extent.y * extent.z / MAX_BUCKETS).cbrt());
-        self.dims = [0, 1, 2].map(|a| ((extent[a] / self.size).ceil() as usize).max(1));
-        let n = self.dims.iter().product::<usize>();
-        // A counting sort: counts, their running sums as each cell's end, then each point
-        // placed by counting down from its cell's end, which leaves the starts.
-        let keys: Vec<u32> = points.iter().map(|p| self.cell_of(p).map_or(u32::MAX, |b| b as u32)).collect();
-        let mut start = std::mem::take(&mut self.start);
-        start.clear();
-        start.resize(n + 1, 0);
-        for &b in keys.iter().filter(|&&b| b != u32::MAX) {
-            start[b as usize + 1] += 1;
-        }
-        for b in 0..n {
-            start[b + 1] += start[b];
-        }
-        let used = start[n] as usize;
-        self.outside.clear();
-        self.outside.extend(keys.iter().enumerate().filter(|(_, b)| **b == u32::MAX).map(|(i, _)| i as u32));
-        self.points.clear();
-        self.points.resize(used, Vector3::zeros());
-        self.index.clear();
-        self.index.resize(used, 0);
-        for (i, (p, &b)) in points.iter().zip(&keys).enumerate().rev() {
-            if b != u32::MAX {
-                let end = &mut start[b as usize + 1];
-                *end -= 1;
-                self.points[*end as usize] = *p;
-                self.index[*end as usize] = i as u32;
-            }
-        }
-        // Each cell's end counted down to its start; shift back so start[b]..start[b + 1] is b.
-        for b in 0..n {
-            start[b] = start[b + 1];
-        }
-        start[n] = used as u32;
-        self.start = start;
-        used
-    }
-
-    /// The bucket of `p`; None outside the grown lattice's box or not finite.
-    fn cell_of(&self, p: &Vector3<f64>) -> Option<usize> {
-        let l = (p - self.origin) / self.size;
-        if !(l.iter().all(|v| v.is_finite() && *v >= 0.0)) {
-            return None;
-        }
-        let (i, j, k) = (l.x as usize, l.y as usize, l.z as usize);
-        (i < self.dims[0] && j < self.dims[1] && k < self.dims[2]).then(|| (i * self.dims[1] + j) * self.dims[2] + k)
-    }
-
-    /// Whether a fill would bucket `p`.
-    pub(crate) fn holds(&self, p: &Vector3<f64>) -> bool {
-        self.cell_of(p).is_some()
-    }
-
-    /// The nearest point within `band` of `x` once the bucketed points have moved to `now`
-    /// (indexed as filled) by at most `moved` each, given that one of them is now within
-    /// `reach` of `x` and inside the box (`band` when none is known): the same point as
-    /// `nearest` on buckets filled with `now`, without the fill. The nearest is now within
-    /// `reach`, so it was within `reach + moved` when filled: only the buckets that far are
-    /// looked at.
-    pub(crate) fn nearest_moved(&self, x: &Vector3<f64>, now: &[Vector3<f64>], reach: f64, moved: f64, band: f64) -> Option<usize> {
-        // A micrometre's slack for the rounding of the positions keeps every candidate.
-        let r = reach.min(band) + moved + 1e-3;
-        if !(self.size > 0.0 && r.is_finite() && x.iter().all(|v| v.is_finite())) {
-            return None;
-        }
-        let range = |a: usize| {
-            let lo = ((x[a] - r - self.origin[a]) / self.size).floor().max(0.0) as usize;
-            let hi = ((x[a] + r - self.origin[a]) / self.size).floor();
-            (lo, if hi < 0.0 { None } else { Some((hi as usize).min(self.dims[a] - 1)) })
-        };
-        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
-        let mut consider = |idx: usize| {
-            let q = now[idx];
-            let d2 = (q - x).norm_squared();
-            // A fresh fill would not hold a point moved out of the box.
-            if d2 > band * band || !self.holds(&q) {
-                return;
-            }
-            // `nearest`'s order: distance, then coordinates, then index.
-            let better = match best {
-                None => true,
-                Some((bd, bi, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z, idx) < (bq.x, bq.y, bq.z, bi)),
-            };
-            if better {
-                best = Some((d2, idx, q));
-            }
-        };
-        if let [(i0, Some(i1)), (j0, Some(j1)), (k0, Some(k1))] = [range(0), range(1), range(2)] {
-            for i in i0..=i1 {
-                for j in j0..=j1 {
-                    let row = (i * self.dims[1] + j) * self.dims[2];
-                    for b in row + k0..=row + k1 {
-                        for s in self.start[b] as usize..self.start[b + 1] as usize {
-                            if (self.points[s] - x).norm_squared() <= r * r {
-                                consider(self.index[s] as usize);
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        // Those the box left out may have moved in.
-        for &idx in &self.outside {
-            consider(idx as usize);
-        }
-        best.map(|(_, i, _)| i)
-    }
-
-    /// The nearest bucketed point within `band` of `x`: its index in the filled slice and
-    /// position. Ties go to the smaller coordinates, then the smaller index, so the result does
-    /// not depend on the order of the search.
-    pub(crate) fn nearest(&self, x: &Vector3<f64>, band: f64) -> Option<(usize, Vector3<f64>)> {
-        if self.size <= 0.0 {
-            return None;
-        }
-        let l = (x - self.origin) / self.size;
-        let c = [l.x.floor() as i64, l.y.floor() as i64, l.z.floor() as i64];
-        // Queries use the band the buckets were filled with (2 shells) or less; 64 bounds a
-        // query's work should one ask for far more.
-        let reach = (band / self.size).ceil().clamp(1.0, 64.0) as i64;
-        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
-        let visit = |i: i64, j: i64, k: i64, best: &mut Option<(f64, usize, Vector3<f64>)>| {
-            if i < 0 || j < 0 || k < 0 || i >= self.dims[0] as i64 || j >= self.dims[1] as i64 || k >= self.dims[2] as i64 {
-                return;
-            }
-            let b = (i as usize * self.dims[1] + j as usize) * self.dims[2] + k as usize;
-            for s in self.start[b] as usize..self.start[b + 1] as usize {
-                let (q, idx) = (&self.points[s], self.index[s] as usize);
-                let d2 = (q - x).norm_squared();
-                let better = match *best {
-                    None => true,
-                    Some((bd, bi, bq)) => d2 < bd || (d2 == bd && (q.x, q.y, q.z, idx) < (bq.x, bq.y, bq.z, bi)),
-                };
-                if better {
-                    *best = Some((d2, idx, *q));
-                }
-            }
-        };
-        for shell in 0..=reach {
-            for di in -shell..=shell {
-                for dj in -shell..=shell {
-                    // Inside the shell's cube only its two k faces are new.
-                    let stride = if di.abs() == shell || dj.abs() == shell { 1 } else { 2 * shell as usize };
-                    for dk in (-shell..=shell).step_by(stride.max(1)) {
-                        visit(c[0] + di, c[1] + dj, c[2] + dk, &mut best);
-                    }
-                }
-            }
-            // Every point of the next shell is at least `shell` whole cells away: a nearer one
-            // (or a tie) cannot be there.
-            let r = shell as f64 * self.size;
-            if best.is_some_and(|(d2, _, _)| d2 < r * r) {
-                break;
-            }
-        }
-        best.filter(|(d2, _, _)| *d2 <= band * band).map(|(_, i, q)| (i, q))
-    }
-}
 
 /// A deterministic, even sampling of a surface with the triangles' normals: each triangle's
 /// centroid and, for triangles larger than 1/density, a regular barycentric subdivision.
@@ -618,95 +433,4 @@ fn segment_line_distance(a: &Vector3<f64>, b: &Vector3<f64>, e: &Vector3<f64>, p
     s = s.clamp(0.0, 1.0);
     t = t.clamp(0.0, 1.0);
     ((a + u * s) - (e + v * t)).norm()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A sphere's surface (radius 30 mm about (40, 40, 40)) sampled about every 1-2 mm, with
-    /// exact duplicates of the first 50 at the end (ties by index).
-    fn sphere_points(r: &mut impl FnMut(f64) -> f64) -> Vec<Vector3<f64>> {
-        let mut points: Vec<Vector3<f64>> = (0..4000)
-            .map(|_| {
-                let (z, a) = (r(2.0) - 1.0, r(std::f64::consts::TAU));
-                let s = (1.0 - z * z).sqrt();
-                Vector3::new(40.0 + 30.0 * s * a.cos(), 40.0 + 30.0 * s * a.sin(), 40.0 + 30.0 * z)
-            })
-            .collect();
-        points.extend(points[..50].to_vec());
-        points
-    }
-
-    #[test]
-    fn buckets_find_the_same_nearest_point_within_the_band_as_a_brute_force_search() {
-        let mut rng = crate::rng::SplitMix64(7);
-        let mut r = |s: f64| s * rng.next_f64();
-        let points = sphere_points(&mut r);
-        // 0.05 mm on an 80 mm lattice: cells far larger than half the band (about 2^20 of them at most).
-        for (band, h) in [(2.0, 4.0), (5.0, 4.0), (10.0, 4.0), (0.05, 4.0)] {
-            let mut b = Buckets::default();
-            assert_eq!(b.fill(&points, Vector3::zeros(), band, [20, 20, 20], h), points.len());
-            // Each axis rounds its count up: a few per cent over.
-            assert!(b.start.len() <= (1 << 20) * 11 / 10, "{} cells for a {band} mm band", b.start.len());
-            for k in 0..2000 {
-                // Anywhere in the box, or near a point (within the band).
-                let q = if k % 2 == 0 {
-                    Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0)
-                } else {
-                    let p = points[(r(1.0) * points.len() as f64) as usize % points.len()];
-                    p + Vector3::new(r(band) - 0.5 * band, r(band) - 0.5 * band, r(band) - 0.5 * band) * 0.5
-                };
-                let brute =
-                    points.iter().enumerate().map(|(i, p)| ((p - q).norm_squared(), i)).filter(|(d2, _)| *d2 <= band * band).min_by(
-                        |a, b| {
-                            a.0.total_cmp(&b.0).then_with(|| {
-                                (points[a.1].x, points[a.1].y, points[a.1].z, a.1)
-                                    .partial_cmp(&(points[b.1].x, points[b.1].y, points[b.1].z, b.1))
-                                    .unwrap()
-                            })
-                        },
-                    );
-                let got = b.nearest(&q, band).map(|(i, _)| i);
-                assert_eq!(got, brute.map(|(_, i)| i), "band {band} mm, query {q:?}");
-            }
-        }
-    }
-
-    #[test]
-    fn buckets_find_after_a_move_the_same_nearest_point_as_buckets_filled_anew() {
-        let mut rng = crate::rng::SplitMix64(11);
-        let mut r = |s: f64| s * rng.next_f64();
-        let filled = sphere_points(&mut r);
-        let band = 10.0;
-        // Moves small and large against the band, some points crossing the box's side.
-        for moved in [0.3, 2.0, 8.0] {
-            let mut now: Vec<Vector3<f64>> =
-                filled.iter().map(|p| p + Vector3::new(r(2.0) - 1.0, r(2.0) - 1.0, r(2.0) - 1.0).normalize() * r(moved)).collect();
-            // The duplicates moved alike (ties by index after the move).
-            for i in 0..50 {
-                now[4000 + i] = now[i];
-            }
-            // The box ends at x = 50 + 10 mm: the sphere (x up to 70) reaches beyond it.
-            let shape = [10, 20, 20];
-            let mut old = Buckets::default();
-            old.fill(&filled, Vector3::zeros(), band, shape, 4.0);
-            let mut fresh = Buckets::default();
-            fresh.fill(&now, Vector3::zeros(), band, shape, 4.0);
-            let left = now.iter().zip(&filled).filter(|(n, f)| old.holds(f) != old.holds(n)).count();
-            assert!(moved < 1.0 || left > 0, "no point crossed the box's side at {moved} mm");
-            for k in 0..2000 {
-                let q = if k % 2 == 0 {
-                    Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0)
-                } else {
-                    now[(r(1.0) * now.len() as f64) as usize % now.len()] + Vector3::new(r(4.0) - 2.0, r(4.0) - 2.0, r(4.0) - 2.0)
-                };
-                // A known point's distance bounds the nearest's, as the previous match does.
-                let known = now[(r(1.0) * now.len() as f64) as usize % now.len()];
-                let reach = if k % 3 == 0 || !fresh.holds(&known) { band } else { (known - q).norm() };
-                let expect = fresh.nearest(&q, band).map(|(i, _)| i);
-                assert_eq!(old.nearest_moved(&q, &now, reach, moved, band), expect, "moved {moved} mm, query {q:?}");
-            }
-        }
-    }
 }

@@ -41,7 +41,7 @@ fn panels(InMut(root): InMut<egui::Ui>, mut st: AppState) {
 
 fn shortcuts(keys: Res<ButtonInput<KeyCode>>, mut st: AppState) {
     // Ctrl+S saves the session (the shell's); S alone simulates.
-    if !crate::app::shell::ui::ctrl_held(&keys) && keys.just_pressed(KeyCode::KeyS) {
+    if !crate::app::shell::ctrl_held(&keys) && keys.just_pressed(KeyCode::KeyS) {
         start_simulation(&mut st);
     }
     if keys.just_pressed(KeyCode::KeyG) {

@@ -207,11 +207,11 @@ pub fn coverage_radius_mm(points: &[Vector3<f64>]) -> f64 {
     if points.len() < 2 {
         return COVERAGE_RADIUS_MM;
     }
-    let grid = super::nn::PointGrid::new(points.to_vec(), COVERAGE_RADIUS_MM);
+    let grid = crate::nn::PointIndex::new(points, COVERAGE_RADIUS_MM);
     let step = points.len().div_ceil(500);
     let mut d: Vec<f64> = (0..points.len())
         .step_by(step)
-        .map(|i| grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i).map_or(COVERAGE_RADIUS_MAX_MM, |(_, d)| d))
+        .map(|i| grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i).map_or(COVERAGE_RADIUS_MAX_MM, |(_, q)| (q - points[i]).norm()))
         .collect();
     d.sort_by(f64::total_cmp);
     (1.5 * d[d.len() / 2]).clamp(COVERAGE_RADIUS_MM, COVERAGE_RADIUS_MAX_MM)
@@ -233,7 +233,7 @@ pub fn surface_coverage(surface: &TriMesh, points: &[Vector3<f64>], radius_mm: f
     }
     let extent = hi - lo;
     let shape = [0, 1, 2].map(|a| ((extent[a] / radius_mm).ceil() as usize).max(1));
-    let mut b = crate::observation::Buckets::default();
+    let mut b = crate::nn::PointIndex::default();
     if b.fill(points, lo, radius_mm, shape, radius_mm) == 0 {
         return 0.0;
     }
@@ -301,7 +301,7 @@ pub fn surface_residual_with(points: &[Vector3<f64>], mesh: &TriMesh, rings: &Ve
     let buckets = |size: f64| {
         let extent = hi - lo;
         let shape = [0, 1, 2].map(|a| ((extent[a] / size).ceil() as usize).max(1));
-        let mut b = crate::observation::Buckets::default();
+        let mut b = crate::nn::PointIndex::default();
         b.fill(&mesh.positions, lo, size, shape, size);
         b
     };

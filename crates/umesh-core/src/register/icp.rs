@@ -1,7 +1,7 @@
 //! Rigid initialisation: point-to-plane ICP of the observed cloud onto the preoperative
 //! surface (whose normals are exact), from an initial pose.
 
-use super::nn::PointGrid;
+use crate::nn::PointIndex;
 use crate::rgbd::transform_point;
 use nalgebra::{Matrix4, Matrix6, Rotation3, Vector3, Vector6};
 
@@ -75,13 +75,13 @@ pub struct IcpReport {
 /// The target surface: points with unit normals.
 #[derive(Debug)]
 pub struct IcpTarget {
-    grid: PointGrid,
+    grid: PointIndex,
     normals: Vec<Vector3<f64>>,
 }
 
 impl IcpTarget {
     pub fn new(points: Vec<Vector3<f64>>, normals: Vec<Vector3<f64>>, spacing_mm: f64) -> Self {
-        Self { grid: PointGrid::new(points, spacing_mm.max(0.5) * 2.0), normals }
+        Self { grid: PointIndex::new(&points, spacing_mm.max(0.5) * 2.0), normals }
     }
 }
 
@@ -111,8 +111,8 @@ pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: 
             .enumerate()
             .filter_map(|(i, p)| {
                 let q = transform_point(&t, p);
-                let (j, _) = target.grid.nearest(&q, s.max_correspondence_mm)?;
-                Some((target.normals[j].dot(&(q - target.grid.points[j])).abs(), i))
+                let (j, p) = target.grid.nearest(&q, s.max_correspondence_mm)?;
+                Some((target.normals[j].dot(&(q - p)).abs(), i))
             })
             .collect();
         matched_share = Some(fit.len() as f64 / source.len() as f64);
@@ -136,9 +136,9 @@ pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: 
         pairs.clear();
         for p in source {
             let q = transform_point(&t, p);
-            let Some((j, _)) = target.grid.nearest(&q, max_d) else { continue };
+            let Some((j, on)) = target.grid.nearest(&q, max_d) else { continue };
             let n = target.normals[j];
-            let r = n.dot(&(q - target.grid.points[j]));
+            let r = n.dot(&(q - on));
             let c = q.cross(&n);
             pairs.push((r, Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z)));
         }

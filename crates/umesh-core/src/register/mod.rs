@@ -5,7 +5,6 @@
 pub mod confidence;
 pub mod correction;
 pub mod icp;
-pub mod nn;
 pub mod overlay;
 pub mod pipeline;
 
@@ -82,7 +81,7 @@ pub struct RegistrationContext {
     node_neighbours: Vec<Vec<usize>>,
     pub(crate) icp_target: IcpTarget,
     /// The rest surface's vertices in cells as large as the coverage gate's search.
-    gate_grid: nn::PointGrid,
+    gate_grid: crate::nn::PointIndex,
     /// The physics correction's subspace (patches, basis), built once (before the frames by
     /// the correction's `prepare_correction`, or at the first corrected frame) and shared by
     /// every registration on this context.
@@ -171,7 +170,7 @@ impl RegistrationContext {
         let icp_target = IcpTarget::new(surface.positions.clone(), surface_normals.clone(), spacing);
         // Cells of a few vertex spacings: the shell search stops after a shell or two for a
         // point near the surface (cells of the whole reach held thousands of vertices each).
-        let gate_grid = nn::PointGrid::new(surface.positions.clone(), (4.0 * spacing).max(2.0));
+        let gate_grid = crate::nn::PointIndex::new(&surface.positions, (4.0 * spacing).max(2.0));
         Ok(Self {
             grid,
             surface,
@@ -206,7 +205,7 @@ impl RegistrationContext {
         let radius = confidence::coverage_radius_mm(&sub);
         let reach = radius + confidence::DEFORMATION_ALLOWANCE_MM;
         let on_surface: Vec<Vector3<f64>> =
-            sub.iter().filter_map(|p| self.gate_grid.nearest(p, reach).map(|(j, _)| self.gate_grid.points[j])).collect();
+            sub.iter().filter_map(|p| self.gate_grid.nearest(p, reach).map(|(_, q)| q)).collect();
         self.surface_coverage(&on_surface, radius)
     }
 

@@ -972,17 +972,18 @@ fn a_truth_too_soft_for_its_load_holds_the_largest_load_that_converges_and_says_
     assert!(r.mean_marker_displacement_mm > 1.0, "{r:?}");
 }
 
-/// The shell-by-shell nearest-point search returns the brute force's nearest distance (to
-/// 1e-12 mm) for queries on, near and far from a cloud, within and beyond the radius.
+/// The nearest-point index over a cloud's bounding box returns the brute force's nearest
+/// distance (to 1e-12 mm) for queries on, near and far from the cloud, within and beyond the
+/// radius.
 #[test]
-fn the_point_grid_finds_the_same_nearest_point_as_a_brute_force_search() {
-    use umesh_core::register::nn::PointGrid;
+fn the_point_index_finds_the_same_nearest_point_as_a_brute_force_search() {
+    use umesh_core::nn::PointIndex;
     use umesh_core::rng::SplitMix64;
     let mut r = SplitMix64(7);
     let mut rnd = |s: f64| Vector3::new(r.next_f64() - 0.5, r.next_f64() - 0.5, r.next_f64() - 0.5) * s;
     let points: Vec<Vector3<f64>> = (0..2000).map(|_| rnd(100.0)).collect();
     let queries: Vec<Vector3<f64>> = (0..300).map(|i| rnd(if i % 3 == 0 { 200.0 } else { 100.0 })).collect();
-    let grid = PointGrid::new(points.clone(), 5.0);
+    let grid = PointIndex::new(&points, 5.0);
     for (qi, q) in queries.iter().enumerate() {
         for radius in [3.0, 12.0, 35.0] {
             let brute = points
@@ -990,7 +991,7 @@ fn the_point_grid_finds_the_same_nearest_point_as_a_brute_force_search() {
                 .map(|p| (p - q).norm())
                 .filter(|&d| d <= radius)
                 .fold(None, |b: Option<f64>, d| Some(b.map_or(d, |b| b.min(d))));
-            let found = grid.nearest(q, radius);
+            let found = grid.nearest(q, radius).map(|(i, p)| (i, (p - q).norm()));
             match (brute, found) {
                 (None, None) => {}
                 (Some(b), Some((i, d))) => {
@@ -1005,7 +1006,8 @@ fn the_point_grid_finds_the_same_nearest_point_as_a_brute_force_search() {
         // A point's nearest other point.
         let i = qi % points.len();
         let brute = (0..points.len()).filter(|&j| j != i).map(|j| (points[j] - points[i]).norm()).fold(f64::INFINITY, f64::min);
-        let (_, d) = grid.nearest_except(&points[i], 50.0, i).unwrap();
+        let (_, p) = grid.nearest_except(&points[i], 50.0, i).unwrap();
+        let d = (p - points[i]).norm();
         assert!((brute - d).abs() < 1e-12, "point {i}: {d} against {brute}");
     }
 }

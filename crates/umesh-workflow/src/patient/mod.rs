@@ -8,6 +8,7 @@
 //! what is on disk; a folder made from other inputs or settings is refused.
 
 mod folder;
+mod page;
 mod prepare;
 mod verdict;
 

@@ -272,7 +272,7 @@ pub fn run_prepare(
     patient.stages.entry(Stage::Report).or_default().done = true;
     let stopped_early = patient.stages.get(&Stage::Train).and_then(|r| r.note.clone());
     let verdict = super::judge(&metrics, settings.train.epochs, stopped_early.as_deref(), &eval, &check, out);
-    let html = crate::report::patient_html(
+    let html = super::page::patient_html(
         &patient,
         &verdict,
         &stats,

@@ -19,7 +19,7 @@ use super::{FeSolver, FemError, SolverSettings, norm};
 use crate::fem::MaterialParams;
 use crate::fem::assembly::{ElementModel, NONE};
 use crate::grid::{Embedding, ImmersedGrid};
-use crate::observation::Buckets;
+use crate::nn::PointIndex;
 use faer::Mat;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -129,7 +129,7 @@ pub struct PointFit<'g> {
     /// Stiffness of one sample's spring (N/mm).
     k_n_per_mm: f64,
     pub settings: PointFitSettings,
-    buckets: Buckets,
+    buckets: PointIndex,
     /// When set, each update solves in this basis instead of by conjugate gradients.
     subspace: Option<Subspace>,
     /// The free dofs of the nodes the samples hang on (node, axis, free index): all an update
@@ -249,7 +249,7 @@ impl<'g> PointFit<'g> {
             normals,
             k_n_per_mm,
             settings,
-            buckets: Buckets::default(),
+            buckets: PointIndex::default(),
             subspace: None,
             sample_dofs,
             sample_slot,
@@ -799,7 +799,7 @@ impl<'g> PointFit<'g> {
 
     /// The nearest sample within the band of each point after the samples moved from where the
     /// buckets hold them (`filled`) to `now`, searched from each point's previous nearest
-    /// (`Buckets::nearest_moved`): the same samples as a search of freshly filled buckets.
+    /// (`PointIndex::nearest_moved`): the same samples as a search of freshly filled buckets.
     fn nearest_moved(&self, points_mm: &[Vector3<f64>], previous: &[u32], filled: &[Vector3<f64>], now: &[Vector3<f64>]) -> Vec<u32> {
         let band = self.settings.band_mm;
         let moved = filled.iter().zip(now).map(|(a, b)| (a - b).norm_squared()).fold(0.0, f64::max).sqrt();
@@ -954,7 +954,7 @@ pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_
 
 /// For each observed point, the index of the sample nearest it within `band` (u32::MAX: none),
 /// searched among the deformed samples `pos`.
-fn nearest_samples(buckets: &mut Buckets, grid: &ImmersedGrid, pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], band: f64) -> Vec<u32> {
+fn nearest_samples(buckets: &mut PointIndex, grid: &ImmersedGrid, pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], band: f64) -> Vec<u32> {
     buckets.fill(pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
     let buckets = &*buckets;
     points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect()

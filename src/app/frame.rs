@@ -4,6 +4,7 @@
 
 use crate::app::model::compute::{inspect_job, load_job};
 use crate::app::model::panel::AppState;
+use crate::app::shell::ctrl_held;
 use crate::app::shell::views::ViewRegistry;
 use crate::app::state::*;
 use bevy::prelude::*;
@@ -390,12 +391,6 @@ fn shell_central(
     open_window(&ctx, &mut st);
     let view_keys = registry.get(*mode.get()).map(|e| e.keys).unwrap_or_default();
     help_and_error_windows(&ctx, &mut uis, &mut st, view_keys);
-}
-
-/// Held, or pressed and released within this frame (a fast chord, a slow frame).
-pub fn ctrl_held(keys: &ButtonInput<KeyCode>) -> bool {
-    let ctrl_keys = [KeyCode::ControlLeft, KeyCode::ControlRight];
-    keys.any_pressed(ctrl_keys) || keys.any_just_pressed(ctrl_keys) || keys.any_just_released(ctrl_keys)
 }
 
 /// Apply the answers of the file dialogs closed since the last frame.

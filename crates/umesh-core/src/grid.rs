@@ -429,55 +429,9 @@ pub fn build(
             for j in 0..cy {
                 for i in 0..cx {
                     let cell_lo = origin + Vector3::new(i as f64, j as f64, k as f64) * h;
-                    let mut count = 0usize;
-                    for c in 0..n {
-                        for b in 0..n {
-                            for a in 0..n {
-                                let p = cell_lo + Vector3::new(a as f64 + 0.5, b as f64 + 0.5, c as f64 + 0.5) * (h / n as f64);
-                                let v = inside(&Point3::from(p));
-                                samples[a + n * (b + n * c)] = v;
-                                count += v as usize;
-                            }
-                        }
+                    if let Some((kind, fraction, qps)) = classify_cell(cell_lo, h, levels, s, &inside, &mut samples) {
+                        out.push(([i, j, k], kind, fraction, qps));
                     }
-                    if count == 0 {
-                        continue;
-                    }
-                    let fraction = count as f64 / (n * n * n) as f64;
-                    let cell_vol = h * h * h;
-                    let mut qps = Vec::new();
-                    let kind = if count == n * n * n {
-                        // Regular cell: 2x2x2 Gauss.
-                        let g = 1.0 / 3f64.sqrt();
-                        for c in HEX_CORNERS {
-                            qps.push((c.map(|v| if v == 1 { g } else { -g }), cell_vol / 8.0));
-                        }
-                        CellKind::Inside
-                    } else {
-                        // Boundary cell: one point at the centre of each finest sub-cell with inside
-                        // samples, weighted by that sub-cell's inside fraction.
-                        let leaf_vol = cell_vol / (leaves_per_axis.pow(3)) as f64;
-                        for lc in 0..leaves_per_axis {
-                            for lb in 0..leaves_per_axis {
-                                for la in 0..leaves_per_axis {
-                                    let mut inside_count = 0;
-                                    for c in 0..s {
-                                        for b in 0..s {
-                                            for a in 0..s {
-                                                inside_count += samples[(la * s + a) + n * ((lb * s + b) + n * (lc * s + c))] as usize;
-                                            }
-                                        }
-                                    }
-                                    if inside_count > 0 {
-                                        let xi = [la, lb, lc].map(|l| -1.0 + (2 * l + 1) as f64 / leaves_per_axis as f64);
-                                        qps.push((xi, leaf_vol * inside_count as f64 / (s * s * s) as f64));
-                                    }
-                                }
-                            }
-                        }
-                        CellKind::Boundary
-                    };
-                    out.push(([i, j, k], kind, fraction, qps));
                 }
             }
             let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
@@ -499,6 +453,71 @@ pub fn build(
         return Err(GridError::CellsTooLarge { cell_size_mm: h, extent_mm: [extent.x, extent.y, extent.z] });
     }
     Ok(assemble_grid(origin, h, cell_dims, occupied, quadrature, settings.pooling_steps))
+}
+
+/// One cell of the lattice from its corner: None when no sample of it is inside; else its kind,
+/// inside fraction and quadrature points (2x2x2 Gauss inside, one point per finest sub-cell
+/// with inside samples on the boundary). `samples` is scratch for the n^3 inside flags.
+#[allow(clippy::type_complexity)]
+fn classify_cell(
+    cell_lo: Vector3<f64>,
+    h: f64,
+    levels: u32,
+    s: usize,
+    inside: &(impl Fn(&Point3<f64>) -> bool + Sync),
+    samples: &mut [bool],
+) -> Option<(CellKind, f64, Vec<([f64; 3], f64)>)> {
+    let leaves_per_axis = 1usize << levels;
+    let n = leaves_per_axis * s;
+    let mut count = 0usize;
+    for c in 0..n {
+        for b in 0..n {
+            for a in 0..n {
+                let p = cell_lo + Vector3::new(a as f64 + 0.5, b as f64 + 0.5, c as f64 + 0.5) * (h / n as f64);
+                let v = inside(&Point3::from(p));
+                samples[a + n * (b + n * c)] = v;
+                count += v as usize;
+            }
+        }
+    }
+    if count == 0 {
+        return None;
+    }
+    let fraction = count as f64 / (n * n * n) as f64;
+    let cell_vol = h * h * h;
+    let mut qps = Vec::new();
+    let kind = if count == n * n * n {
+        // Regular cell: 2x2x2 Gauss.
+        let g = 1.0 / 3f64.sqrt();
+        for c in HEX_CORNERS {
+            qps.push((c.map(|v| if v == 1 { g } else { -g }), cell_vol / 8.0));
+        }
+        CellKind::Inside
+    } else {
+        // Boundary cell: one point at the centre of each finest sub-cell with inside
+        // samples, weighted by that sub-cell's inside fraction.
+        let leaf_vol = cell_vol / (leaves_per_axis.pow(3)) as f64;
+        for lc in 0..leaves_per_axis {
+            for lb in 0..leaves_per_axis {
+                for la in 0..leaves_per_axis {
+                    let mut inside_count = 0;
+                    for c in 0..s {
+                        for b in 0..s {
+                            for a in 0..s {
+                                inside_count += samples[(la * s + a) + n * ((lb * s + b) + n * (lc * s + c))] as usize;
+                            }
+                        }
+                    }
+                    if inside_count > 0 {
+                        let xi = [la, lb, lc].map(|l| -1.0 + (2 * l + 1) as f64 / leaves_per_axis as f64);
+                        qps.push((xi, leaf_vol * inside_count as f64 / (s * s * s) as f64));
+                    }
+                }
+            }
+        }
+        CellKind::Boundary
+    };
+    Some((kind, fraction, qps))
 }
 
 /// The grid of a segmentation's organ, with the figures `umesh grid` reports.

@@ -138,42 +138,7 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
     if cell_dims.iter().product::<usize>() > 50_000_000 {
         return Err(bad("the lattice is too large".into()));
     }
-    let mut weight = vec![0.0; m];
-    for (i, &c) in qp_cell.iter().enumerate() {
-        // Stored as integers or floats: a negative or fractional index is an error, not cell 0.
-        if !(c >= 0.0 && c.fract() == 0.0 && (c as usize) < m) {
-            return Err(bad(format!("qp_cell[{i}] = {c}: not a hexahedron index in 0..{m}")));
-        }
-        let xi = &qp_xi[3 * i..3 * i + 3];
-        if xi.iter().any(|v| v.abs() > 1.0 + 1e-9) {
-            return Err(bad(format!("qp_xi[{i}] = {xi:?}: reference coordinates must lie in [-1, 1]")));
-        }
-        if qp_w[i] < 0.0 {
-            return Err(bad(format!("qp_w[{i}] = {}: a quadrature weight cannot be negative", qp_w[i])));
-        }
-        weight[c as usize] += qp_w[i];
-    }
-    let mut occupied = Vec::with_capacity(m);
-    for c in 0..m {
-        let corner0 = node(hexes[8 * c])?;
-        for (k, off) in crate::grid::HEX_CORNERS.iter().enumerate() {
-            let nk = node(hexes[8 * c + k])?;
-            let expect = [0, 1, 2].map(|a| node_ijk[corner0][a] + off[a]);
-            if node_ijk[nk] != expect {
-                return Err(bad(format!("hexahedron {c} is not an axis-aligned cube in VTK order")));
-            }
-        }
-        let frac = weight[c] / h.powi(3);
-        if frac > 1.0 + 1e-6 {
-            return Err(bad(format!(
-                "hexahedron {c}: its quadrature weights sum to {:.4} mm^3, more than the cell's volume {:.4} mm^3",
-                weight[c],
-                h.powi(3)
-            )));
-        }
-        let kind = if (frac - 1.0).abs() < 1e-9 { CellKind::Inside } else { CellKind::Boundary };
-        occupied.push((node_ijk[corner0], kind, frac));
-    }
+    let occupied = occupied_cells(path, &hexes, &node_ijk, (&qp_cell, &qp_xi, &qp_w), h, &node)?;
     // The grid numbers cells in lattice order; keep the file's order for quadrature grouping.
     let mut order: Vec<usize> = (0..m).collect();
     order.sort_by_key(|&c| {
@@ -212,9 +177,16 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
             bc.prescribed_mm.push((node_map[node(p)?], Vector3::new(pd[3 * k], pd[3 * k + 1], pd[3 * k + 2])));
         }
     }
-    // The stabilisation: umesh's solver applies alpha * (1 - volume fraction) per cell, so the
-    // file's scales must be that for one alpha (any other pattern is refused, not approximated).
-    let mut stabilization = 0.0;
+    let stabilization = read_stabilization(&npz, path, &occupied)?;
+    Ok(LoadedProblem { grid, material, bc, node_map, stabilization })
+}
+
+/// The stabilisation's alpha from `stab_cell` / `stab_scale`, 0 without them. umesh's solver
+/// applies alpha * (1 - volume fraction) per cell, so the file's scales must be that for one
+/// alpha (any other pattern is refused, not approximated).
+fn read_stabilization(npz: &Npz, path: &Path, occupied: &[([usize; 3], CellKind, f64)]) -> Result<f64, ProblemError> {
+    let bad = |reason: String| ProblemError::Invalid { path: path.display().to_string(), reason };
+    let m = occupied.len();
     if npz.arrays.contains_key("stab_cell") || npz.arrays.contains_key("stab_scale") {
         let (_, sc) = npz.f64_with_shape("stab_cell", &[None])?;
         let (_, ss) = npz.f64_with_shape("stab_scale", &[Some(sc.len())])?;
@@ -238,7 +210,59 @@ pub fn read_problem(path: &Path) -> Result<LoadedProblem, ProblemError> {
                 alpha * frac(c)
             )));
         }
-        stabilization = alpha;
+        return Ok(alpha);
     }
-    Ok(LoadedProblem { grid, material, bc, node_map, stabilization })
+    Ok(0.0)
+}
+
+/// Each hexahedron's lattice corner, kind and inside fraction (its quadrature weights over its
+/// volume), checked: quadrature points in their cell with non-negative weights, each
+/// hexahedron an axis-aligned cube of the lattice in VTK order.
+fn occupied_cells(
+    path: &Path,
+    hexes: &[f64],
+    node_ijk: &[[usize; 3]],
+    (qp_cell, qp_xi, qp_w): (&[f64], &[f64], &[f64]),
+    h: f64,
+    node: &impl Fn(f64) -> Result<usize, ProblemError>,
+) -> Result<Vec<([usize; 3], CellKind, f64)>, ProblemError> {
+    let bad = |reason: String| ProblemError::Invalid { path: path.display().to_string(), reason };
+    let m = hexes.len() / 8;
+    let mut weight = vec![0.0; m];
+    for (i, &c) in qp_cell.iter().enumerate() {
+        // Stored as integers or floats: a negative or fractional index is an error, not cell 0.
+        if !(c >= 0.0 && c.fract() == 0.0 && (c as usize) < m) {
+            return Err(bad(format!("qp_cell[{i}] = {c}: not a hexahedron index in 0..{m}")));
+        }
+        let xi = &qp_xi[3 * i..3 * i + 3];
+        if xi.iter().any(|v| v.abs() > 1.0 + 1e-9) {
+            return Err(bad(format!("qp_xi[{i}] = {xi:?}: reference coordinates must lie in [-1, 1]")));
+        }
+        if qp_w[i] < 0.0 {
+            return Err(bad(format!("qp_w[{i}] = {}: a quadrature weight cannot be negative", qp_w[i])));
+        }
+        weight[c as usize] += qp_w[i];
+    }
+    let mut occupied = Vec::with_capacity(m);
+    for c in 0..m {
+        let corner0 = node(hexes[8 * c])?;
+        for (k, off) in crate::grid::HEX_CORNERS.iter().enumerate() {
+            let nk = node(hexes[8 * c + k])?;
+            let expect = [0, 1, 2].map(|a| node_ijk[corner0][a] + off[a]);
+            if node_ijk[nk] != expect {
+                return Err(bad(format!("hexahedron {c} is not an axis-aligned cube in VTK order")));
+            }
+        }
+        let frac = weight[c] / h.powi(3);
+        if frac > 1.0 + 1e-6 {
+            return Err(bad(format!(
+                "hexahedron {c}: its quadrature weights sum to {:.4} mm^3, more than the cell's volume {:.4} mm^3",
+                weight[c],
+                h.powi(3)
+            )));
+        }
+        let kind = if (frac - 1.0).abs() < 1e-9 { CellKind::Inside } else { CellKind::Boundary };
+        occupied.push((node_ijk[corner0], kind, frac));
+    }
+    Ok(occupied)
 }

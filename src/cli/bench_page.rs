@@ -189,7 +189,7 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
             "a patient from a segmentation to a checked model (`umesh prepare`)".into(),
             format!(
                 "{:.1} min; {} of {} samples; validation TRE {:.2} mm at {:.2} mm of motion; {}",
-                f(v, "seconds") / 60.0,
+                f(v, "job_seconds") / 60.0,
                 v["accepted"],
                 v["samples"],
                 f(v, "val_tre_mean_mm"),

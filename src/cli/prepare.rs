@@ -126,6 +126,8 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         let value = serde_json::json!({
             "out": r.out, "seconds": r.seconds,
+            // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
+            "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
             "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
             "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
             "target_displacement_mm": r.dataset.target_displacement_mm,

@@ -58,3 +58,40 @@ fn every_command_of_the_research_guide_runs_on_the_bundled_phantom() {
         assert!(dir.join(f).is_file(), "{f} missing after the guide's commands");
     }
 }
+
+/// `docs/BENCHMARKS.md` is the page `umesh bench page` makes from the result files in
+/// `docs/benchmarks/` (nobody edited a figure by hand), and every figure the README's "How well
+/// it works" table gives appears in it, word for word.
+#[test]
+fn the_benchmarks_page_is_made_from_its_results_and_holds_every_figure_of_the_readme() {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let results = root.join("docs/benchmarks");
+    let page_path = root.join("docs/BENCHMARKS.md");
+    let (ok, _, err) = crate::support::umesh(&[
+        "bench",
+        "page",
+        "--results",
+        results.to_str().unwrap(),
+        "--out",
+        page_path.to_str().unwrap(),
+        "--check",
+    ]);
+    assert!(ok, "{err}");
+    let page = std::fs::read_to_string(&page_path).unwrap();
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let section = readme.split("## How well it works").nth(1).expect("README: no \"How well it works\"");
+    let section = section.split("\n## ").next().unwrap_or(section);
+    let rows: Vec<Vec<&str>> = section
+        .lines()
+        .filter(|l| l.starts_with('|') && !l.starts_with("|---"))
+        .skip(1)
+        .map(|l| l.trim_matches('|').split(" | ").map(str::trim).collect())
+        .collect();
+    assert!(rows.len() >= 5, "the README's table has {} rows", rows.len());
+    for row in rows {
+        let figure = row.get(1).copied().unwrap_or("");
+        assert!(page.contains(figure), "the README's figure {figure:?} is not in docs/BENCHMARKS.md");
+    }
+    // A figure a command measured on this machine, its machine and date beside it.
+    assert!(page.lines().filter(|l| l.starts_with("| ") && l.contains("`umesh ")).count() >= 5, "{page}");
+}

@@ -220,29 +220,7 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
         // The frame to process now, if any.
         let frame: Option<Frame> = match &mut src {
             Src::Recording(rec, pos) => recording_frame(&mut state, rec, pos, fps, &mut prefetch, tx, &log),
-            Src::Live(s) => {
-                state.want = None;
-                if !state.playing {
-                    None
-                } else {
-                    for l in s.take_log() {
-                        log(l);
-                    }
-                    match s.poll(Duration::from_millis(100)) {
-                        Poll::Frame(f) => Some(*f),
-                        Poll::Pending => None,
-                        Poll::Ended(reason) => {
-                            for l in s.take_log() {
-                                log(l);
-                            }
-                            let _ =
-                                tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
-                            state.playing = false;
-                            None
-                        }
-                    }
-                }
-            }
+            Src::Live(s) => live_frame(&mut state, s.as_mut(), tx, &log),
         };
         let Some(frame) = frame else { continue };
         let index = frame.index;
@@ -257,18 +235,7 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
                 if state.show_points {
                     draw_points(&mut image, &frame, &settings);
                 }
-                if let Some(dir) = &state.record {
-                    let p = dir.join(format!("{index:05}.png"));
-                    match image.encode_png() {
-                        Ok(bytes) => {
-                            if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
-                                log(format!("{}: {e:#}; recording stopped", p.display()));
-                                state.record = None;
-                            }
-                        }
-                        Err(e) => log(format!("{}: {e:#}", p.display())),
-                    }
-                }
+                record_overlay(&mut state, index, &image, &log);
                 let report = out.report;
                 let dropped = match &src {
                     Src::Live(s) => s.dropped(),
@@ -284,6 +251,46 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
             }
             Err(e) => log(format!("frame {index} skipped: {e:#}")),
         }
+    }
+}
+
+/// The live source's next frame while playing (its log passed on; its end said and playback
+/// stopped).
+fn live_frame(state: &mut Playback, s: &mut dyn FrameSource, tx: &EventSender, log: &dyn Fn(String)) -> Option<Frame> {
+    state.want = None;
+    if !state.playing {
+        return None;
+    }
+    for l in s.take_log() {
+        log(l);
+    }
+    match s.poll(Duration::from_millis(100)) {
+        Poll::Frame(f) => Some(*f),
+        Poll::Pending => None,
+        Poll::Ended(reason) => {
+            for l in s.take_log() {
+                log(l);
+            }
+            let _ = tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
+            state.playing = false;
+            None
+        }
+    }
+}
+
+/// While the session records: the overlay of frame `index` as a PNG in its folder (a write that
+/// fails stops the recording, said once).
+fn record_overlay(state: &mut Playback, index: usize, image: &ColorImage, log: &dyn Fn(String)) {
+    let Some(dir) = &state.record else { return };
+    let p = dir.join(format!("{index:05}.png"));
+    match image.encode_png() {
+        Ok(bytes) => {
+            if let Err(e) = umesh_core::write_atomic(&p, &bytes) {
+                log(format!("{}: {e:#}; recording stopped", p.display()));
+                state.record = None;
+            }
+        }
+        Err(e) => log(format!("{}: {e:#}", p.display())),
     }
 }
 

@@ -124,20 +124,7 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w} (the model is trained and usable; the check's figures are missing)");
     }
     if a.json {
-        let value = serde_json::json!({
-            "out": r.out, "seconds": r.seconds,
-            // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
-            "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
-            "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
-            "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
-            "target_displacement_mm": r.dataset.target_displacement_mm,
-            "mean_displacement_mm": r.dataset.mean_displacement_mm, "achieved_over_target": r.dataset.achieved_over_target,
-            "dataset_samples_per_minute": r.dataset_samples_per_minute, "training_stopped_early": r.training_stopped_early,
-            "val_tre_mean_mm": r.eval.tre_mean_mm, "val_tre_max_mm": r.eval.tre_max_mm,
-            "val_marker_displacement_mean_mm": r.eval.marker_displacement_mean_mm,
-            "check": r.check, "check_recording": r.check_recording,
-            "verdict": { "ready": r.verdict.ready, "problems": r.verdict.problems, "notes": r.verdict.notes },
-        });
+        let value = report_json(&r);
         super::output::print_json(&super::bench_page::stamped("prepare", value));
         return Ok(());
     }
@@ -180,4 +167,22 @@ pub fn run(a: Args) -> Result<()> {
     }
     println!("report: {}", r.out.join("report.html").display());
     Ok(())
+}
+
+/// The job's figures as `--json` prints them.
+fn report_json(r: &umesh_workflow::patient::PrepareReport) -> serde_json::Value {
+    serde_json::json!({
+        "out": r.out, "seconds": r.seconds,
+        // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
+        "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
+        "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),
+        "samples": r.dataset.samples, "accepted": r.dataset.accepted, "rejected": r.dataset.rejected,
+        "target_displacement_mm": r.dataset.target_displacement_mm,
+        "mean_displacement_mm": r.dataset.mean_displacement_mm, "achieved_over_target": r.dataset.achieved_over_target,
+        "dataset_samples_per_minute": r.dataset_samples_per_minute, "training_stopped_early": r.training_stopped_early,
+        "val_tre_mean_mm": r.eval.tre_mean_mm, "val_tre_max_mm": r.eval.tre_max_mm,
+        "val_marker_displacement_mean_mm": r.eval.marker_displacement_mean_mm,
+        "check": r.check, "check_recording": r.check_recording,
+        "verdict": { "ready": r.verdict.ready, "problems": r.verdict.problems, "notes": r.verdict.notes },
+    })
 }

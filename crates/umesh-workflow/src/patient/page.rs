@@ -40,13 +40,29 @@ pub fn patient_html(
         .child(el("meta").attr("charset", "utf-8"))
         .child(el("title").text("umesh patient report"))
         .child(el("style").static_text(STYLE));
-    let mut body = el("body").child(el("h1").text("umesh patient report")).child(p(format!(
+    let body = el("body").child(el("h1").text("umesh patient report")).child(p(format!(
         "umesh {} \u{b7} organ: {} \u{b7} structures: {} \u{b7} segmentation hash {}",
         patient.program_version,
         patient.organ_labels.join(", "),
         if patient.structures.is_empty() { "none".to_string() } else { patient.structures.join(", ") },
         patient.segmentation_hash
     )));
+    let body = verdict_section(body, verdict);
+    let body = stages_section(body, patient);
+    let body = grid_section(body, patient, grid_npz);
+    let body = dataset_section(body, patient, stats, grid_npz);
+    let body = training_section(body, metrics);
+    let body = tre_section(body, eval);
+    let body = check_section(body, synth, check);
+    let body = body.child(el("h2").text("Settings")).child(el("pre").text(serde_json::to_string_pretty(s).unwrap_or_default()));
+    let mut page = String::from("<!DOCTYPE html>");
+    el("html").attr("lang", "en").child(head).child(body).write(&mut page);
+    page
+}
+
+/// The verdict: what a reader needs before any figure.
+fn verdict_section(body: El, verdict: &Verdict) -> El {
+    let mut body = body;
     // The verdict first: what a reader needs before any figure.
     body = body.child(el("h2").text(if verdict.ready { "Verdict: ready" } else { "Verdict: not ready" }));
     for problem in &verdict.problems {
@@ -55,7 +71,12 @@ pub fn patient_html(
     for note in &verdict.notes {
         body = body.child(p(note.clone()));
     }
+    body
+}
 
+/// The inputs, and each stage's state and time.
+fn stages_section(body: El, patient: &Patient) -> El {
+    let mut body = body;
     body = body.child(el("h2").text("Inputs")).child(table(
         &["file", "bytes", "hash (FNV-1a 64)"],
         patient.inputs.iter().map(|f| vec![f.path.clone(), f.bytes.to_string(), f.hash.clone()]),
@@ -73,7 +94,13 @@ pub fn patient_html(
     if let Some(note) = patient.stages.get(&Stage::Train).and_then(|r| r.note.as_ref()) {
         body = body.child(p(format!("Training {note}.")));
     }
+    body
+}
 
+/// The grid's slices with the fixed and observed nodes, the fixed region and the camera.
+fn grid_section(body: El, patient: &Patient, grid_npz: &Path) -> El {
+    let mut body = body;
+    let s = &patient.settings;
     let camera = match &s.dataset.visibility.camera {
         Some(c) => format!("at {:?} mm looking along {:?}, {}\u{b0} field of view", c.position_mm, c.direction, c.fov_deg),
         None => "anterior (default: from 2.5 organ sizes, 50\u{b0})".into(),
@@ -94,7 +121,13 @@ pub fn patient_html(
                 .child(dot("#9aa3ad"))
                 .text(" other nodes"),
         );
+    body
+}
 
+/// The dataset: acceptance, the distributions of its samples, their displacements.
+fn dataset_section(body: El, patient: &Patient, stats: &DatasetStats, grid_npz: &Path) -> El {
+    let mut body = body;
+    let s = &patient.settings;
     let rejected: Vec<String> = stats.rejected.iter().map(|(k, v)| format!("{v} {k}")).collect();
     let (means, maxes) = dataset_values(patient, grid_npz);
     body = body
@@ -132,7 +165,12 @@ pub fn patient_html(
             "mean nodal displacement per sample (target dashed)",
         ))
         .child(figure(histogram_svg(&maxes, 30, "max displacement (mm)", None), "max nodal displacement per sample"));
+    body
+}
 
+/// The training curves and the last epoch.
+fn training_section(body: El, metrics: &[EpochMetrics]) -> El {
+    let mut body = body;
     let ep = |f: &dyn Fn(&EpochMetrics) -> f64| metrics.iter().map(|m| (m.epoch as f64, f(m))).collect::<Vec<_>>();
     body = body
         .child(el("h2").text("Training"))
@@ -163,7 +201,12 @@ pub fn patient_html(
             m.train_samples_per_s
         )));
     }
+    body
+}
 
+/// The validation split's TRE.
+fn tre_section(body: El, eval: &EvalReport) -> El {
+    let mut body = body;
     body = body
         .child(el("h2").text("Target registration error (validation split, FE truth)"))
         .child(
@@ -176,7 +219,12 @@ pub fn patient_html(
                 )),
         )
         .child(figure(histogram_svg(&eval.per_marker_tre_mm, 30, "TRE (mm)", None), "per-marker TRE"));
+    body
+}
 
+/// The registration check on the synthetic recording and the correction form it chose.
+fn check_section(body: El, synth: Option<&SynthReport>, check: &CheckReport) -> El {
+    let mut body = body;
     body = body.child(el("h2").text("Registration check (synthetic RGB-D recording)"));
     if let Some(r) = synth {
         body = body.child(p(format!(
@@ -229,10 +277,7 @@ pub fn patient_html(
     if !check.log.is_empty() {
         body = body.child(el("pre").text(check.log.join("\n")));
     }
-    body = body.child(el("h2").text("Settings")).child(el("pre").text(serde_json::to_string_pretty(s).unwrap_or_default()));
-    let mut page = String::from("<!DOCTYPE html>");
-    el("html").attr("lang", "en").child(head).child(body).write(&mut page);
-    page
+    body
 }
 
 /// Per accepted sample: mean and max displacement, from the dataset's manifest.

@@ -39,8 +39,11 @@ pub enum Preset {
 }
 
 impl Preset {
-    const ALL: [(Preset, &'static str); 3] =
-        [(Preset::Abdomen, "abdomen (W 400, L 40)"), (Preset::Liver, "liver (W 150, L 60)"), (Preset::Range, "image range")];
+    const ALL: [(Preset, &'static str); 3] = [
+        (Preset::Abdomen, "abdomen (W 400, L 40)"),
+        (Preset::Liver, "liver (W 150, L 60)"),
+        (Preset::Range, "image range"),
+    ];
 }
 
 /// Which slices show, where, and how they are windowed.
@@ -83,7 +86,14 @@ impl CtView {
     }
 
     /// Saved slices for the organ of `organ_generation` and its scan `ct` (not reset).
-    pub fn restore(&mut self, show: [bool; 3], position_mm: [f64; 3], window: Window, organ_generation: u64, ct: &Arc<CtImage>) {
+    pub fn restore(
+        &mut self,
+        show: [bool; 3],
+        position_mm: [f64; 3],
+        window: Window,
+        organ_generation: u64,
+        ct: &Arc<CtImage>,
+    ) {
         self.show = show;
         self.position_mm = position_mm;
         self.window = window;
@@ -117,7 +127,8 @@ pub fn ct_ui(ui: &mut egui::Ui, view: &mut CtView, organ: &Organ) {
         let n = a.normal_axis();
         ui.horizontal(|ui| {
             changed |= ui.checkbox(&mut view.show[i], a.name()).changed();
-            let r = egui::Slider::new(&mut view.position_mm[i], ct.lo_mm[n]..=ct.hi_mm[n]).suffix(" mm").max_decimals(0);
+            let r =
+                egui::Slider::new(&mut view.position_mm[i], ct.lo_mm[n]..=ct.hi_mm[n]).suffix(" mm").max_decimals(0);
             changed |= ui.add_enabled(view.show[i], r).changed();
         });
     }
@@ -142,7 +153,10 @@ pub fn ct_ui(ui: &mut egui::Ui, view: &mut CtView, organ: &Organ) {
             changed = true;
         }
     });
-    changed |= ui.checkbox(&mut view.outlines, "outlines").on_hover_text("yellow: the organ at rest; cyan: as shown deformed").changed();
+    changed |= ui
+        .checkbox(&mut view.outlines, "outlines")
+        .on_hover_text("yellow: the organ at rest; cyan: as shown deformed")
+        .changed();
     if changed {
         view.generation += 1;
     }
@@ -162,9 +176,15 @@ struct SliceKey {
 
 /// The deformed surface to outline: the shown simulation or rehearsal in the model view, the
 /// sample's FE truth in the QA view. With its identity, to rebuild only on change.
-fn deformed_surface<'a>(mode: Mode, sim: &'a Simulation, qa: &'a QaTruth) -> Option<((u8, u64), &'a umesh_core::mesh::TriMesh)> {
+fn deformed_surface<'a>(
+    mode: Mode,
+    sim: &'a Simulation,
+    qa: &'a QaTruth,
+) -> Option<((u8, u64), &'a umesh_core::mesh::TriMesh)> {
     match mode {
-        Mode::Model => sim.result.as_ref().filter(|_| sim.show_deformed).map(|d| ((1, sim.generation), d.surface.as_ref())),
+        Mode::Model => {
+            sim.result.as_ref().filter(|_| sim.show_deformed).map(|d| ((1, sim.generation), d.surface.as_ref()))
+        }
         Mode::Qa => qa.surface.as_deref().map(|s| ((2, qa.generation), s)),
         _ => None,
     }
@@ -186,7 +206,8 @@ fn sync(
     let ct = organ.data.as_ref().and_then(|d| d.ct.clone());
     let seen = (organ.generation, ct.as_ref().map(|c| Arc::as_ptr(c) as usize).unwrap_or(0));
     if let (Some(ct), true) = (&ct, view.seen != seen) {
-        let centre = organ.data.as_ref().and_then(|d| d.surface.bounds()).map(|(lo, hi)| (lo + hi) * 0.5).unwrap_or_default();
+        let centre =
+            organ.data.as_ref().and_then(|d| d.surface.bounds()).map(|(lo, hi)| (lo + hi) * 0.5).unwrap_or_default();
         view.reset(ct, centre);
         view.seen = seen;
     }
@@ -253,7 +274,10 @@ fn slice_quad(s: &slices::Slice) -> Mesh {
     nrm[s.axis.normal_axis()] = 1.0;
     let n = bevy_dir_from_world(&nrm).to_array();
     let mut mesh = Mesh::new(PrimitiveTopology::TriangleList, RenderAssetUsages::default());
-    mesh.insert_attribute(Mesh::ATTRIBUTE_POSITION, c.iter().map(|p| bevy_from_world(p).to_array()).collect::<Vec<_>>());
+    mesh.insert_attribute(
+        Mesh::ATTRIBUTE_POSITION,
+        c.iter().map(|p| bevy_from_world(p).to_array()).collect::<Vec<_>>(),
+    );
     mesh.insert_attribute(Mesh::ATTRIBUTE_NORMAL, vec![n; 4]);
     mesh.insert_attribute(Mesh::ATTRIBUTE_UV_0, vec![[0.0f32, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]);
     mesh.insert_indices(Indices::U32(vec![0, 1, 2, 0, 2, 3]));

@@ -33,11 +33,16 @@ enum Dialog {
 impl Dialog {
     /// The native dialog for this purpose, on the I/O pool.
     fn spawn(self) -> Task<Option<std::path::PathBuf>> {
-        let pick = |filter: &'static str, ext: &'static [&'static str]| rfd::AsyncFileDialog::new().add_filter(filter, ext);
-        let save = |name: &'static str, ext: &'static str| rfd::AsyncFileDialog::new().add_filter(ext, &[ext]).set_file_name(name);
+        let pick =
+            |filter: &'static str, ext: &'static [&'static str]| rfd::AsyncFileDialog::new().add_filter(filter, ext);
+        let save = |name: &'static str, ext: &'static str| {
+            rfd::AsyncFileDialog::new().add_filter(ext, &[ext]).set_file_name(name)
+        };
         IoTaskPool::get().spawn(async move {
             let picked = match self {
-                Dialog::Segmentation => pick("segmentation / mesh", &["nii", "gz", "hdr", "obj", "ply", "stl"]).pick_file().await,
+                Dialog::Segmentation => {
+                    pick("segmentation / mesh", &["nii", "gz", "hdr", "obj", "ply", "stl"]).pick_file().await
+                }
                 Dialog::Patient => rfd::AsyncFileDialog::new().pick_folder().await,
                 Dialog::Scan => pick("NIfTI", &["nii", "gz", "hdr"]).pick_file().await,
                 Dialog::OpenSession => pick("umesh session", &["json"]).pick_file().await,
@@ -85,7 +90,11 @@ fn file_menu(ui: &mut egui::Ui, st: &mut AppState, uis: &mut UiState, files: &mu
     if ui.button("Open segmentation or mesh...").clicked() {
         uis.open(Dialog::Segmentation);
     }
-    if ui.button("Open patient folder...").on_hover_text("a folder made by umesh prepare (or New patient in Jobs)").clicked() {
+    if ui
+        .button("Open patient folder...")
+        .on_hover_text("a folder made by umesh prepare (or New patient in Jobs)")
+        .clicked()
+    {
         uis.open(Dialog::Patient);
     }
     let has_organ = st.organ.data.is_some();
@@ -158,7 +167,11 @@ fn menu_bar(
             if ui.checkbox(&mut st.sim.show_deformed, "Deformed (D)").changed() {
                 st.sim.generation += 1;
             }
-            if ui.checkbox(&mut st.sim.show_ghost, "Rest shape ghost").on_hover_text("behind the deformed organ").changed() {
+            if ui
+                .checkbox(&mut st.sim.show_ghost, "Rest shape ghost")
+                .on_hover_text("behind the deformed organ")
+                .changed()
+            {
                 st.sim.generation += 1;
             }
             ui.separator();
@@ -166,7 +179,10 @@ fn menu_bar(
             ui.add(egui::Slider::new(&mut q.render_scale, 0.25..=1.0).text("3-D resolution"));
             ui.checkbox(&mut q.shadows, "Shadows");
             if let Some((name, software)) = &view.adapter {
-                ui.weak(format!("{name}{}", if *software { " (software: quarter resolution, no shadows by default)" } else { "" }));
+                ui.weak(format!(
+                    "{name}{}",
+                    if *software { " (software: quarter resolution, no shadows by default)" } else { "" }
+                ));
             }
             if q != view.quality {
                 view.quality = q;
@@ -195,13 +211,26 @@ fn scale_bar(painter: &egui::Painter, rect: egui::Rect, max_mm: f64, what: &str)
         let t = (i as f32 + 0.5) / steps as f32;
         let c = crate::app::shell::convert::colormap_srgb(t);
         let y = bar.bottom() - bar.height() * i as f32 / steps as f32;
-        let r = egui::Rect::from_min_max(egui::pos2(bar.left(), y - bar.height() / steps as f32), egui::pos2(bar.right(), y));
-        painter.rect_filled(r, 0.0, egui::Color32::from_rgb((c[0] * 255.0) as u8, (c[1] * 255.0) as u8, (c[2] * 255.0) as u8));
+        let r = egui::Rect::from_min_max(
+            egui::pos2(bar.left(), y - bar.height() / steps as f32),
+            egui::pos2(bar.right(), y),
+        );
+        painter.rect_filled(
+            r,
+            0.0,
+            egui::Color32::from_rgb((c[0] * 255.0) as u8, (c[1] * 255.0) as u8, (c[2] * 255.0) as u8),
+        );
     }
     painter.rect_stroke(bar, 0.0, egui::Stroke::new(1.0, egui::Color32::GRAY), egui::StrokeKind::Outside);
     let font = egui::FontId::proportional(12.0);
     let text = egui::Color32::from_gray(230);
-    painter.text(egui::pos2(bar.right() + 4.0, bar.top()), egui::Align2::LEFT_CENTER, format!("{max_mm:.1} mm"), font.clone(), text);
+    painter.text(
+        egui::pos2(bar.right() + 4.0, bar.top()),
+        egui::Align2::LEFT_CENTER,
+        format!("{max_mm:.1} mm"),
+        font.clone(),
+        text,
+    );
     painter.text(egui::pos2(bar.right() + 4.0, bar.bottom()), egui::Align2::LEFT_CENTER, "0", font.clone(), text);
     painter.text(egui::pos2(bar.right() + 8.0, bar.top() - 14.0), egui::Align2::RIGHT_BOTTOM, what, font, text);
 }
@@ -349,7 +378,8 @@ fn shell_bars(
     mut next_mode: ResMut<NextState<Mode>>,
 ) {
     let mut new_mode = *mode.get();
-    egui::Panel::top("menu").show(root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut files, (&registry, &mut new_mode)));
+    egui::Panel::top("menu")
+        .show(root, |ui| menu_bar(ui, &mut st, &mut uis, &mut view, &mut files, (&registry, &mut new_mode)));
     egui::Panel::bottom("status").show(root, |ui| bottom_panel(ui, &mut st, &uis));
     if new_mode != *mode.get() {
         next_mode.set(new_mode);

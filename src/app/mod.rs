@@ -81,7 +81,10 @@ pub fn render_plugin(synchronous_pipeline_compilation: bool) -> bevy::render::Re
     use bevy::render::settings::{RenderCreation, WgpuLimits, WgpuSettings};
     let limits = WgpuLimits { max_storage_textures_per_shader_stage: 4, ..WgpuLimits::default() };
     bevy::render::RenderPlugin {
-        render_creation: RenderCreation::Automatic(Box::new(WgpuSettings { constrained_limits: Some(limits), ..Default::default() })),
+        render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
+            constrained_limits: Some(limits),
+            ..Default::default()
+        })),
         synchronous_pipeline_compilation,
         ..Default::default()
     }
@@ -93,7 +96,10 @@ pub fn render_plugin(synchronous_pipeline_compilation: bool) -> bevy::render::Re
 fn render_error_policy(error: &RenderError, main_world: &mut World, _render: &mut World) -> RenderErrorPolicy {
     let d = error.description.to_lowercase();
     if d.contains("ssao") || d.contains("screen_space_ambient_occlusion") {
-        warn!("ignoring a render error of the unused SSAO pipeline: {}", error.description.lines().next().unwrap_or(""));
+        warn!(
+            "ignoring a render error of the unused SSAO pipeline: {}",
+            error.description.lines().next().unwrap_or("")
+        );
         return RenderErrorPolicy::Ignore;
     }
     error!("render error, quitting: {}", error.description);
@@ -109,7 +115,13 @@ pub fn spawn_cameras(world: &mut World, target: Option<bevy::camera::RenderTarge
     let image = world.resource::<shell::view3d::View3d>().image.clone();
     // No MSAA: with software rendering (llvmpipe) it costs more than the whole scene.
     world.spawn((Camera3d::default(), t, shell::camera::MainCamera, Msaa::Off, RenderTarget::Image(image.into())));
-    let mut ui = world.spawn((bevy_egui::PrimaryEguiContext, Camera2d, RenderLayers::none(), Msaa::Off, Camera { order: 1, ..default() }));
+    let mut ui = world.spawn((
+        bevy_egui::PrimaryEguiContext,
+        Camera2d,
+        RenderLayers::none(),
+        Msaa::Off,
+        Camera { order: 1, ..default() },
+    ));
     if let Some(tg) = target {
         ui.insert(tg);
     }
@@ -131,7 +143,11 @@ pub enum StartWith {
     Session(std::path::PathBuf),
 }
 
-fn load_at_start(mut jobs: ResMut<shell::tasks::Jobs>, start: Res<StartWith>, mut file: ResMut<model::session::SessionFile>) {
+fn load_at_start(
+    mut jobs: ResMut<shell::tasks::Jobs>,
+    start: Res<StartWith>,
+    mut file: ResMut<model::session::SessionFile>,
+) {
     match &*start {
         StartWith::Session(path) => {
             file.0 = Some(path.clone());
@@ -154,7 +170,12 @@ fn load_at_start(mut jobs: ResMut<shell::tasks::Jobs>, start: Res<StartWith>, mu
 }
 
 /// Build a grid once an organ is loaded and none exists.
-fn auto_grid(organ: Res<state::Organ>, grid: Res<state::GridState>, mut jobs: ResMut<shell::tasks::Jobs>, mut done: Local<u64>) {
+fn auto_grid(
+    organ: Res<state::Organ>,
+    grid: Res<state::GridState>,
+    mut jobs: ResMut<shell::tasks::Jobs>,
+    mut done: Local<u64>,
+) {
     if let Some(d) = &organ.data
         && grid.grid.is_none()
         && *done != organ.generation
@@ -201,7 +222,11 @@ pub fn run_gui(start: StartWith) -> AppExit {
         .add_plugins(
             DefaultPlugins
                 .set(WindowPlugin {
-                    primary_window: Some(Window { title: "umesh".into(), resolution: (1400u32, 900u32).into(), ..default() }),
+                    primary_window: Some(Window {
+                        title: "umesh".into(),
+                        resolution: (1400u32, 900u32).into(),
+                        ..default()
+                    }),
                     ..default()
                 })
                 .set(render_plugin(false)),

@@ -101,7 +101,11 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
         // TotalSegmentator's CT and its segmentation: liver 5, vena cava 63, portal vein 64.
         let d = shared_data().join("totalsegmentator");
         let d = std::fs::canonicalize(&d).unwrap_or(d);
-        OpenRequest { path: Some(d.join("example_seg.nii.gz")), ct: Some(d.join("example_ct_sm.nii.gz")), ..Default::default() }
+        OpenRequest {
+            path: Some(d.join("example_seg.nii.gz")),
+            ct: Some(d.join("example_ct_sm.nii.gz")),
+            ..Default::default()
+        }
     } else {
         OpenRequest::default()
     };
@@ -114,7 +118,9 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
     world.insert_resource(cam);
     let show_grid = scene == "grid";
     if scene != "phantom" {
-        let JobOutput::Grid(g, vox) = run(compute::grid_job(organ.seg.clone(), Default::default()))? else { anyhow::bail!("grid") };
+        let JobOutput::Grid(g, vox) = run(compute::grid_job(organ.seg.clone(), Default::default()))? else {
+            anyhow::bail!("grid")
+        };
         let mut gs = world.resource_mut::<GridState>();
         gs.stats = Some(g.stats());
         gs.grid = Some(g.clone());
@@ -151,12 +157,20 @@ pub fn prepare_scene(world: &mut World, scene: &str) -> anyhow::Result<()> {
 fn camera_scene(world: &mut World) -> anyhow::Result<()> {
     world.resource_scope(|world, mut setup: Mut<crate::app::setup::ObservationSetup>| {
         setup.camera = crate::app::setup::CameraChoice::Named("anterior-inferior".into());
-        setup.compute_now(world.resource::<Organ>(), world.resource::<GridState>(), &world.resource::<Simulation>().fixed)
+        setup.compute_now(
+            world.resource::<Organ>(),
+            world.resource::<GridState>(),
+            &world.resource::<Simulation>().fixed,
+        )
     })?;
     // From behind the laparoscope and a little aside: the frustum opens toward the
     // organ, whose seen part faces the viewer.
-    let eye =
-        world.resource::<crate::app::setup::ObservationSetup>().preview.as_ref().map(|p| p.camera.position_mm).context("no preview")?;
+    let eye = world
+        .resource::<crate::app::setup::ObservationSetup>()
+        .preview
+        .as_ref()
+        .map(|p| p.camera.position_mm)
+        .context("no preview")?;
     let eye = crate::app::shell::convert::bevy_from_world(&Vector3::from(eye));
     let mut cam = world.resource_mut::<OrbitCamera>();
     let v = (eye - cam.focus).normalize();
@@ -278,7 +292,8 @@ fn ar_camera_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
             let Ok(mut f) = rec.read_frame(i) else { continue };
             f.mask = None;
             f.device_frame = Some(i as u64 + 1);
-            f.host_time_s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok().map(|d| d.as_secs_f64());
+            f.host_time_s =
+                std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok().map(|d| d.as_secs_f64());
             if umesh_core::rgbd::stream::write_frame(&mut sock, &f, 1000.0).is_err() {
                 return;
             }
@@ -290,7 +305,12 @@ fn ar_camera_scene(world: &mut World, organ: &OrganData) -> anyhow::Result<()> {
     ar.live_text = addr.clone();
     ar.show_points = true;
     ar.playing = true;
-    let s = crate::app::ar::ArSession::start(crate::app::ar::ArSource::Tcp(addr), organ.seg.clone(), ActiveModel::default(), None);
+    let s = crate::app::ar::ArSession::start(
+        crate::app::ar::ArSource::Tcp(addr),
+        organ.seg.clone(),
+        ActiveModel::default(),
+        None,
+    );
     s.send(crate::app::ar::ArCommand::ShowPoints(true));
     s.send(crate::app::ar::ArCommand::Play(true));
     ar.session = Some(s);
@@ -314,7 +334,9 @@ pub fn render_scene(scene: &str, width: u32, height: u32, out: &Path, warmup_fra
     }
     // The AR view waits for its worker's first overlay (a minute at most).
     let t0 = std::time::Instant::now();
-    while scene.starts_with("ar") && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3) {
+    while scene.starts_with("ar")
+        && app.world().resource::<crate::app::ar::Ar>().last.as_ref().is_none_or(|l| l.index < 3)
+    {
         if t0.elapsed().as_secs() > 60 {
             anyhow::bail!("the AR view showed no frame within 60 s");
         }
@@ -396,7 +418,9 @@ pub fn frame_times_during_solve(width: u32, height: u32) -> anyhow::Result<(Vec<
     let grid = app.world().resource::<GridState>().grid.clone().context("no grid")?;
     let probes = app.world().resource::<Probes>().list.clone();
     let t0 = std::time::Instant::now();
-    app.world_mut().resource_mut::<tasks::Jobs>().spawn("simulate", compute::simulate_job(organ, grid, FixedChoice::default(), probes));
+    app.world_mut()
+        .resource_mut::<tasks::Jobs>()
+        .spawn("simulate", compute::simulate_job(organ, grid, FixedChoice::default(), probes));
     let mut times = Vec::new();
     while !app.world().resource::<tasks::Jobs>().running.is_empty() {
         let t = std::time::Instant::now();
@@ -471,7 +495,8 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> anyhow::Result<A
     let wait_for_wake = || {
         let mut flag = woken.0.lock().unwrap_or_else(|e| e.into_inner());
         if !*flag {
-            flag = woken.1.wait_timeout(flag, std::time::Duration::from_millis(100)).unwrap_or_else(|e| e.into_inner()).0;
+            flag =
+                woken.1.wait_timeout(flag, std::time::Duration::from_millis(100)).unwrap_or_else(|e| e.into_inner()).0;
         }
         *flag = false;
     };
@@ -507,7 +532,10 @@ pub fn ar_playback(width: u32, height: u32, on_demand: bool) -> anyhow::Result<A
             worker_ms.push(f.report.latency.total_ms);
         }
         let ar = app.world().resource::<crate::app::ar::Ar>();
-        if shown.contains(&(frames.saturating_sub(1))) || !ar.playing && start.elapsed().as_secs() > 1 || start.elapsed().as_secs() > 120 {
+        if shown.contains(&(frames.saturating_sub(1)))
+            || !ar.playing && start.elapsed().as_secs() > 1
+            || start.elapsed().as_secs() > 120
+        {
             break;
         }
     }
@@ -541,7 +569,10 @@ pub fn image_difference(a: &image::RgbaImage, b: &image::RgbaImage, threshold: u
     if a.dimensions() != b.dimensions() {
         anyhow::bail!("sizes differ: {:?} vs {:?}", a.dimensions(), b.dimensions());
     }
-    let bad =
-        a.pixels().zip(b.pixels()).filter(|(p, q)| (0..3).any(|c| (p[c] as i16 - q[c] as i16).unsigned_abs() > threshold as u16)).count();
+    let bad = a
+        .pixels()
+        .zip(b.pixels())
+        .filter(|(p, q)| (0..3).any(|c| (p[c] as i16 - q[c] as i16).unsigned_abs() > threshold as u16))
+        .count();
     Ok(bad as f64 / (a.width() as f64 * a.height() as f64))
 }

@@ -18,8 +18,17 @@ use umesh_core::visible::{Camera, VisibilitySettings};
 use umesh_workflow::options::DatasetOptions;
 
 /// The named laparoscope views offered (the CLI's `--camera`).
-pub const VIEWS: [&str; 9] =
-    ["anterior", "anterior-inferior", "anterior-superior", "anterior-right", "anterior-left", "inferior", "superior", "right", "left"];
+pub const VIEWS: [&str; 9] = [
+    "anterior",
+    "anterior-inferior",
+    "anterior-superior",
+    "anterior-right",
+    "anterior-left",
+    "inferior",
+    "superior",
+    "right",
+    "left",
+];
 
 #[derive(Clone, Debug, PartialEq)]
 pub enum CameraChoice {
@@ -120,7 +129,11 @@ impl ObservationSetup {
     }
 
     /// The camera and visibility the dataset will use on this organ.
-    pub fn visibility(&self, seg: &Segmentation, fixed: &FixedChoice) -> anyhow::Result<(VisibilitySettings, FixedRegion, String)> {
+    pub fn visibility(
+        &self,
+        seg: &Segmentation,
+        fixed: &FixedChoice,
+    ) -> anyhow::Result<(VisibilitySettings, FixedRegion, String)> {
         let args = self.config_args(fixed, &DatasetOptions::default());
         let camera = args.camera(seg)?;
         let (region, description) = fixed.describe(seg);
@@ -300,9 +313,14 @@ pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &crate:
             }
         }
     });
-    if ui.button("Camera from this view").on_hover_text("the laparoscope where the 3-D view's camera is, looking at its focus").clicked() {
+    if ui
+        .button("Camera from this view")
+        .on_hover_text("the laparoscope where the 3-D view's camera is, looking at its focus")
+        .clicked()
+    {
         let t = orbit.transform();
-        setup.camera = CameraChoice::Custom { from_mm: world_from_bevy(t.translation), to_mm: world_from_bevy(orbit.focus) };
+        setup.camera =
+            CameraChoice::Custom { from_mm: world_from_bevy(t.translation), to_mm: world_from_bevy(orbit.focus) };
     }
     let mut fov = setup.fov_deg as f32;
     if ui.add(egui::Slider::new(&mut fov, 20.0..=100.0).text("field of view (deg)")).changed() {
@@ -317,7 +335,12 @@ pub fn camera_ui(ui: &mut egui::Ui, setup: &mut ObservationSetup, orbit: &crate:
             ui.colored_label(egui::Color32::LIGHT_RED, e);
         }
         (None, Some(p)) => {
-            ui.label(format!("sees {:.0} % of the surface, {} of {} nodes", 100.0 * p.visible_fraction, p.visible_nodes, p.nodes));
+            ui.label(format!(
+                "sees {:.0} % of the surface, {} of {} nodes",
+                100.0 * p.visible_fraction,
+                p.visible_nodes,
+                p.nodes
+            ));
             ui.label(format!("fixed: {} nodes, {}", p.fixed_nodes_mm.len(), p.fixed_description));
         }
         (None, None) => {
@@ -344,8 +367,10 @@ pub fn fixed_ui(ui: &mut egui::Ui, fixed: &mut FixedChoice, organ: Option<&Organ
             *fixed = FixedChoice::default();
         }
         if ui.radio(matches!(fixed, FixedChoice::Label { .. }), "near a label").clicked() {
-            let label =
-                organ.and_then(|o| umesh_core::loads::anchor_label(&o.seg)).map(|(l, _)| l).unwrap_or(umesh_core::phantom::VENA_CAVA);
+            let label = organ
+                .and_then(|o| umesh_core::loads::anchor_label(&o.seg))
+                .map(|(l, _)| l)
+                .unwrap_or(umesh_core::phantom::VENA_CAVA);
             *fixed = FixedChoice::Label { label, distance_mm: 6.0 };
         }
         if ui.radio(matches!(fixed, FixedChoice::Posterior { .. }), "posterior slab").clicked() {

@@ -84,7 +84,14 @@ pub struct GridState {
 
 impl Default for GridState {
     fn default() -> Self {
-        Self { settings: GridSettings::default(), grid: None, stats: None, show: true, generation: 0, voxel_volume_mm3: 0.0 }
+        Self {
+            settings: GridSettings::default(),
+            grid: None,
+            stats: None,
+            show: true,
+            generation: 0,
+            voxel_volume_mm3: 0.0,
+        }
     }
 }
 
@@ -160,7 +167,11 @@ impl FixedChoice {
             }
             FixedChoice::Posterior { fraction } => {
                 let (lo, hi) = seg.organ_mask().world_bounds().unwrap_or_default();
-                let region = FixedRegion::Plane { normal: [0.0, 1.0, 0.0], offset_mm: lo.y, thickness_mm: fraction * (hi.y - lo.y) };
+                let region = FixedRegion::Plane {
+                    normal: [0.0, 1.0, 0.0],
+                    offset_mm: lo.y,
+                    thickness_mm: fraction * (hi.y - lo.y),
+                };
                 (region, format!("the posterior {:.0} % of the organ", fraction * 100.0))
             }
             FixedChoice::Region(r, d) => (r.clone(), d.clone()),

@@ -146,9 +146,17 @@ pub fn fe_scenario(seed: u64) -> Result<FeScenario> {
     let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new())?.grid;
     let material = MaterialParams::default();
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces = loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), seed)?;
+    let forces = loads::visible_random_forces(
+        &organ,
+        &grid,
+        &material,
+        &ForceSettings::energy_scale(100, 3.0),
+        &Default::default(),
+        seed,
+    )?;
     let fixed = vec![loads::default_fixed_region(&grid, Some(umesh_core::phantom::VENA_CAVA), 6.0)];
-    let settings = SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
+    let settings =
+        SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
     Ok(FeScenario { seg, grid, settings })
 }
 
@@ -190,7 +198,8 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
         let as_i64 = |v: Vec<usize>| v.into_iter().map(|x| x as i64).collect::<Vec<_>>();
         // The right-hand side: load case 1's external forces on the free dofs, same numbering.
         let bc1 = bc1.as_ref().ok_or_else(|| anyhow::anyhow!("no load case"))?;
-        let rhs: Vec<f64> = bc1.forces_n.iter().zip(&bc1.fixed).filter(|(_, f)| !**f).flat_map(|(v, _)| [v.x, v.y, v.z]).collect();
+        let rhs: Vec<f64> =
+            bc1.forces_n.iter().zip(&bc1.fixed).filter(|(_, f)| !**f).flat_map(|(v, _)| [v.x, v.y, v.z]).collect();
         anyhow::ensure!(rhs.len() == n, "{} free force components for {n} free dofs", rhs.len());
         let nnz = data.len();
         let arrays = vec![
@@ -221,10 +230,13 @@ fn bench_fe(repeat: usize, export: Option<&std::path::Path>) -> Result<serde_jso
         };
         let normals = organ.vertex_normals();
         let with_normals: Vec<_> = samples.iter().zip(normals.iter().step_by(4)).map(|(p, n)| (*p, *n)).collect();
-        let mut fit = PointFit::new(&sc.grid, sc.settings.material, &bc0.fixed, &with_normals, PointFitSettings::default())?;
+        let mut fit =
+            PointFit::new(&sc.grid, sc.settings.material, &bc0.fixed, &with_normals, PointFitSettings::default())?;
         check_frame(&mut fit, &moved(0.95), &moved(1.0))?
     };
-    let med = |v: &[umesh_core::fem::Solution], f: &dyn Fn(&umesh_core::fem::Solution) -> f64| median(v.iter().map(f).collect());
+    let med = |v: &[umesh_core::fem::Solution], f: &dyn Fn(&umesh_core::fem::Solution) -> f64| {
+        median(v.iter().map(f).collect())
+    };
     let stats = sc.grid.stats();
     Ok(serde_json::json!({
         "cells": stats.cells, "nodes": stats.nodes, "padded_shape": stats.padded_shape,
@@ -314,7 +326,8 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
     out.insert("padded_shape".into(), serde_json::json!([x, y, z]));
     // The shipped input (the encoded camera view) for the cpu preset; the paper's 3 channels
     // for the paper preset (the shapes of the JAX comparison).
-    let shipped = umesh_net::UNetConfig { in_channels: umesh_core::observation::CHANNELS, ..umesh_net::UNetConfig::cpu() };
+    let shipped =
+        umesh_net::UNetConfig { in_channels: umesh_core::observation::CHANNELS, ..umesh_net::UNetConfig::cpu() };
     // Widths between them (the shipped input, 16 and 32 first-layer channels): what a wider
     // network would cost per frame.
     let widths = [
@@ -355,11 +368,16 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
                 burn_times.push(burn_ms);
             }
         }
-        for (key, t) in [(format!("inference_ms_median_{name}"), &mut times), (format!("inference_ms_median_{name}_burn"), &mut burn_times)]
-        {
+        for (key, t) in [
+            (format!("inference_ms_median_{name}"), &mut times),
+            (format!("inference_ms_median_{name}_burn"), &mut burn_times),
+        ] {
             t.sort_by(f64::total_cmp);
             out.insert(key.clone(), serde_json::json!(t[t.len() / 2]));
-            out.insert(key.replace("median", "p95"), serde_json::json!(t[((t.len() - 1) as f64 * 0.95).round() as usize]));
+            out.insert(
+                key.replace("median", "p95"),
+                serde_json::json!(t[((t.len() - 1) as f64 * 0.95).round() as usize]),
+            );
         }
     }
     out.insert("inference_ms_median".into(), out["inference_ms_median_cpu"].clone());

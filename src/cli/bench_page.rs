@@ -66,7 +66,12 @@ fn civil_date(days: u64) -> String {
 fn machine() -> String {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|m| m.replace("(R)", "").replace("(TM)", "").trim().to_string()))
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.replace("(R)", "").replace("(TM)", "").trim().to_string())
+        })
         .unwrap_or_else(|| std::env::consts::ARCH.to_string());
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let memory = std::fs::read_to_string("/proc/meminfo").ok().and_then(|s| {
@@ -94,6 +99,23 @@ fn range(values: &[f64], decimals: usize) -> String {
     }
 }
 
+/// "the patient ct" for a patient folder's model, else "ORGAN, model MODEL" (the bundled phantom
+/// and model by name).
+fn organ_and_model(organ: &str, model: &str) -> String {
+    let model_path = Path::new(model);
+    if model_path.file_name().is_some_and(|n| n == "model")
+        && let Some(patient) =
+            model_path.parent().filter(|p| p.join("patient.json").exists() || organ.starts_with(&*p.to_string_lossy()))
+    {
+        return format!("the patient {}", file_name(&patient.display().to_string()));
+    }
+    let organ = if organ.ends_with("(bundled)") { "the bundled phantom".to_string() } else { file_name(organ) };
+    format!(
+        "{organ}, model {}",
+        if model.ends_with("assets/model") { "the bundled one".to_string() } else { file_name(model) }
+    )
+}
+
 fn file_name(path: &str) -> String {
     Path::new(path).file_name().map_or_else(|| path.to_string(), |n| n.to_string_lossy().into_owned())
 }
@@ -109,7 +131,12 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
         )],
         "fe" => vec![row(
             format!("SVK solve of the phantom ({} nodes, {} forces)", v["nodes"], v["forces"]),
-            format!("{:.0} ms median of {} load cases ({:.0} Newton iterations)", f(v, "svk_solve_ms"), v["load_cases"], f(v, "svk_newton_iterations")),
+            format!(
+                "{:.0} ms median of {} load cases ({:.0} Newton iterations)",
+                f(v, "svk_solve_ms"),
+                v["load_cases"],
+                f(v, "svk_newton_iterations")
+            ),
             "the paper's Pardiso: 1550 ms",
         )],
         "dataset" => vec![row(
@@ -121,7 +148,10 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
                 v["samples"],
                 f(v, "achieved_over_target_mean")
             ),
-            &format!("earlier versions' uncalibrated loads, same run: {:.0} a minute", f(&v["energy_scale_3mm"], "samples_per_minute")),
+            &format!(
+                "earlier versions' uncalibrated loads, same run: {:.0} a minute",
+                f(&v["energy_scale_3mm"], "samples_per_minute")
+            ),
         )],
         "sweep" => {
             let configs = v["configs"].as_array().cloned().unwrap_or_default();
@@ -143,7 +173,10 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
             vec![row(
                 format!("network inference on a {x} x {y} x {z} grid"),
                 format!("{:.1} ms median", f(v, "inference_ms_median")),
-                &format!("burn's own pass, same run: {:.1} ms; the paper: 3 ms on a GPU", f(v, "inference_ms_median_cpu_burn")),
+                &format!(
+                    "burn's own pass, same run: {:.1} ms; the paper: 3 ms on a GPU",
+                    f(v, "inference_ms_median_cpu_burn")
+                ),
             )]
         }
         "ui" => vec![row(
@@ -158,18 +191,18 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
         "register" => {
             let rows = v["recordings"].as_array().cloned().unwrap_or_default();
             let col = |k: &str| rows.iter().filter_map(|r| r[k].as_f64()).collect::<Vec<_>>();
-            let families: Vec<String> = rows.iter().filter_map(|r| r["family"].as_str().map(String::from)).fold(Vec::new(), |mut a, f| {
-                if !a.contains(&f) {
-                    a.push(f);
-                }
-                a
-            });
+            let families: Vec<String> =
+                rows.iter().filter_map(|r| r["family"].as_str().map(String::from)).fold(Vec::new(), |mut a, f| {
+                    if !a.contains(&f) {
+                        a.push(f);
+                    }
+                    a
+                });
             vec![row(
                 format!(
-                    "{} new draws on {} (model {}): {}, SVK and Neo-Hookean truth, {} mm of motion asked, {} correction, overlay drawn",
+                    "{} new draws on {}: {}, SVK and Neo-Hookean truth, {} mm of motion asked, {} correction, overlay drawn",
                     rows.len(),
-                    file_name(v["organ"].as_str().unwrap_or("")),
-                    file_name(v["model"].as_str().unwrap_or("")),
+                    organ_and_model(v["organ"].as_str().unwrap_or(""), v["model"].as_str().unwrap_or("")),
                     families.join(", "),
                     v["motion_mm_asked"],
                     v["correction_form"].as_str().unwrap_or("")
@@ -186,7 +219,10 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
             )]
         }
         "prepare" => vec![row(
-            "a patient from a segmentation to a checked model (`umesh prepare`)".into(),
+            format!(
+                "a patient from a segmentation to a checked model, loads calibrated to {} mm",
+                v["target_displacement_mm"]
+            ),
             format!(
                 "{:.1} min; {} of {} samples; validation TRE {:.2} mm at {:.2} mm of motion; {}",
                 f(v, "job_seconds") / 60.0,
@@ -224,7 +260,10 @@ pub fn render(dir: &Path) -> Result<String> {
         let v: Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
         let run = &v["run"];
         let Some(kind) = run["kind"].as_str() else {
-            bail!("{}: no \"run\" record (write it with `umesh bench ... --json` or `umesh prepare ... --json`)", path.display());
+            bail!(
+                "{}: no \"run\" record (write it with `umesh bench ... --json` or `umesh prepare ... --json`)",
+                path.display()
+            );
         };
         let rank = ORDER.iter().position(|k| *k == kind).unwrap_or(ORDER.len());
         results.push((rank, path, v.clone()));

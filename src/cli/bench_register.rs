@@ -76,10 +76,12 @@ pub fn run(a: &RegisterBenchArgs) -> Result<serde_json::Value> {
         bail!("--frames {}: between 2 and 200", a.frames);
     }
     let families = ForceSettings::parse_families(&a.loads).context("--loads")?;
-    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
+    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } =
+        model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     // The recordings depend on the organ and on the model's dataset configuration (its load
     // scale, material, attachment): one folder per pair, so another model never reuses them.
-    let key = umesh_core::dataset::fnv_hex(format!("{}{}", dctx.grid_hash(), serde_json::to_string(&config)?).as_bytes());
+    let key =
+        umesh_core::dataset::fnv_hex(format!("{}{}", dctx.grid_hash(), serde_json::to_string(&config)?).as_bytes());
     let root = a.recordings.clone().unwrap_or_else(|| std::env::temp_dir().join("umesh-bench-register")).join(key);
     let ctx = RegistrationContext::new(dctx, &seg)?;
     let form = match (a.correction_form.as_deref(), CorrectionChoice::read(&model_dir)?) {
@@ -166,7 +168,13 @@ fn pressed_to(
     frames: usize,
 ) -> Result<SynthReport> {
     let s0 = first_scale(base.loads);
-    let probe = synth(seg, config, root, &format!("{name}-probe-x{s0:.2}"), &SynthSettings { frames: 2, load_scale: s0, ..base.clone() })?;
+    let probe = synth(
+        seg,
+        config,
+        root,
+        &format!("{name}-probe-x{s0:.2}"),
+        &SynthSettings { frames: 2, load_scale: s0, ..base.clone() },
+    )?;
     let moved = probe.mean_marker_displacement_mm;
     let scale = if moved > 0.1 { (s0 * motion_mm / moved).clamp(0.2, 8.0) } else { s0 };
     // Stepped down when the truth cannot take it, not below the probe's scale (which it took).
@@ -201,22 +209,31 @@ fn synth(
     // Reused only when it is what these settings make: the settings and the ground truth's
     // hash, recorded when it was made, unchanged (a swapped truth would report nonsense).
     let expected = serde_json::to_string(settings)?;
-    let truth_hash = |dir: &Path| std::fs::read(dir.join("ground_truth.json")).ok().map(|b| umesh_core::dataset::fnv_hex(&b));
+    let truth_hash =
+        |dir: &Path| std::fs::read(dir.join("ground_truth.json")).ok().map(|b| umesh_core::dataset::fnv_hex(&b));
     if let Ok(text) = std::fs::read_to_string(&report)
         && let Ok(r) = serde_json::from_str::<SynthReport>(&text)
     {
-        let recorded: Option<serde_json::Value> = std::fs::read_to_string(&made).ok().and_then(|t| serde_json::from_str(&t).ok());
+        let recorded: Option<serde_json::Value> =
+            std::fs::read_to_string(&made).ok().and_then(|t| serde_json::from_str(&t).ok());
         let same = recorded.as_ref().is_some_and(|m| {
-            m["settings"].as_str() == Some(expected.as_str()) && m["ground_truth_fnv"].as_str().map(str::to_string) == truth_hash(&out)
+            m["settings"].as_str() == Some(expected.as_str())
+                && m["ground_truth_fnv"].as_str().map(str::to_string) == truth_hash(&out)
         });
         if same {
             return Ok(SynthReport { out, ..r });
         }
-        eprintln!("{}: the cached recording is not what these settings made (changed or damaged); making it again", out.display());
+        eprintln!(
+            "{}: the cached recording is not what these settings made (changed or damaged); making it again",
+            out.display()
+        );
     }
-    let staged =
-        umesh_core::StagedDir::new(&out, umesh_core::OutputKind::Recording, &["synth.json", "ground_truth.json", "bench_synth.json"])
-            .with_context(|| format!("{}", out.display()))?;
+    let staged = umesh_core::StagedDir::new(
+        &out,
+        umesh_core::OutputKind::Recording,
+        &["synth.json", "ground_truth.json", "bench_synth.json"],
+    )
+    .with_context(|| format!("{}", out.display()))?;
     let (pb, progress) = super::output::progress_bar(&format!("recording {name}"));
     let r = run_rgbd_synth(seg, config, settings, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();

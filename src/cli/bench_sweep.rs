@@ -18,7 +18,9 @@ use umesh_core::{Cancel, Progress};
 
 /// The shared real data, when it sits beside the checkout (as in CI).
 fn shared_data() -> Option<PathBuf> {
-    [PathBuf::from("../shared/data"), PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data")].into_iter().find(|p| p.is_dir())
+    [PathBuf::from("../shared/data"), PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data")]
+        .into_iter()
+        .find(|p| p.is_dir())
 }
 
 /// The segmentation with its world frame stretched by `s` per axis about the organ's centre.
@@ -46,8 +48,16 @@ fn organs() -> Result<Vec<Organ>> {
     let phantom = segmentation::bundled_phantom(PHANTOM_BYTES)?;
     let mut v = vec![
         Organ { name: "phantom", seg: phantom.clone(), other_label: Some(umesh_core::phantom::PORTAL_VEIN) },
-        Organ { name: "phantom-0.6x", seg: stretched(&phantom, [0.6; 3])?, other_label: Some(umesh_core::phantom::PORTAL_VEIN) },
-        Organ { name: "phantom-1.6x", seg: stretched(&phantom, [1.6; 3])?, other_label: Some(umesh_core::phantom::PORTAL_VEIN) },
+        Organ {
+            name: "phantom-0.6x",
+            seg: stretched(&phantom, [0.6; 3])?,
+            other_label: Some(umesh_core::phantom::PORTAL_VEIN),
+        },
+        Organ {
+            name: "phantom-1.6x",
+            seg: stretched(&phantom, [1.6; 3])?,
+            other_label: Some(umesh_core::phantom::PORTAL_VEIN),
+        },
         Organ {
             name: "phantom-squashed",
             seg: stretched(&phantom, [1.25, 1.0, 0.6])?,
@@ -91,7 +101,10 @@ fn attachments(organ: &Organ, config: &DatasetConfig) -> Result<Vec<(&'static st
     // A box holding about a third of the organ: the right lobe.
     v.push((
         "box-30%",
-        FixedRegion::Box { min_mm: [hi.x - 0.3 * e.x, lo.y - 1.0, lo.z - 1.0], max_mm: [hi.x + 1.0, hi.y + 1.0, hi.z + 1.0] },
+        FixedRegion::Box {
+            min_mm: [hi.x - 0.3 * e.x, lo.y - 1.0, lo.z - 1.0],
+            max_mm: [hi.x + 1.0, hi.y + 1.0, hi.z + 1.0],
+        },
     ));
     // The inferior plane instead of the posterior one.
     v.push(("plane", FixedRegion::Plane { normal: [0.0, 0.0, 1.0], offset_mm: lo.z, thickness_mm: 0.15 * e.z }));
@@ -111,7 +124,10 @@ fn attachments(organ: &Organ, config: &DatasetConfig) -> Result<Vec<(&'static st
     v.push(("surface-patch", FixedRegion::Nodes { nodes }));
     // The same attachment given as a small box around it (a ligament's surface points boxed).
     let (a, r) = (anchor, 12.0);
-    v.push(("small-box", FixedRegion::Box { min_mm: [a.x - r, a.y - r, a.z - r], max_mm: [a.x + r, a.y + r, a.z + r] }));
+    v.push((
+        "small-box",
+        FixedRegion::Box { min_mm: [a.x - r, a.y - r, a.z - r], max_mm: [a.x + r, a.y + r, a.z + r] },
+    ));
     Ok(v)
 }
 
@@ -152,7 +168,9 @@ fn measure(name: &str, seg: &Segmentation, config: &DatasetConfig, dir: &Path) -
     let mut reasons = serde_json::Map::new();
     for s in umesh_core::dataset::Manifest::read(dir)?.samples.iter().filter(|s| !s.accepted) {
         let kind = s.rejection.map(|r| format!("{r:?}").to_lowercase()).unwrap_or_default();
-        reasons.entry(kind).or_insert_with(|| serde_json::json!(format!("sample {}: {}", s.index, s.reason.clone().unwrap_or_default())));
+        reasons.entry(kind).or_insert_with(|| {
+            serde_json::json!(format!("sample {}: {}", s.index, s.reason.clone().unwrap_or_default()))
+        });
     }
     let ctx = umesh_core::dataset::DatasetContext::prepare(seg, config, &Cancel::new())?;
     let _ = std::fs::remove_dir_all(dir);
@@ -218,5 +236,7 @@ pub fn run(samples: usize, only: Option<&str>, json: bool) -> Result<serde_json:
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
-    Ok(serde_json::json!({ "samples_per_config": samples.max(2), "threads": rayon::current_num_threads(), "configs": rows }))
+    Ok(
+        serde_json::json!({ "samples_per_config": samples.max(2), "threads": rayon::current_num_threads(), "configs": rows }),
+    )
 }

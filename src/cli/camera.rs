@@ -58,7 +58,11 @@ pub fn import(a: ImportArgs) -> Result<()> {
             r.fps,
             r.depth_scale,
             r.dropped,
-            if r.frames_without_color > 0 { format!(", {} without colour", r.frames_without_color) } else { String::new() }
+            if r.frames_without_color > 0 {
+                format!(", {} without colour", r.frames_without_color)
+            } else {
+                String::new()
+            }
         );
     }
     Ok(())
@@ -135,14 +139,19 @@ impl PoseSource {
                 PoseSource::File(poses)
             }
             (None, Some(addr)) => {
-                let sock = std::net::TcpStream::connect(addr).with_context(|| format!("--pose-socket {addr}: cannot connect"))?;
+                let sock = std::net::TcpStream::connect(addr)
+                    .with_context(|| format!("--pose-socket {addr}: cannot connect"))?;
                 let state: Arc<Mutex<(Option<Matrix4<f64>>, Option<String>)>> = Arc::default();
                 let st = state.clone();
                 let addr = addr.clone();
                 std::thread::spawn(move || {
                     for line in BufReader::new(sock).lines() {
                         let parsed = line.map_err(|e| e.to_string()).and_then(|l| {
-                            let v: Vec<f64> = l.split([' ', ',', '\t']).filter(|s| !s.is_empty()).filter_map(|s| s.parse().ok()).collect();
+                            let v: Vec<f64> = l
+                                .split([' ', ',', '\t'])
+                                .filter(|s| !s.is_empty())
+                                .filter_map(|s| s.parse().ok())
+                                .collect();
                             if v.len() != 16 {
                                 return Err(format!("a line of {} numbers, 16 expected", v.len()));
                             }

@@ -31,12 +31,23 @@ pub fn run(a: Args) -> Result<()> {
         None => (a.model.clone().context("give --model DIR or --patient DIR")?, a.input.load()?),
     };
     if !a.recording.join("ground_truth.json").is_file() {
-        bail!("--recording {}: no ground_truth.json (the choice is made on the TRE against the truth)", a.recording.display());
+        bail!(
+            "--recording {}: no ground_truth.json (the choice is made on the TRE against the truth)",
+            a.recording.display()
+        );
     }
-    let info = umesh_net::ModelInfo::read(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
+    let info =
+        umesh_net::ModelInfo::read(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
     let config = model_dataset_config(Some(&info), &seg);
     let (pb, progress) = super::output::progress_bar("registering with each correction form");
-    let r = umesh_workflow::patient::registration_check(&seg, &config, &model_dir, &a.recording, &progress, &super::output::cancel());
+    let r = umesh_workflow::patient::registration_check(
+        &seg,
+        &config,
+        &model_dir,
+        &a.recording,
+        &progress,
+        &super::output::cancel(),
+    );
     pb.finish_and_clear();
     let r = r.with_context(|| format!("--recording {}", a.recording.display()))?;
     let Some(choice) = &r.correction else {

@@ -145,8 +145,11 @@ pub fn run(a: Args) -> Result<()> {
                 println!("  load families (accepted/samples): {}", f.join(", "));
             }
             if !st.materials.is_empty() {
-                let f: Vec<String> =
-                    st.materials.iter().map(|(k, n, a, lo, hi)| format!("{} {a}/{n} (Poisson {lo:.3}-{hi:.3})", k.name())).collect();
+                let f: Vec<String> = st
+                    .materials
+                    .iter()
+                    .map(|(k, n, a, lo, hi)| format!("{} {a}/{n} (Poisson {lo:.3}-{hi:.3})", k.name()))
+                    .collect();
                 println!("  materials (accepted/samples): {}", f.join(", "));
             }
             if let (n @ 1.., Some(f)) = (st.strain_limited, &st.strain_limited_factor) {
@@ -158,7 +161,10 @@ pub fn run(a: Args) -> Result<()> {
                 );
             }
             if st.below_target > 0 {
-                println!("  accepted below their target (the converged state nearest an unreachable target): {}", st.below_target);
+                println!(
+                    "  accepted below their target (the converged state nearest an unreachable target): {}",
+                    st.below_target
+                );
             }
             println!("  {:24} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}", "", "min", "p5", "median", "mean", "p95", "max");
             println!(
@@ -176,7 +182,10 @@ pub fn run(a: Args) -> Result<()> {
                 ("rejected: solve (ms)", &st.rejected_solve_ms),
             ] {
                 if let Some(d) = d {
-                    println!("  {name:24} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}", d.min, d.p5, d.median, d.mean, d.p95, d.max);
+                    println!(
+                        "  {name:24} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}",
+                        d.min, d.p5, d.median, d.mean, d.p95, d.max
+                    );
                 }
             }
             if st.outliers.is_empty() {
@@ -221,7 +230,8 @@ fn generate(a: GenerateArgs) -> Result<()> {
             pb.suspend(|| print_preflight(p, a.preflight.force));
         },
     };
-    let report = run_generate_checked(&seg, &a.out, &config, selection, Some(&check), &progress, &super::output::cancel());
+    let report =
+        run_generate_checked(&seg, &a.out, &config, selection, Some(&check), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let report = report.with_context(|| format!("generating the dataset in {}", a.out.display()))?;
     let stats = run_stats(&a.out).ok();

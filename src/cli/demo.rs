@@ -76,7 +76,10 @@ pub fn run(a: Args) -> Result<()> {
         write_mesh(&a.out.join(format!("{name}.obj")), &m)?;
         write_mesh(&a.out.join(format!("{name}_deformed.obj")), &loads::deform_mesh(&sc.grid, &m, u))?;
     }
-    say(format!("wrote grid.npz, result.vtu (open in ParaView) and rest/deformed surfaces (OBJ) to {}", a.out.display()));
+    say(format!(
+        "wrote grid.npz, result.vtu (open in ParaView) and rest/deformed surfaces (OBJ) to {}",
+        a.out.display()
+    ));
     if a.json {
         super::output::print_json(&serde_json::json!({
             "cells": s.cells, "nodes": s.nodes, "boundary_cells": s.boundary_cells, "padded_shape": s.padded_shape,

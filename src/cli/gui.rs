@@ -71,14 +71,19 @@ const GL_FALLBACK_ENV: &str = "UMESH_GL_FELL_BACK";
 /// mode"). That one failure is said plainly and the app restarts on Vulkan; GL still serves
 /// the headless `umesh screenshot`.
 fn restart_on_vulkan_if_gl_cannot_present() {
-    let gl = std::env::var("WGPU_BACKEND").is_ok_and(|b| matches!(b.to_ascii_lowercase().as_str(), "gl" | "gles" | "opengl"));
+    let gl = std::env::var("WGPU_BACKEND")
+        .is_ok_and(|b| matches!(b.to_ascii_lowercase().as_str(), "gl" | "gles" | "opengl"));
     if !gl || std::env::var_os(GL_FALLBACK_ENV).is_some() {
         return;
     }
     let default = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
         let payload = info.payload();
-        let msg = payload.downcast_ref::<String>().map(String::as_str).or_else(|| payload.downcast_ref::<&str>().copied()).unwrap_or("");
+        let msg = payload
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| payload.downcast_ref::<&str>().copied())
+            .unwrap_or("");
         if !msg.contains("failed to choose present mode") {
             return default(info);
         }

@@ -43,13 +43,18 @@ pub struct ModelOnOrgan {
     pub dctx: umesh_core::dataset::DatasetContext,
 }
 
-pub fn model_on_organ(patient: Option<&std::path::Path>, model: Option<&std::path::Path>, input: &InputArgs) -> Result<ModelOnOrgan> {
+pub fn model_on_organ(
+    patient: Option<&std::path::Path>,
+    model: Option<&std::path::Path>,
+    input: &InputArgs,
+) -> Result<ModelOnOrgan> {
     use anyhow::Context;
     let (model_dir, seg) = match patient {
         Some(p) => patient_model(p)?,
         None => (model.map_or_else(bundled_model, |m| m.to_path_buf()), input.load()?),
     };
-    let net = umesh_net::inference::Predictor::load(&model_dir).with_context(|| format!("loading the model {}", model_dir.display()))?;
+    let net = umesh_net::inference::Predictor::load(&model_dir)
+        .with_context(|| format!("loading the model {}", model_dir.display()))?;
     let config = model_dataset_config(Some(&net.info), &seg);
     let dctx = umesh_core::dataset::DatasetContext::prepare(&seg, &config, &super::output::cancel())?;
     net.info

@@ -73,7 +73,8 @@ enum Command {
 
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
-    let default = if gui::has_display() { Command::Gui(gui::Args::default()) } else { Command::Demo(demo::Args::default()) };
+    let default =
+        if gui::has_display() { Command::Gui(gui::Args::default()) } else { Command::Demo(demo::Args::default()) };
     let result = match cli.command.unwrap_or(default) {
         Command::Gui(a) => gui::run(a),
         Command::Screenshot(a) => screenshot::run(a),

@@ -35,9 +35,18 @@ pub fn run(a: Args) -> Result<()> {
         })
         .collect();
     if a.json {
-        super::output::print_json(&serde_json::json!({"out": a.out, "dims": vol.dims, "spacing_mm": a.spacing_mm, "labels": labels}));
+        super::output::print_json(
+            &serde_json::json!({"out": a.out, "dims": vol.dims, "spacing_mm": a.spacing_mm, "labels": labels}),
+        );
     } else {
-        println!("wrote {} ({} x {} x {} voxels of {} mm)", a.out.display(), vol.dims[0], vol.dims[1], vol.dims[2], a.spacing_mm);
+        println!(
+            "wrote {} ({} x {} x {} voxels of {} mm)",
+            a.out.display(),
+            vol.dims[0],
+            vol.dims[1],
+            vol.dims[2],
+            a.spacing_mm
+        );
         for (name, v) in &labels {
             println!("  {name:20} label {:2}  {:10.0} mm^3", v["label"], v["volume_mm3"].as_f64().unwrap_or(0.0));
         }

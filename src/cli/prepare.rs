@@ -88,7 +88,11 @@ pub fn run(a: Args) -> Result<()> {
     settings.train.observation = super::train::parse_input(&a.network_input)?;
     a.schedule.apply(&mut settings.train)?;
     settings.time_budget_s = super::train::budget_seconds(a.time_budget_min)?;
-    anyhow::ensure!(a.check_frames >= 2 && a.check_frames <= 1000, "--check-frames {}: between 2 and 1000", a.check_frames);
+    anyhow::ensure!(
+        a.check_frames >= 2 && a.check_frames <= 1000,
+        "--check-frames {}: between 2 and 1000",
+        a.check_frames
+    );
     settings.check.frames = a.check_frames;
     anyhow::ensure!(
         a.check_load_scale.is_finite() && a.check_load_scale > 0.0 && a.check_load_scale <= 100.0,
@@ -139,7 +143,10 @@ pub fn run(a: Args) -> Result<()> {
         d.samples,
         100.0 * d.accepted as f64 / d.samples.max(1) as f64,
         d.rejected,
-        d.mean_displacement_mm.as_ref().map(|m| format!("{:.2} mm mean, {:.2}-{:.2} p5-p95", m.mean, m.p5, m.p95)).unwrap_or_default(),
+        d.mean_displacement_mm
+            .as_ref()
+            .map(|m| format!("{:.2} mm mean, {:.2}-{:.2} p5-p95", m.mean, m.p5, m.p95))
+            .unwrap_or_default(),
         d.target_displacement_mm
     );
     if let Some(why) = &r.training_stopped_early {

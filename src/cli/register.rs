@@ -142,7 +142,8 @@ fn open_source(a: &Args, recording: Option<&Path>) -> Result<Opened> {
             }
             let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied());
             let gt_path = a.ground_truth.clone().unwrap_or_else(|| dir.join("ground_truth.json"));
-            let truth = if a.ground_truth.is_some() || gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
+            let truth =
+                if a.ground_truth.is_some() || gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
             let tracked = rec.tracks_every_frame();
             Ok(Opened { source: Box::new(RecordingSource::new(rec)), pose, truth, tracked })
         }
@@ -204,8 +205,12 @@ pub fn run(a: Args) -> Result<()> {
     }
     // The options that do not depend on the model, checked before it loads (seconds on a big
     // liver); the correction's are checked once the model's form is known.
-    let early =
-        RegisterSettings { iterations: a.iterations, pose_bound_mm: a.pose_bound_mm, min_coverage: a.min_coverage, ..Default::default() };
+    let early = RegisterSettings {
+        iterations: a.iterations,
+        pose_bound_mm: a.pose_bound_mm,
+        min_coverage: a.min_coverage,
+        ..Default::default()
+    };
     let early = RegisterSettings { segment: segment_settings(&a, &early), ..early };
     early.validate()?;
     let requested = match a.pose.as_str() {
@@ -213,7 +218,8 @@ pub fn run(a: Args) -> Result<()> {
         p => Some(PosePolicy::parse(p).context("--pose (or auto)")?),
     };
 
-    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } = model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
+    let ModelOnOrgan { model_dir, seg, mut net, config, dctx } =
+        model_on_organ(a.patient.as_deref(), a.model.as_deref(), &a.input)?;
     let ctx = RegistrationContext::new(dctx, &seg)?;
     // The correction's subspace before the source opens: a live stream would drop the frames
     // that arrive while it is built.
@@ -231,7 +237,9 @@ pub fn run(a: Args) -> Result<()> {
     // A doubted frame is corrected by the correction: asked for with it off, it would be
     // ignored without a word.
     if correction.updates == 0 && (a.doubted_updates.is_some() || a.doubted_cg.is_some()) {
-        bail!("--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off");
+        bail!(
+            "--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off"
+        );
     }
     correction.validate()?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
@@ -272,17 +280,36 @@ pub fn run(a: Args) -> Result<()> {
     let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
         .with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
-    let mut report =
-        register_with(&mut *source, &ctx, &mut net, pose, truth.as_ref(), &settings, &dir.join("overlay"), "registering (U-Net)")?;
+    let mut report = register_with(
+        &mut *source,
+        &ctx,
+        &mut net,
+        pose,
+        truth.as_ref(),
+        &settings,
+        &dir.join("overlay"),
+        "registering (U-Net)",
+    )?;
     report.pose_reason = pose_reason;
     let fe_report = if a.compare_fe {
-        let Some(recording) = recording else { bail!("--compare-fe needs a --recording (a live stream cannot be replayed)") };
+        let Some(recording) = recording else {
+            bail!("--compare-fe needs a --recording (a live stream cannot be replayed)")
+        };
         let mut src = open_source(&Args { source: None, ..a.clone() }, Some(recording))?.source;
         let mut fe = FeDisplacementModel::new(&ctx, config.material)?;
         if a.fe_converged {
             fe = fe.converged(0.01, 60);
         }
-        Some(register_with(&mut *src, &ctx, &mut fe, pose, truth.as_ref(), &settings, &dir.join("overlay_fe"), "registering (FE)")?)
+        Some(register_with(
+            &mut *src,
+            &ctx,
+            &mut fe,
+            pose,
+            truth.as_ref(),
+            &settings,
+            &dir.join("overlay_fe"),
+            "registering (FE)",
+        )?)
     } else {
         None
     };
@@ -307,8 +334,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(fe) = &fe_report {
         v["fe"] = summary(fe);
     }
-    let full =
-        serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
+    let full = serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
     umesh_core::write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())
         .with_context(|| format!("writing {}", a.out.join("report.json").display()))?;
     for l in &report.log {
@@ -367,7 +393,8 @@ pub fn run(a: Args) -> Result<()> {
                 s.frame_ms_median,
                 s.frame_ms_p95,
                 match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {
-                    (Some(m), Some(x), Some(r0)) => format!("; TRE {m:.2} mm mean, {x:.2} mm max (rigid only: {r0:.2} mm)"),
+                    (Some(m), Some(x), Some(r0)) =>
+                        format!("; TRE {m:.2} mm mean, {x:.2} mm max (rigid only: {r0:.2} mm)"),
                     _ => String::new(),
                 }
             );
@@ -400,9 +427,14 @@ fn correction_form(asked: &str, model_dir: &Path, budget_ms: Option<f64>) -> Res
                 eprintln!("correction: {why}");
                 (form, why)
             }
-            None => (CorrectionForm::Subspace, "subspace correction: the model has no registration check (correction.json)".into()),
+            None => (
+                CorrectionForm::Subspace,
+                "subspace correction: the model has no registration check (correction.json)".into(),
+            ),
         },
-        other => (parse_form(other).context("--correction-form")?, format!("{other} correction: asked by --correction-form")),
+        other => {
+            (parse_form(other).context("--correction-form")?, format!("{other} correction: asked by --correction-form"))
+        }
     })
 }
 

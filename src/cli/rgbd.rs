@@ -183,8 +183,9 @@ fn synth(a: SynthArgs) -> Result<()> {
     let mut inputs = a.input.paths();
     inputs.push(("--model", model_dir.as_path()));
     umesh_core::check_apart(&a.out, &inputs)?;
-    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Recording, &["synth.json", "ground_truth.json"])
-        .with_context(|| format!("--out {}", a.out.display()))?;
+    let staged =
+        umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Recording, &["synth.json", "ground_truth.json"])
+            .with_context(|| format!("--out {}", a.out.display()))?;
     let r = run_rgbd_synth(&seg, &config, &settings, staged.path(), &progress, &super::output::cancel());
     pb.finish_and_clear();
     let mut r = r.with_context(|| format!("writing the recording {}", a.out.display()))?;
@@ -203,7 +204,10 @@ fn synth(a: SynthArgs) -> Result<()> {
             r.solve_ms_total / 1e3
         );
         if r.load_reached < 1.0 {
-            println!("the truth took {:.0} % of the final load and no more (the later frames hold that state)", 100.0 * r.load_reached);
+            println!(
+                "the truth took {:.0} % of the final load and no more (the later frames hold that state)",
+                100.0 * r.load_reached
+            );
         }
         if let Some(s) = r.attachment_shift_mm {
             println!(

@@ -51,7 +51,11 @@ impl FeArgs {
         })
     }
     pub fn solver(&self) -> SolverSettings {
-        SolverSettings { initial_increments: self.increments as usize, max_iterations: self.max_iterations, ..Default::default() }
+        SolverSettings {
+            initial_increments: self.increments as usize,
+            max_iterations: self.max_iterations,
+            ..Default::default()
+        }
     }
 }
 
@@ -109,8 +113,9 @@ fn read_forces(path: &Path) -> Result<Vec<PointForce>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
     let list = v.get("forces").cloned().unwrap_or(v);
-    let forces: Vec<PointForce> = serde_json::from_value(list)
-        .with_context(|| format!("{}: expected a list of {{\"point_mm\": [x,y,z], \"force_n\": [fx,fy,fz]}}", path.display()))?;
+    let forces: Vec<PointForce> = serde_json::from_value(list).with_context(|| {
+        format!("{}: expected a list of {{\"point_mm\": [x,y,z], \"force_n\": [fx,fy,fz]}}", path.display())
+    })?;
     anyhow::ensure!(
         forces.iter().all(|f| f.point_mm.iter().chain(&f.force_n).all(|x| x.is_finite())),
         "{}: a force has a non-finite value",
@@ -164,7 +169,13 @@ pub fn run(a: Args) -> Result<()> {
         None => run_grid(&seg, &a.grid.settings(), &umesh_core::Progress::none(), &cancel)?.grid,
     };
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let mut settings = SimulationSettings { material, solver: a.fe.solver(), method, fixed: fixed_regions(&a, &seg), forces: Vec::new() };
+    let mut settings = SimulationSettings {
+        material,
+        solver: a.fe.solver(),
+        method,
+        fixed: fixed_regions(&a, &seg),
+        forces: Vec::new(),
+    };
     // The fixed region once: the random forces are calibrated on it, then loaded onto it.
     let mut bc = boundary_conditions(&grid, Some(&seg.volume), &settings)?;
     let mut calibration = None;
@@ -186,7 +197,8 @@ pub fn run(a: Args) -> Result<()> {
             forces
         }
     };
-    loads::apply_forces(&grid, &mut bc, &settings.forces).map_err(|e| umesh_core::simulate::SimulateError::Boundary(e.into()))?;
+    loads::apply_forces(&grid, &mut bc, &settings.forces)
+        .map_err(|e| umesh_core::simulate::SimulateError::Boundary(e.into()))?;
     if let Some(s) = calibration
         && !a.json
     {
@@ -209,10 +221,19 @@ pub fn run(a: Args) -> Result<()> {
     write_npz(
         &dir.join("displacement.npz"),
         &[
-            ("nodes", Array::f64(vec![u.len(), 3], grid.node_positions().iter().flat_map(|p| [p.x, p.y, p.z]).collect())),
+            (
+                "nodes",
+                Array::f64(vec![u.len(), 3], grid.node_positions().iter().flat_map(|p| [p.x, p.y, p.z]).collect()),
+            ),
             ("displacement_mm", Array::f64(vec![u.len(), 3], u.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
             ("forces_n", Array::f64(vec![u.len(), 3], bc.forces_n.iter().flat_map(|d| [d.x, d.y, d.z]).collect())),
-            ("fixed", Array::i64(vec![bc.fixed_count()], bc.fixed.iter().enumerate().filter(|x| *x.1).map(|x| x.0 as i64).collect())),
+            (
+                "fixed",
+                Array::i64(
+                    vec![bc.fixed_count()],
+                    bc.fixed.iter().enumerate().filter(|x| *x.1).map(|x| x.0 as i64).collect(),
+                ),
+            ),
         ],
     )?;
     let mut vtu = grid_vtu(&grid);
@@ -251,7 +272,15 @@ fn report(out: &Path, json: bool, sol: &umesh_core::fem::Solution, nodes: usize,
     for r in &sol.history {
         println!(
             "{:>4} {:>4} {:>6.3} {:>11.3e} {:>11.3e} {:>6.3} {:>9.1} {:>9.1} {:>8.1}",
-            r.increment, r.iteration, r.load_factor, r.residual, r.correction, r.step_length, r.assembly_ms, r.factorization_ms, r.solve_ms
+            r.increment,
+            r.iteration,
+            r.load_factor,
+            r.residual,
+            r.correction,
+            r.step_length,
+            r.assembly_ms,
+            r.factorization_ms,
+            r.solve_ms
         );
     }
     println!(

@@ -47,8 +47,9 @@ pub fn run(a: Args) -> Result<()> {
     // Every surface first, then the folder replaced whole: a label that fails leaves the last
     // run's folder as it was, and no mesh of an earlier run survives beside the new ones.
     umesh_core::check_apart(&a.out, &a.input.paths())?;
-    let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Surfaces, &["organ.obj", "organ.ply", "organ.stl"])
-        .with_context(|| format!("--out {}", a.out.display()))?;
+    let staged =
+        umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Surfaces, &["organ.obj", "organ.ply", "organ.stl"])
+            .with_context(|| format!("--out {}", a.out.display()))?;
     for (name, labels) in jobs {
         let mask = seg.volume.mask(&labels);
         anyhow::ensure!(mask.count() > 0, "{}: labels {labels:?} have no voxel", seg.source.display());

@@ -112,7 +112,8 @@ pub fn parse_input(s: &str) -> Result<Option<umesh_core::observation::Observatio
     Ok(match s {
         "exact" => None,
         e => Some(umesh_core::observation::ObservationSettings {
-            encoding: umesh_core::observation::Encoding::parse(e).map_err(|m| anyhow::anyhow!("--input: {m} (or exact)"))?,
+            encoding: umesh_core::observation::Encoding::parse(e)
+                .map_err(|m| anyhow::anyhow!("--input: {m} (or exact)"))?,
             ..Default::default()
         }),
     })
@@ -178,7 +179,8 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 pub fn eval(a: EvalArgs) -> Result<()> {
-    let r = umesh_net::eval::run_eval(&a.model, &a.dataset, a.markers).with_context(|| format!("evaluating {}", a.model.display()))?;
+    let r = umesh_net::eval::run_eval(&a.model, &a.dataset, a.markers)
+        .with_context(|| format!("evaluating {}", a.model.display()))?;
     let mut v = serde_json::json!({
         "samples": r.samples, "markers_per_sample": r.markers_per_sample, "tre_mean_mm": r.tre_mean_mm, "tre_std_mm": r.tre_std_mm,
         "tre_max_mm": r.tre_max_mm, "marker_displacement_mean_mm": r.marker_displacement_mean_mm,
@@ -203,7 +205,8 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         v["confidence"] = serde_json::to_value(&c)?;
     }
     if let Some(p) = &a.report {
-        umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes()).with_context(|| format!("--report {}", p.display()))?;
+        umesh_core::write_atomic(p, serde_json::to_string_pretty(&r)?.as_bytes())
+            .with_context(|| format!("--report {}", p.display()))?;
     }
     if a.json {
         super::output::print_json(&v);

@@ -61,7 +61,10 @@ fn every_mode_has_one_registered_view_and_the_jobs_view_hands_its_model_to_the_r
     assert!(app.world().resource::<ModelToLoad>().0.is_none());
     finish_jobs(&mut app, Duration::from_secs(120));
     let finished = &app.world().resource::<Jobs>().finished;
-    assert!(finished.iter().any(|(label, outcome, _)| label == "load model" && !outcome.contains("failed")), "{finished:?}");
+    assert!(
+        finished.iter().any(|(label, outcome, _)| label == "load model" && !outcome.contains("failed")),
+        "{finished:?}"
+    );
     assert!(app.world().resource::<umesh::app::model::probes::Rehearsal>().model.is_some());
 }
 
@@ -73,7 +76,8 @@ fn a_ray_on_the_organ_places_a_probe_on_its_surface_and_a_miss_places_none() {
     let c = (lo + hi) * 0.5;
     app.world_mut().resource_mut::<Organ>().set(organ.clone());
     // From the anterior side, straight back: hits the anterior surface.
-    app.world_mut().write_message(ProbeRay { origin_mm: Vector3::new(c.x, hi.y + 200.0, c.z), direction: -Vector3::y() });
+    app.world_mut()
+        .write_message(ProbeRay { origin_mm: Vector3::new(c.x, hi.y + 200.0, c.z), direction: -Vector3::y() });
     app.update();
     let probes = app.world().resource::<Probes>();
     assert_eq!(probes.list.len(), 1);
@@ -84,7 +88,8 @@ fn a_ray_on_the_organ_places_a_probe_on_its_surface_and_a_miss_places_none() {
     assert!(p.normal.y > 0.3, "outward normal faces the ray: {:?}", p.normal);
     assert!(p.force_n.dot(&p.normal) < 0.0, "a new probe pushes inward");
     // A ray beside the organ.
-    app.world_mut().write_message(ProbeRay { origin_mm: Vector3::new(hi.x + 100.0, hi.y + 200.0, c.z), direction: -Vector3::y() });
+    app.world_mut()
+        .write_message(ProbeRay { origin_mm: Vector3::new(hi.x + 100.0, hi.y + 200.0, c.z), direction: -Vector3::y() });
     app.update();
     assert_eq!(app.world().resource::<Probes>().list.len(), 1);
 }
@@ -105,7 +110,8 @@ fn jobs_run_in_the_background_finish_into_the_state_and_can_be_cancelled() {
     // Built, the grid stays out of the way of the organ until G shows it.
     assert!(!app.world().resource::<GridState>().show);
     // A simulation, cancelled at once.
-    let probe = Probe { point_mm: organ.surface.positions[0], normal: Vector3::y(), force_n: Vector3::new(0.0, -0.5, 0.0) };
+    let probe =
+        Probe { point_mm: organ.surface.positions[0], normal: Vector3::y(), force_n: Vector3::new(0.0, -0.5, 0.0) };
     let id = app
         .world_mut()
         .resource_mut::<Jobs>()
@@ -117,7 +123,9 @@ fn jobs_run_in_the_background_finish_into_the_state_and_can_be_cancelled() {
     assert!(outcome.contains("cancelled"), "{outcome}");
     assert!(app.world().resource::<Simulation>().result.is_none());
     // And one that runs to the end.
-    app.world_mut().resource_mut::<Jobs>().spawn("simulate", simulate_job(organ, grid, FixedChoice::default(), vec![probe]));
+    app.world_mut()
+        .resource_mut::<Jobs>()
+        .spawn("simulate", simulate_job(organ, grid, FixedChoice::default(), vec![probe]));
     finish_jobs(&mut app, Duration::from_secs(300));
     let sim = app.world().resource::<Simulation>();
     let d = sim.result.as_ref().expect("the simulation delivered a deformation");
@@ -150,14 +158,17 @@ fn loading_errors_are_shown_in_the_ui_not_panicked_on() {
 
 #[test]
 fn the_real_totalsegmentator_case_opens_with_liver_and_two_vessels() {
-    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/totalsegmentator/example_seg.nii.gz");
+    let path =
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/totalsegmentator/example_seg.nii.gz");
     if !path.exists() {
         eprintln!("SKIPPED: {} not found", path.display());
         return;
     }
     // File > Open first lists the labels with their names, guessing the roles.
     let inspect = umesh::app::model::compute::inspect_job(path.clone());
-    let Ok(JobOutput::Inspected(_, labels)) = inspect(&Default::default(), &Default::default()) else { panic!("inspect failed") };
+    let Ok(JobOutput::Inspected(_, labels)) = inspect(&Default::default(), &Default::default()) else {
+        panic!("inspect failed")
+    };
     let pending = PendingOpen::new(path.clone(), labels);
     let liver = pending.labels.iter().find(|l| l.0 == 5).unwrap();
     assert_eq!((liver.1.as_str(), liver.3), ("liver", 1));
@@ -247,7 +258,8 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     let stats = umesh_core::dataset::run_stats(&data_dir).expect("the CLI reads a GUI dataset");
     assert_eq!(stats.samples, 8);
     assert!(data_dir.join("umesh-job.json").is_file());
-    let job: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data_dir.join("umesh-job.json")).unwrap()).unwrap();
+    let job: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(data_dir.join("umesh-job.json")).unwrap()).unwrap();
     assert!(job["command"].as_str().unwrap().starts_with("umesh dataset generate"));
     // Browse it and flag the first accepted sample.
     app.world_mut().resource_mut::<NextState<Mode>>().set(Mode::Qa);
@@ -276,7 +288,9 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
         assert!(p.is_none());
         let first = m.accepted().next().unwrap().index;
         let sample = umesh::app::qa::load_sample(&ds, &m, first, None).unwrap();
-        assert!(sample.max_mm > 0.1 && !sample.u_s_arrows.is_empty() && sample.probes_mm.len() == sample.forces_n.len());
+        assert!(
+            sample.max_mm > 0.1 && !sample.u_s_arrows.is_empty() && sample.probes_mm.len() == sample.forces_n.len()
+        );
         let mut qa = app.world_mut().resource_mut::<Qa>();
         qa.dataset = Some(std::sync::Arc::new(ds));
         qa.manifest = Some(m);
@@ -293,7 +307,11 @@ fn a_gui_dataset_is_browsed_flagged_and_trained_on_with_the_cli_files() {
     // Train on it from the queue; the flagged sample is skipped.
     {
         let mut q = app.world_mut().resource_mut::<WorkQueue>();
-        q.submit(WorkKind::Train { dataset: data_dir.clone(), settings: train.settings(), resume: false }, model_dir.clone()).unwrap();
+        q.submit(
+            WorkKind::Train { dataset: data_dir.clone(), settings: train.settings(), resume: false },
+            model_dir.clone(),
+        )
+        .unwrap();
     }
     finish_work(&mut app, Duration::from_secs(900));
     let q = app.world().resource::<WorkQueue>();
@@ -325,7 +343,8 @@ fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
     // sphere segmentation.
     let organ = phantom();
     let data_dir = tmp_dir("qa-other");
-    let form = umesh::app::jobs::panel::DatasetForm { samples: 1, shard_size: 1, cell_size_mm: 12.0, ..Default::default() };
+    let form =
+        umesh::app::jobs::panel::DatasetForm { samples: 1, shard_size: 1, cell_size_mm: 12.0, ..Default::default() };
     umesh_core::dataset::run_generate(
         &organ.seg,
         &data_dir,
@@ -340,8 +359,12 @@ fn qa_refuses_a_dataset_of_another_segmentation_with_a_clear_message() {
     let err = format!("{:#}", umesh::app::qa::open_dataset(&data_dir, &other, None).err().expect("refused"));
     assert!(err.contains("another segmentation") && err.contains(&data_dir.display().to_string()), "{err}");
     // A folder that is no dataset.
-    let err =
-        format!("{:#}", umesh::app::qa::open_dataset(&std::env::temp_dir().join("umesh-no-such-dataset"), &organ.seg, None).err().unwrap());
+    let err = format!(
+        "{:#}",
+        umesh::app::qa::open_dataset(&std::env::temp_dir().join("umesh-no-such-dataset"), &organ.seg, None)
+            .err()
+            .unwrap()
+    );
     assert!(err.contains("umesh-no-such-dataset"), "{err}");
     let _ = std::fs::remove_dir_all(&data_dir);
 }
@@ -486,7 +509,8 @@ fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_
     };
     // The dataset form's configuration through the same core check: the same nodes.
     let cfg = umesh::app::jobs::panel::DatasetForm::default().config(&organ.seg).unwrap();
-    let core = umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &cfg.visibility, &cfg.fixed).unwrap();
+    let core =
+        umesh_core::dataset::observation_setup(&organ.seg, &grid, &organ.surface, &cfg.visibility, &cfg.fixed).unwrap();
     assert_eq!(fixed_n, core.fixed.iter().filter(|f| **f).count());
     assert_eq!(visible_n, core.visible_nodes.len());
     assert!(fraction > 0.05 && fraction <= 0.5 + 1e-6, "seen fraction {fraction}");
@@ -494,13 +518,16 @@ fn the_camera_preview_is_what_the_dataset_uses_and_a_camera_inside_the_organ_is_
     // Another view sees another part.
     app.world_mut().resource_mut::<ObservationSetup>().camera = CameraChoice::Named("inferior".into());
     wait_for_preview(&mut app, Duration::from_secs(60));
-    let other = app.world().resource::<ObservationSetup>().preview.as_ref().map(|p| p.visible_nodes).expect("a preview");
+    let other =
+        app.world().resource::<ObservationSetup>().preview.as_ref().map(|p| p.visible_nodes).expect("a preview");
     assert_ne!(other, visible_n, "the inferior view sees the same nodes as the anterior one");
     // A camera inside the organ (the centre of a cell wholly inside): refused, with a message.
     let cell = grid.cells.iter().find(|c| c.kind == umesh_core::grid::CellKind::Inside).unwrap();
     let inside = grid.origin_mm
-        + (Vector3::new(cell.ijk[0] as f64, cell.ijk[1] as f64, cell.ijk[2] as f64) + Vector3::repeat(0.5)) * grid.cell_size_mm;
-    app.world_mut().resource_mut::<ObservationSetup>().camera = CameraChoice::Custom { from_mm: inside, to_mm: inside + Vector3::y() };
+        + (Vector3::new(cell.ijk[0] as f64, cell.ijk[1] as f64, cell.ijk[2] as f64) + Vector3::repeat(0.5))
+            * grid.cell_size_mm;
+    app.world_mut().resource_mut::<ObservationSetup>().camera =
+        CameraChoice::Custom { from_mm: inside, to_mm: inside + Vector3::y() };
     wait_for_preview(&mut app, Duration::from_secs(60));
     let s = app.world().resource::<ObservationSetup>();
     assert!(s.preview.is_none());
@@ -537,7 +564,9 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     }
     assert!(!dir.join("umesh-job.json").exists(), "the patient folder holds only the patient's files");
     // Open it as File > Open patient does: organ, model, camera and fixed region follow.
-    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::model::compute::open_patient_job(dir.clone()));
+    app.world_mut()
+        .resource_mut::<Jobs>()
+        .spawn("open patient", umesh::app::model::compute::open_patient_job(dir.clone()));
     finish_jobs(&mut app, Duration::from_secs(120));
     let active = app.world().resource::<ActiveModel>().dir.clone();
     assert_eq!(active, dir.join("model"));
@@ -545,7 +574,11 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     let s = app.world().resource::<ObservationSetup>();
     match &s.camera {
         CameraChoice::Custom { from_mm, .. } => {
-            assert!((from_mm - Vector3::from(camera.position_mm)).norm() < 1e-9, "camera {from_mm:?} vs {:?}", camera.position_mm)
+            assert!(
+                (from_mm - Vector3::from(camera.position_mm)).norm() < 1e-9,
+                "camera {from_mm:?} vs {:?}",
+                camera.position_mm
+            )
         }
         other => panic!("the patient's camera was not adopted: {other:?}"),
     }
@@ -555,7 +588,9 @@ fn a_new_patient_from_the_jobs_view_opens_with_its_model_camera_and_fixed_region
     assert!(fig.eval.is_some() && fig.check.is_some() && fig.has_model && !fig.metrics.is_empty());
     assert!(app.world().resource::<Organ>().data.as_ref().is_some_and(|d| d.source.contains("patient")));
     // A folder that is no patient: one message naming the file, nothing replaced.
-    app.world_mut().resource_mut::<Jobs>().spawn("open patient", umesh::app::model::compute::open_patient_job(dir.join("model")));
+    app.world_mut()
+        .resource_mut::<Jobs>()
+        .spawn("open patient", umesh::app::model::compute::open_patient_job(dir.join("model")));
     let err = wait_for_error(&mut app, Duration::from_secs(30));
     assert!(err.contains("patient.json"), "{err}");
     assert_eq!(app.world().resource::<ActiveModel>().dir, dir.join("model"));
@@ -579,7 +614,8 @@ fn a_saved_session_reopens_with_the_same_organ_probes_fixed_region_and_camera() 
     let (lo, hi) = organ.surface.bounds().unwrap();
     let c = (lo + hi) * 0.5;
     for dx in [-20.0, 25.0] {
-        app.world_mut().write_message(ProbeRay { origin_mm: Vector3::new(c.x + dx, hi.y + 200.0, c.z), direction: -Vector3::y() });
+        app.world_mut()
+            .write_message(ProbeRay { origin_mm: Vector3::new(c.x + dx, hi.y + 200.0, c.z), direction: -Vector3::y() });
         app.update();
     }
     app.world_mut().resource_mut::<Probes>().list[1].force_n = Vector3::new(0.1, -0.2, 0.05);
@@ -665,7 +701,11 @@ fn the_ct_opens_under_its_segmentation_and_a_scan_elsewhere_is_refused() {
         return;
     }
     let mut app = app();
-    let req = OpenRequest { path: Some(d.join("example_seg.nii.gz")), ct: Some(d.join("example_ct_sm.nii.gz")), ..Default::default() };
+    let req = OpenRequest {
+        path: Some(d.join("example_seg.nii.gz")),
+        ct: Some(d.join("example_ct_sm.nii.gz")),
+        ..Default::default()
+    };
     app.world_mut().resource_mut::<Jobs>().spawn("load", load_job(req));
     finish_jobs(&mut app, Duration::from_secs(60));
     let organ = app.world().resource::<Organ>().data.clone().expect("loaded");
@@ -676,8 +716,14 @@ fn the_ct_opens_under_its_segmentation_and_a_scan_elsewhere_is_refused() {
     // liver window (not air, not bone), at least 80 % of the outline inside the scan.
     let (lo, hi) = organ.surface.bounds().unwrap();
     let mid = (lo + hi) * 0.5;
-    let s = umesh_core::slices::slice(&ct.volume, umesh_core::slices::SliceAxis::Axial, mid.z, umesh_core::slices::Window::ABDOMEN, 512)
-        .unwrap();
+    let s = umesh_core::slices::slice(
+        &ct.volume,
+        umesh_core::slices::SliceAxis::Axial,
+        mid.z,
+        umesh_core::slices::Window::ABDOMEN,
+        512,
+    )
+    .unwrap();
     let segs = umesh_core::slices::plane_section(&organ.surface, umesh_core::slices::SliceAxis::Axial, mid.z);
     assert!(segs.len() > 20);
     let vm = ct.volume.voxel_from_world();
@@ -721,7 +767,13 @@ struct LiveApp {
 }
 
 impl LiveApp {
-    fn start(display: &str, session: &std::path::Path, config: &std::path::Path, log: std::path::PathBuf, backend: &str) -> LiveApp {
+    fn start(
+        display: &str,
+        session: &std::path::Path,
+        config: &std::path::Path,
+        log: std::path::PathBuf,
+        backend: &str,
+    ) -> LiveApp {
         let f = std::fs::File::create(&log).unwrap();
         let child = std::process::Command::new(env!("CARGO_BIN_EXE_umesh"))
             .args(["gui", "--session"])
@@ -739,7 +791,12 @@ impl LiveApp {
         while app.window.is_empty() {
             assert!(t.elapsed() < Duration::from_secs(60), "no umesh window within 60 s:\n{}", app.log_text());
             assert!(app.child.try_wait().unwrap().is_none(), "the app exited:\n{}", app.log_text());
-            app.window = output(app.xdotool(&["search", "--name", "^umesh$"])).unwrap_or_default().lines().next().unwrap_or("").to_string();
+            app.window = output(app.xdotool(&["search", "--name", "^umesh$"]))
+                .unwrap_or_default()
+                .lines()
+                .next()
+                .unwrap_or("")
+                .to_string();
             std::thread::sleep(Duration::from_millis(200));
         }
         app
@@ -795,8 +852,12 @@ fn save_keys(app: &LiveApp) {
 
 #[test]
 fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens_it() {
-    let have =
-        |c: &str| std::process::Command::new("sh").args(["-c", &format!("command -v {c}")]).output().is_ok_and(|o| o.status.success());
+    let have = |c: &str| {
+        std::process::Command::new("sh")
+            .args(["-c", &format!("command -v {c}")])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
     if !(have("Xvfb") && have("xdotool")) {
         let msg = "Xvfb or xdotool not installed (bash scripts/setup.sh installs them)";
         assert!(std::env::var_os("CI").is_none(), "{msg}");

@@ -38,7 +38,9 @@ fn strip_comments(text: &str) -> String {
 fn without_test_module(text: &str) -> String {
     let lines: Vec<&str> = text.lines().collect();
     for i in 0..lines.len() {
-        if lines[i].trim() == "#[cfg(test)]" && lines.get(i + 1).is_some_and(|next| next.trim_start().starts_with("mod ")) {
+        if lines[i].trim() == "#[cfg(test)]"
+            && lines.get(i + 1).is_some_and(|next| next.trim_start().starts_with("mod "))
+        {
             return lines[..i].join("\n");
         }
     }
@@ -179,8 +181,10 @@ fn referenced_paths(krate: &Crate, file: &ModuleFile) -> Vec<(Vec<String>, bool)
         };
         if let Some(base) = base {
             // A re-export when the statement is `pub use` (or `pub(crate) use`).
-            let line_start =
-                code[..code.char_indices().nth(i).map(|(b, _)| b).unwrap_or(0)].rfind(['\n', ';', '{']).map(|b| b + 1).unwrap_or(0);
+            let line_start = code[..code.char_indices().nth(i).map(|(b, _)| b).unwrap_or(0)]
+                .rfind(['\n', ';', '{'])
+                .map(|b| b + 1)
+                .unwrap_or(0);
             let stmt_head: String = code[line_start..].trim_start().chars().take(16).collect();
             let re_export = stmt_head.starts_with("pub use") || stmt_head.starts_with("pub(crate) use");
             let rest_start = if matches!(word.as_str(), "crate" | "super" | "self") { j + 2 } else { i };
@@ -262,7 +266,8 @@ fn import_graph(krate: &Crate) -> BTreeMap<Vec<String>, BTreeSet<Vec<String>>> {
 fn cycles<N: Ord + Clone>(graph: &BTreeMap<N, BTreeSet<N>>) -> Vec<Vec<N>> {
     let nodes: Vec<N> = graph.keys().cloned().collect();
     let index_of: BTreeMap<N, usize> = nodes.iter().cloned().enumerate().map(|(i, n)| (n, i)).collect();
-    let adj: Vec<Vec<usize>> = nodes.iter().map(|n| graph[n].iter().filter_map(|m| index_of.get(m).copied()).collect()).collect();
+    let adj: Vec<Vec<usize>> =
+        nodes.iter().map(|n| graph[n].iter().filter_map(|m| index_of.get(m).copied()).collect()).collect();
     let n = nodes.len();
     let (mut index, mut low, mut on_stack) = (vec![usize::MAX; n], vec![0; n], vec![false; n]);
     let (mut stack, mut next, mut out) = (Vec::new(), 0, Vec::new());
@@ -356,7 +361,8 @@ fn module_cycles(krate: &Crate) -> Vec<String> {
     }
     let mut found = Vec::new();
     for parent in parents {
-        let child_of = |m: &[String]| (m.len() > parent.len() && m.starts_with(&parent)).then(|| m[parent.len()].clone());
+        let child_of =
+            |m: &[String]| (m.len() > parent.len() && m.starts_with(&parent)).then(|| m[parent.len()].clone());
         let mut level: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
         for (from, targets) in &graph {
             let Some(a) = child_of(from) else { continue };
@@ -425,8 +431,9 @@ fn the_app_never_reaches_into_the_cli_and_the_network_holds_no_workflow() {
 fn no_view_of_the_app_imports_another_view() {
     let app = &crates()[2];
     let views = ["model", "jobs", "qa", "ar"];
-    let view_of =
-        |m: &[String]| -> Option<String> { (m.len() >= 2 && m[0] == "app" && views.contains(&m[1].as_str())).then(|| m[1].clone()) };
+    let view_of = |m: &[String]| -> Option<String> {
+        (m.len() >= 2 && m[0] == "app" && views.contains(&m[1].as_str())).then(|| m[1].clone())
+    };
     let may_import = |m: &[String], view: &str| {
         m == ["app"]
             || m == ["app", "views"]
@@ -459,10 +466,15 @@ fn the_cycle_check_finds_a_cycle_added_through_a_use_group_and_super() {
         files: files
             .iter()
             .map(|(path, code)| {
-                let module: Vec<String> = if path.is_empty() { Vec::new() } else { path.split('/').map(String::from).collect() };
+                let module: Vec<String> =
+                    if path.is_empty() { Vec::new() } else { path.split('/').map(String::from).collect() };
                 (
                     module.clone(),
-                    ModuleFile { module, file: PathBuf::from(format!("{path}.rs")), code: without_test_module(&strip_comments(code)) },
+                    ModuleFile {
+                        module,
+                        file: PathBuf::from(format!("{path}.rs")),
+                        code: without_test_module(&strip_comments(code)),
+                    },
                 )
             })
             .collect(),
@@ -471,7 +483,10 @@ fn the_cycle_check_finds_a_cycle_added_through_a_use_group_and_super() {
         ("", "pub mod a;\npub mod b;\npub use a::Thing;\n"),
         ("a", "pub mod x;\npub use x::Deep;\npub struct Thing;\n"),
         ("a/x", "use super::Thing; // the parent's type\npub struct Deep;\n"),
-        ("b", "use crate::{a::Deep, Thing};\nfn f() { crate::a::x::Deep; }\n#[cfg(test)]\nmod tests { use crate::b; }\n"),
+        (
+            "b",
+            "use crate::{a::Deep, Thing};\nfn f() { crate::a::x::Deep; }\n#[cfg(test)]\nmod tests { use crate::b; }\n",
+        ),
     ]);
     assert!(file_cycles(&acyclic).is_empty(), "{:?}", file_cycles(&acyclic));
     assert!(module_cycles(&acyclic).is_empty(), "{:?}", module_cycles(&acyclic));
@@ -552,11 +567,14 @@ fn the_docs_name_no_issues_rounds_of_work_or_earlier_builds() {
     let mut found = Vec::new();
     for doc in &docs {
         let text = std::fs::read_to_string(doc).expect("read the doc").to_lowercase();
-        let words: Vec<&str> = text.split(|c: char| !(c.is_alphanumeric() || c == '#' || c == '\'')).filter(|w| !w.is_empty()).collect();
+        let words: Vec<&str> =
+            text.split(|c: char| !(c.is_alphanumeric() || c == '#' || c == '\'')).filter(|w| !w.is_empty()).collect();
         for (k, w) in words.iter().enumerate() {
             let next = words.get(k + 1).copied().unwrap_or("");
             let numbered = |s: &str| s.trim_start_matches('#').chars().next().is_some_and(|c| c.is_ascii_digit());
-            let ordinal = |s: &str| ordinals.contains(&s) || (s.ends_with("th") && s.chars().next().is_some_and(|c| c.is_ascii_digit()));
+            let ordinal = |s: &str| {
+                ordinals.contains(&s) || (s.ends_with("th") && s.chars().next().is_some_and(|c| c.is_ascii_digit()))
+            };
             let hit = match *w {
                 "issue" | "issues" | "issue's" => true,
                 "session" | "sessions" | "round" | "rounds" => numbered(next) || k > 0 && ordinal(words[k - 1]),
@@ -574,5 +592,9 @@ fn the_docs_name_no_issues_rounds_of_work_or_earlier_builds() {
             }
         }
     }
-    assert!(found.is_empty(), "development history in the user docs (it belongs in CHANGELOG.md):\n{}", found.join("\n"));
+    assert!(
+        found.is_empty(),
+        "development history in the user docs (it belongs in CHANGELOG.md):\n{}",
+        found.join("\n")
+    );
 }

@@ -55,7 +55,8 @@ fn fixture() -> Option<&'static Fixture> {
         let py = realsense_python()?;
         let rec = tmp("rec");
         let _ = std::fs::remove_dir_all(&rec);
-        let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "6", "--fps", "1", "--seed", "3", "--out", rec.to_str().unwrap()]);
+        let (ok, _, err) =
+            umesh(&["rgbd", "synth", "--frames", "6", "--fps", "1", "--seed", "3", "--out", rec.to_str().unwrap()]);
         assert!(ok, "{err}");
         // Both sides without masks: a RealSense recording carries none.
         let nomask = tmp("rec-nomask");
@@ -84,7 +85,8 @@ fn fixture() -> Option<&'static Fixture> {
 }
 
 fn tres(report_dir: &Path) -> Vec<f64> {
-    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(report_dir.join("report.json")).unwrap()).unwrap();
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report_dir.join("report.json")).unwrap()).unwrap();
     r["frames"].as_array().unwrap().iter().map(|f| f["tre_mean_mm"].as_f64().unwrap()).collect()
 }
 
@@ -95,7 +97,11 @@ fn a_realsense_recording_imports_and_registers_with_the_tre_of_the_folder_it_cam
     let (ok, out, err) = umesh(&["rgbd", "import", f.db3.to_str().unwrap(), "--out", imp.to_str().unwrap(), "--json"]);
     assert!(ok, "{err}");
     let v = json(&out);
-    assert_eq!((v["frames"].as_u64(), v["dropped"].as_u64(), v["frames_without_color"].as_u64()), (Some(6), Some(0), Some(0)), "{v}");
+    assert_eq!(
+        (v["frames"].as_u64(), v["dropped"].as_u64(), v["frames_without_color"].as_u64()),
+        (Some(6), Some(0), Some(0)),
+        "{v}"
+    );
     assert_eq!(v["depth_scale"].as_f64(), Some(1000.0), "{v}");
     assert!((v["fps"].as_f64().unwrap() - 1.0).abs() < 1e-6, "{v}");
     // The device's intrinsics are the folder's.
@@ -112,7 +118,15 @@ fn a_realsense_recording_imports_and_registers_with_the_tre_of_the_folder_it_cam
     }
     let reg = |rec: &Path, out: &str, extra: &[&str]| {
         let out = tmp(out);
-        let mut args = vec!["register", "--recording", rec.to_str().unwrap(), "--no-overlay", "--json", "--out", out.to_str().unwrap()];
+        let mut args = vec![
+            "register",
+            "--recording",
+            rec.to_str().unwrap(),
+            "--no-overlay",
+            "--json",
+            "--out",
+            out.to_str().unwrap(),
+        ];
         args.extend_from_slice(extra);
         let (ok, stdout, err) = umesh(&args);
         assert!(ok, "{err}");
@@ -141,7 +155,8 @@ fn a_realsense_recording_imports_and_registers_with_the_tre_of_the_folder_it_cam
         assert!((x - y).abs() <= 0.05, "frame {i}: folder {x} mm, .db3 {y} mm");
     }
     // Without a pose, the direct registration says what is missing.
-    let (ok, _, err) = umesh(&["register", "--recording", f.db3.to_str().unwrap(), "--out", tmp("reg-nopose").to_str().unwrap()]);
+    let (ok, _, err) =
+        umesh(&["register", "--recording", f.db3.to_str().unwrap(), "--out", tmp("reg-nopose").to_str().unwrap()]);
     assert!(!ok && err.contains("initial camera pose"), "{err}");
 }
 
@@ -193,7 +208,11 @@ fn serve(f: &Fixture, name: &str) -> (std::process::Child, String, PathBuf) {
         .unwrap();
     let t0 = Instant::now();
     while !std::fs::read_to_string(&log).unwrap_or_default().contains("serving") {
-        assert!(t0.elapsed().as_secs() < 30, "the bridge did not start: {}", std::fs::read_to_string(&log).unwrap_or_default());
+        assert!(
+            t0.elapsed().as_secs() < 30,
+            "the bridge did not start: {}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     (child, addr, log)
@@ -204,7 +223,8 @@ fn the_bridge_streams_a_realsense_recording_into_register_with_its_tracked_pose_
     let Some(f) = fixture() else { return };
     let (mut server, addr, log) = serve(f, "serve-register.log");
     let out = tmp("reg-live");
-    let (ok, stdout, err) = umesh(&["register", "--source", &addr, "--no-overlay", "--json", "--out", out.to_str().unwrap()]);
+    let (ok, stdout, err) =
+        umesh(&["register", "--source", &addr, "--no-overlay", "--json", "--out", out.to_str().unwrap()]);
     let _ = server.wait();
     assert!(ok, "{err}\nbridge: {}", std::fs::read_to_string(&log).unwrap_or_default());
     let v = json(&stdout);
@@ -214,7 +234,8 @@ fn the_bridge_streams_a_realsense_recording_into_register_with_its_tracked_pose_
     // The stream carries the tracker's pose on every frame: followed without a flag.
     assert_eq!(v["pose"], "tracked", "{v}");
     assert!(v["pose_reason"].as_str().unwrap().contains("every frame"), "{v}");
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     for fr in report["frames"].as_array().unwrap() {
         let e = fr["end_to_end_ms"].as_f64().unwrap_or(-1.0);
         let total = fr["latency"]["total_ms"].as_f64().unwrap();
@@ -230,10 +251,11 @@ fn the_ar_view_plays_a_realsense_recording_through_the_bridge_and_names_a_missin
     let Some(f) = fixture() else { return };
     let mut app = App::new();
     app.add_plugins(MinimalPlugins).add_plugins(umesh::app::CorePlugins);
-    let organ = match umesh::app::model::compute::load_job(OpenRequest::default())(&Default::default(), &Default::default()) {
-        Ok(umesh::app::shell::tasks::JobOutput::Loaded(d)) => d,
-        _ => panic!("the bundled phantom did not load"),
-    };
+    let organ =
+        match umesh::app::model::compute::load_job(OpenRequest::default())(&Default::default(), &Default::default()) {
+            Ok(umesh::app::shell::tasks::JobOutput::Loaded(d)) => d,
+            _ => panic!("the bundled phantom did not load"),
+        };
     // Played at its own rate, as a camera: half a frame a second, so that a registration on a
     // machine busy with other tests keeps up (the first frame builds the correction's model).
     let slow = tmp("ar-slow.db3");

@@ -90,7 +90,8 @@ fn bad_inputs_fail_with_one_clear_error_and_a_nonzero_exit() {
     assert!(!ok && err.contains("rubber"), "{err}");
     // A force 1 m away from the organ: refused, not moved onto the grid's edge.
     std::fs::write(&forces, r#"[{"point_mm": [1000, 0, 0], "force_n": [0, 0, -0.1]}]"#).unwrap();
-    let (ok, _, err) = umesh(&["simulate", "--forces", forces.to_str().unwrap(), "--out", tmp("far-force").to_str().unwrap()]);
+    let (ok, _, err) =
+        umesh(&["simulate", "--forces", forces.to_str().unwrap(), "--out", tmp("far-force").to_str().unwrap()]);
     assert!(!ok && err.contains("outside the organ"), "{err}");
     // Training's schedule and budget, refused before the dataset is read.
     let (ok, _, err) = umesh(&["train", "--dataset", "/nonexistent/ds", "--time-budget-min", "nan"]);
@@ -131,7 +132,8 @@ fn simulate_writes_results_and_an_exported_problem_solves_to_the_same_answer() {
         assert!(dir.join(f).exists(), "{f}");
     }
     let dir2 = tmp("sim2");
-    let (ok, out2, err) = umesh(&["simulate", "--json", "--problem", problem.to_str().unwrap(), "--out", dir2.to_str().unwrap()]);
+    let (ok, out2, err) =
+        umesh(&["simulate", "--json", "--problem", problem.to_str().unwrap(), "--out", dir2.to_str().unwrap()]);
     assert!(ok, "{err}");
     let v2 = json(&out2);
     let max2 = v2["max_displacement_mm"].as_f64().unwrap();
@@ -186,8 +188,14 @@ fn simulate_with_a_few_random_forces_moves_the_organ_by_the_asked_displacement()
         let tolerance = if m == "linear" { 1e-6 * expected } else { 0.25 * expected };
         assert!((mean - expected).abs() <= tolerance, "{m}: mean {mean} mm, expected {expected} mm");
     }
-    let (ok, _, err) =
-        umesh(&["simulate", "--random-forces", "3", "--target-displacement-mm=-1", "--out", tmp("few-bad").to_str().unwrap()]);
+    let (ok, _, err) = umesh(&[
+        "simulate",
+        "--random-forces",
+        "3",
+        "--target-displacement-mm=-1",
+        "--out",
+        tmp("few-bad").to_str().unwrap(),
+    ]);
     assert!(!ok && err.contains("--random-forces") && err.contains("target displacement"), "{err}");
 }
 
@@ -262,13 +270,18 @@ fn dataset_killed_midway_and_resumed_equals_an_uninterrupted_run() {
         .unwrap();
     // Kill as soon as the first shard is on disk (or after a time limit).
     let start = std::time::Instant::now();
-    while !killed.join("shard_000000.npz").exists() && !killed.join("shard_000001.npz").exists() && start.elapsed().as_secs() < 120 {
+    while !killed.join("shard_000000.npz").exists()
+        && !killed.join("shard_000001.npz").exists()
+        && start.elapsed().as_secs() < 120
+    {
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
     child.kill().unwrap();
     let _ = child.wait();
-    let shards_before =
-        std::fs::read_dir(&killed).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with("shard_")).count();
+    let shards_before = std::fs::read_dir(&killed)
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with("shard_"))
+        .count();
     assert!(shards_before < 6, "the run finished before it could be killed");
     let (ok, out, err) = umesh(&dataset_args(killed.to_str().unwrap(), &["--json"]));
     assert!(ok, "{err}");
@@ -340,25 +353,44 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let _ = std::fs::remove_dir_all(&rec);
     // At 1.5 x the bundled model's target (13 mm mean nodal displacement), the markers move
     // 11 mm: the issue's 10 mm or more, within the dataset's range.
-    let (ok, out, err) =
-        umesh(&["rgbd", "synth", "--frames", "4", "--noise-mm", "1", "--load-scale", "1.5", "--json", "--out", rec.to_str().unwrap()]);
+    let (ok, out, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "4",
+        "--noise-mm",
+        "1",
+        "--load-scale",
+        "1.5",
+        "--json",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
     assert!(ok, "{err}");
     let s = json(&out);
     assert_eq!(s["frames"], 4);
-    for f in
-        ["intrinsics.json", "recording.json", "trajectory.log", "ground_truth.json", "depth/00003.png", "color/00003.png", "mask/00003.png"]
-    {
+    for f in [
+        "intrinsics.json",
+        "recording.json",
+        "trajectory.log",
+        "ground_truth.json",
+        "depth/00003.png",
+        "color/00003.png",
+        "mask/00003.png",
+    ] {
         assert!(rec.join(f).exists(), "{f}");
     }
     let reg = tmp("synth-reg");
-    let (ok, out, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
+    let (ok, out, err) =
+        umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
     assert!(ok, "{err}");
     let r = json(&out);
     assert_eq!(r["frames"], 4, "{r}");
     for k in ["frame_ms_median", "frame_ms_p95", "tre_mean_mm", "tre_max_mm"] {
         assert!(r[k].as_f64().is_some_and(|v| v.is_finite() && v >= 0.0), "{k}: {r}");
     }
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
     let frames = report["frames"].as_array().unwrap();
     assert_eq!(frames.len(), 4);
     for f in frames {
@@ -370,8 +402,11 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let tre = r["tre_mean_mm"].as_f64().unwrap();
     eprintln!("synthetic registration: {r}");
     assert!(tre < 2.92, "TRE {tre} mm");
-    let (last, rigid, moved) =
-        (r["last_tre_mm"].as_f64().unwrap(), r["last_tre_rigid_mm"].as_f64().unwrap(), r["last_marker_displacement_mm"].as_f64().unwrap());
+    let (last, rigid, moved) = (
+        r["last_tre_mm"].as_f64().unwrap(),
+        r["last_tre_rigid_mm"].as_f64().unwrap(),
+        r["last_marker_displacement_mm"].as_f64().unwrap(),
+    );
     assert!(moved >= 10.0, "the recording moves the markers {moved} mm (the issue's recordings: 10 or more)");
     assert!(last < 2.92 && last < 0.25 * rigid, "last frame: TRE {last} mm, rigid only {rigid} mm");
     assert!(reg.join("overlay/00003.png").exists());
@@ -403,7 +438,8 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let last_t = t["last_tre_mm"].as_f64().unwrap();
     eprintln!("tracking correction: {t}");
     assert!(last_t < 2.92 && last_t < 0.25 * rigid, "tracking: last frame TRE {last_t} mm, rigid only {rigid} mm");
-    let report_t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg_t.join("report.json")).unwrap()).unwrap();
+    let report_t: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(reg_t.join("report.json")).unwrap()).unwrap();
     let moved = |f: &serde_json::Value| f["correction"]["moved_rms_mm"].as_f64().unwrap();
     let last_frame = |r: &serde_json::Value| r["frames"].as_array().unwrap().last().unwrap().clone();
     assert!(moved(&last_frame(&report_t)) > 0.0 && moved(&last_frame(&report)) > 0.0, "{t}");
@@ -419,7 +455,14 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
         let e = e.unwrap();
         std::fs::copy(e.path(), model.join(e.file_name())).unwrap();
     }
-    let (ok, out, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", rec.to_str().unwrap(), "--json"]);
+    let (ok, out, err) = umesh(&[
+        "choose-correction",
+        "--model",
+        model.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(ok, "{err}");
     let c = json(&out);
     // Each form measured; the choice is the rule's (tested in core) within the default budget.
@@ -443,7 +486,12 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     assert!(ok, "{err}");
     assert_eq!(json(&out)["correction_form"], want, "{err}");
     assert!(err.contains("correction: ") && err.contains("on the check recording"), "{err}");
-    assert!(json(&out)["correction_reason"].as_str().is_some_and(|r| r.contains("within 33 ms") || r.contains("no form met")), "{out}");
+    assert!(
+        json(&out)["correction_reason"]
+            .as_str()
+            .is_some_and(|r| r.contains("within 33 ms") || r.contains("no form met")),
+        "{out}"
+    );
     // No frame budget: the most accurate form whatever its time; a budget that is no time is refused.
     let mut unlimited = args.to_vec();
     unlimited.extend(["--frame-budget-ms", "0"]);
@@ -462,7 +510,8 @@ fn register_on_a_synthetic_recording_reports_latency_and_tre_per_frame() {
     let (ok, _, err) = umesh(&args);
     assert!(!ok && err.contains("correction.json") && err.contains("not a correction choice"), "{err}");
     // A recording without its truth cannot choose.
-    let (ok, _, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", model.to_str().unwrap()]);
+    let (ok, _, err) =
+        umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", model.to_str().unwrap()]);
     assert!(!ok && err.contains("no ground_truth.json"), "{err}");
     // A recording without intrinsics: one clear error naming the folder.
     std::fs::remove_file(rec.join("intrinsics.json")).unwrap();
@@ -485,8 +534,15 @@ fn register_compare_fe_writes_its_overlays_into_out_and_leaves_the_recording_as_
     };
     let before = listing(&rec);
     let reg = tmp("fe-reg");
-    let (ok, out, err) =
-        umesh(&["register", "--recording", rec.to_str().unwrap(), "--compare-fe", "--json", "--out", reg.to_str().unwrap()]);
+    let (ok, out, err) = umesh(&[
+        "register",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--compare-fe",
+        "--json",
+        "--out",
+        reg.to_str().unwrap(),
+    ]);
     assert!(ok, "{err}");
     assert!(json(&out)["fe"].is_object(), "{out}");
     assert_eq!(listing(&rec), before, "the recording's folder changed");
@@ -541,19 +597,31 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     ]);
     assert!(ok, "{err}");
     assert!(rec.join("points/00000.ply").is_file() && !rec.join("depth").exists());
-    let truth: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(rec.join("ground_truth.json")).unwrap()).unwrap();
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(rec.join("ground_truth.json")).unwrap()).unwrap();
     let point = |v: &serde_json::Value| [0, 1, 2].map(|i| v[i].as_f64().unwrap());
     let rest: Vec<[f64; 3]> = truth["markers_rest_mm"].as_array().unwrap().iter().map(point).collect();
     let first: Vec<[f64; 3]> = truth["markers_mm"][0].as_array().unwrap().iter().map(point).collect();
     let motion0 =
-        first.iter().zip(&rest).map(|(a, b)| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()).sum::<f64>() / rest.len() as f64;
+        first.iter().zip(&rest).map(|(a, b)| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()).sum::<f64>()
+            / rest.len() as f64;
     assert!(motion0 >= 5.0, "the first frame is deformed by {motion0} mm (5 mm or more wanted)");
     let register = |pose: &str| {
         let out = tmp(&format!("tracked-clouds-{pose}"));
-        let (ok, stdout, err) =
-            umesh(&["register", "--recording", r, "--pose", pose, "--no-overlay", "--json", "--out", out.to_str().unwrap()]);
+        let (ok, stdout, err) = umesh(&[
+            "register",
+            "--recording",
+            r,
+            "--pose",
+            pose,
+            "--no-overlay",
+            "--json",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert!(ok, "{err}");
-        let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
         (json(&stdout), report)
     };
     // No --pose: the recording's trajectory holds a pose for every frame, so it is followed.
@@ -578,7 +646,8 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     let before = std::fs::read(out.join("report.json")).unwrap();
     std::fs::write(out.join("stray.txt"), "an earlier run's file").unwrap();
     let o = out.to_str().unwrap();
-    let (ok, _, err) = umesh(&["register", "--recording", r, "--depth-min-mm", "5000", "--depth-max-mm", "6000", "--out", o]);
+    let (ok, _, err) =
+        umesh(&["register", "--recording", r, "--depth-min-mm", "5000", "--depth-max-mm", "6000", "--out", o]);
     assert!(!ok && err.contains("no frame could be registered"), "{err}");
     assert_eq!(std::fs::read(out.join("report.json")).unwrap(), before);
     assert!(out.join("stray.txt").is_file());
@@ -591,14 +660,19 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
         .filter(|e| e.file_name().to_string_lossy().contains("tracked-clouds-auto.staging"))
         .collect();
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
-    let (ok, _, err) = umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);
+    let (ok, _, err) =
+        umesh(&["register", "--recording", r, "--pose", "gps", "--out", tmp("tracked-bad").to_str().unwrap()]);
     assert!(!ok && err.contains("--pose") && err.contains("tracked"), "{err}");
     // Absurd correction work: one error naming the option, before anything is built.
     // (1000 patches did not finish in 5 minutes; 100 updates of 1000 iterations neither.)
-    for (flag, value) in
-        [("--doubted-updates", "500"), ("--correction-subspace", "5000"), ("--correction-subspace", "1000"), ("--correction-cg", "1000")]
-    {
-        let (ok, _, err) = umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);
+    for (flag, value) in [
+        ("--doubted-updates", "500"),
+        ("--correction-subspace", "5000"),
+        ("--correction-subspace", "1000"),
+        ("--correction-cg", "1000"),
+    ] {
+        let (ok, _, err) =
+            umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);
         assert!(!ok && err.contains(flag) && err.lines().count() == 1, "{flag} {value}: {err}");
     }
     // The doubted frames' correction asked for with the correction off: said, not ignored.
@@ -671,7 +745,8 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
         ("fixed-distance", "/dataset_config/fixed/distance_mm", serde_json::json!(1e308)),
     ] {
         let d = copy(&format!("corrupt-model-{key}"));
-        let mut info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("model.json")).unwrap()).unwrap();
+        let mut info: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("model.json")).unwrap()).unwrap();
         *info.pointer_mut(path).unwrap() = serde_json::json!(value);
         std::fs::write(d.join("model.json"), info.to_string()).unwrap();
         let (ok, out, err) = register(&d);
@@ -680,9 +755,12 @@ fn a_corrupt_model_is_refused_with_a_reason_and_never_reports_a_tre() {
     // A confidence range no frame reaches (it would silence every warning: 1e308, 1000 mm, or
     // above the 20 mm a residual is measured to) or one of zero (measured on nothing):
     // refused, named.
-    for (key, value) in [("residual_p95_mm", 1e308), ("residual_p95_mm", 1000.0), ("residual_mean_mm", 25.0), ("residual_p95_mm", 0.0)] {
+    for (key, value) in
+        [("residual_p95_mm", 1e308), ("residual_p95_mm", 1000.0), ("residual_mean_mm", 25.0), ("residual_p95_mm", 0.0)]
+    {
         let d = copy("corrupt-model-confidence");
-        let mut c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("confidence.json")).unwrap()).unwrap();
+        let mut c: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("confidence.json")).unwrap()).unwrap();
         c[key] = serde_json::json!(value);
         std::fs::write(d.join("confidence.json"), c.to_string()).unwrap();
         let (ok, out, err) = register(&d);
@@ -746,8 +824,11 @@ fn output_folders_are_replaced_whole_and_a_folder_umesh_did_not_write_is_never_e
     assert_eq!(std::fs::read(surf.join("organ.obj")).unwrap(), b"last run's mesh");
     assert!(!before.is_empty());
     let parent = surf.parent().unwrap();
-    let leftovers: Vec<_> =
-        std::fs::read_dir(parent).unwrap().flatten().filter(|e| e.file_name().to_string_lossy().starts_with(".replace-surf.")).collect();
+    let leftovers: Vec<_> = std::fs::read_dir(parent)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(".replace-surf."))
+        .collect();
     assert!(leftovers.is_empty(), "staging folders left: {leftovers:?}");
     // simulate into a folder of the user's own files: refused before any work, files intact.
     let mine = tmp("replace-mine");
@@ -826,11 +907,13 @@ fn confidence_warns_on_a_deformation_far_beyond_the_datasets_scale() {
     ]);
     assert!(ok, "{err}");
     let reg = tmp("far-reg");
-    let (ok, out, err) = umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
+    let (ok, out, err) =
+        umesh(&["register", "--recording", rec.to_str().unwrap(), "--out", reg.to_str().unwrap(), "--json"]);
     assert!(ok, "{err}");
     let r = json(&out);
     assert!(r["last_marker_displacement_mm"].as_f64().unwrap() > 20.0, "{r}");
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(reg.join("report.json")).unwrap()).unwrap();
     let frames = report["frames"].as_array().unwrap();
     let (first, last) = (&frames[0]["confidence"], &frames[frames.len() - 1]["confidence"]);
     // The undeformed first frame is trusted, the far one is not, and says why.
@@ -857,7 +940,19 @@ fn short_prepare(seg: Option<&str>, out: &std::path::Path, extra: &[&str]) -> se
     if let Some(s) = seg {
         args.push(s);
     }
-    args.extend(["--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--json", "--out", out.to_str().unwrap()]);
+    args.extend([
+        "--samples",
+        "10",
+        "--shard-size",
+        "5",
+        "--epochs",
+        "1",
+        "--check-frames",
+        "3",
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     args.extend(extra);
     let (ok, stdout, stderr) = umesh(&args);
     assert!(ok, "prepare failed: {stderr}");
@@ -913,7 +1008,8 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     // the model folder.
     let form = v["check"]["correction"]["form"].as_str().unwrap_or_default().to_string();
     assert!(form == "subspace" || form == "tracking", "{v}");
-    let kept: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
+    let kept: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
     assert_eq!(kept["form"], form.as_str());
     // Run again: every stage was done, nothing is recomputed.
     let (ok, stdout, stderr) = umesh(&[
@@ -943,21 +1039,34 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     // training into it is refused before any work, the model left as it was.
     let weights = std::fs::read(out.join("model/model.json")).unwrap();
     let other = tmp("patient-other-dataset");
-    let (ok, _, stderr) = umesh(&["train", "--dataset", other.to_str().unwrap(), "--out", out.join("model").to_str().unwrap()]);
+    let (ok, _, stderr) =
+        umesh(&["train", "--dataset", other.to_str().unwrap(), "--out", out.join("model").to_str().unwrap()]);
     assert!(!ok && stderr.contains("patient") && stderr.contains("its own dataset"), "{stderr}");
     assert_eq!(weights, std::fs::read(out.join("model/model.json")).unwrap());
     // The same voxels under other label names: another patient, refused naming the names.
     let mut renamed: serde_json::Value = serde_json::from_slice(&before).unwrap();
     renamed["structures"] = serde_json::json!(["renamed"]);
     std::fs::write(out.join("patient.json"), renamed.to_string()).unwrap();
-    let (ok, _, stderr) =
-        umesh(&["prepare", "--samples", "10", "--shard-size", "5", "--epochs", "1", "--check-frames", "3", "--out", out.to_str().unwrap()]);
+    let (ok, _, stderr) = umesh(&[
+        "prepare",
+        "--samples",
+        "10",
+        "--shard-size",
+        "5",
+        "--epochs",
+        "1",
+        "--check-frames",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(!ok && stderr.contains("label names differ") && stderr.contains("renamed"), "{stderr}");
     std::fs::write(out.join("patient.json"), &before).unwrap();
     // A finished patient keeps its scan: the same job with one scan stores it, with another
     // one it is refused and the stored scan stays.
     let ct1 = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/phantom.nii.gz");
-    let vol = umesh_core::nifti_io::read_volume(&ct1, &umesh_core::nifti_io::ReadOptions { max_voxels: 1 << 30 }).unwrap();
+    let vol =
+        umesh_core::nifti_io::read_volume(&ct1, &umesh_core::nifti_io::ReadOptions { max_voxels: 1 << 30 }).unwrap();
     let ct2 = tmp("other-scan.nii.gz");
     umesh_core::nifti_io::write_volume(&ct2, &vol, umesh_core::nifti_io::WriteType::F32).unwrap();
     let with_ct = |ct: &PathBuf| {
@@ -1096,7 +1205,9 @@ fn prepare_refuses_bad_input_before_writing_anything() {
 #[test]
 fn prepare_on_the_real_ct_and_mr_livers_accepts_the_samples_at_the_target() {
     let Some(d) = shared_data() else { return };
-    for (file, ivc) in [("totalsegmentator/example_seg.nii.gz", "label 63"), ("totalsegmentator/example_seg_mr.nii.gz", "label 24")] {
+    for (file, ivc) in
+        [("totalsegmentator/example_seg.nii.gz", "label 63"), ("totalsegmentator/example_seg_mr.nii.gz", "label 24")]
+    {
         let out = tmp(&format!("real-{}", file.len()));
         let _ = std::fs::remove_dir_all(&out);
         let seg = d.join(file);
@@ -1106,7 +1217,10 @@ fn prepare_on_the_real_ct_and_mr_livers_accepts_the_samples_at_the_target() {
         let ratio = v["achieved_over_target"]["mean"].as_f64().unwrap();
         assert!((0.75..=1.25).contains(&ratio), "{file}: achieved / target {ratio}");
         let patient = std::fs::read_to_string(out.join("patient.json")).unwrap();
-        assert!(patient.contains("inferior_vena_cava") && patient.contains(ivc), "{file}: fixed region not the vena cava");
+        assert!(
+            patient.contains("inferior_vena_cava") && patient.contains(ivc),
+            "{file}: fixed region not the vena cava"
+        );
         assert!(patient.contains("portal_vein_and_splenic_vein"), "{file}: the portal vein is not a structure");
     }
 }
@@ -1119,8 +1233,16 @@ fn the_live_path_without_masks_registers_every_frame() {
     assert!(ok, "{err}");
     // A recording's frames without its masks: the organ found from depth and colour.
     let reg = tmp("live-nomask");
-    let (ok, out, err) =
-        umesh(&["register", "--recording", rec.to_str().unwrap(), "--no-mask", "--no-overlay", "--json", "--out", reg.to_str().unwrap()]);
+    let (ok, out, err) = umesh(&[
+        "register",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--no-mask",
+        "--no-overlay",
+        "--json",
+        "--out",
+        reg.to_str().unwrap(),
+    ]);
     assert!(ok, "{err}");
     let r = json(&out);
     assert_eq!((r["frames"].as_u64(), r["skipped"].as_u64()), (Some(4), Some(0)), "{r}");
@@ -1135,13 +1257,26 @@ fn the_live_path_without_masks_registers_every_frame() {
         .unwrap();
     let t0 = std::time::Instant::now();
     while !std::fs::read_to_string(&log).unwrap_or_default().contains("serving") {
-        assert!(t0.elapsed().as_secs() < 30, "the server did not start: {}", std::fs::read_to_string(&log).unwrap_or_default());
+        assert!(
+            t0.elapsed().as_secs() < 30,
+            "the server did not start: {}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
     let live = tmp("live-source");
     // No --initial-pose: the stream carries each frame's tracked pose, which --pose tracked keeps.
-    let (ok, out, err) =
-        umesh(&["register", "--source", &addr, "--pose", "tracked", "--no-overlay", "--json", "--out", live.to_str().unwrap()]);
+    let (ok, out, err) = umesh(&[
+        "register",
+        "--source",
+        &addr,
+        "--pose",
+        "tracked",
+        "--no-overlay",
+        "--json",
+        "--out",
+        live.to_str().unwrap(),
+    ]);
     let _ = serve.wait();
     assert!(ok, "{err}");
     let r = json(&out);
@@ -1201,7 +1336,8 @@ fn gui_refuses_a_bad_scan_or_session_before_opening_a_window() {
 fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordings() {
     let dir = tmp("bench-register");
     let rec = dir.to_str().unwrap();
-    let args = ["bench", "register", "--loads", "gravity", "--frames", "3", "--motion-mm", "8", "--recordings", rec, "--json"];
+    let args =
+        ["bench", "register", "--loads", "gravity", "--frames", "3", "--motion-mm", "8", "--recordings", rec, "--json"];
     let (ok, out, err) = umesh(&args);
     assert!(ok, "{err}");
     let v = json(&out);
@@ -1250,7 +1386,9 @@ fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordi
     }
     assert_eq!(made(), before, "the recordings were made again");
     // Bad options: one error naming the option, nothing made.
-    for (bad, name) in [(["--motion-mm", "0"], "--motion-mm"), (["--frames", "1"], "--frames"), (["--loads", "twist"], "--loads")] {
+    for (bad, name) in
+        [(["--motion-mm", "0"], "--motion-mm"), (["--frames", "1"], "--frames"), (["--loads", "twist"], "--loads")]
+    {
         let mut a: Vec<&str> = vec!["bench", "register", "--recordings", rec];
         a.extend(bad);
         let (ok, _, err) = umesh(&a);
@@ -1261,8 +1399,15 @@ fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordi
 #[test]
 fn an_error_names_its_cause_once() {
     // A missing patient folder: the file and the system's reason, said once each.
-    let (ok, _, err) =
-        umesh(&["register", "--patient", "/nonexistent-umesh-patient", "--recording", "/nonexistent", "--out", "/tmp/umesh-never-written"]);
+    let (ok, _, err) = umesh(&[
+        "register",
+        "--patient",
+        "/nonexistent-umesh-patient",
+        "--recording",
+        "/nonexistent",
+        "--out",
+        "/tmp/umesh-never-written",
+    ]);
     assert!(!ok, "{err}");
     assert!(err.contains("/nonexistent-umesh-patient/patient.json"), "{err}");
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
@@ -1270,7 +1415,8 @@ fn an_error_names_its_cause_once() {
 
 /// Every file under `dir` with its bytes, to compare before and after a refused run.
 fn snapshot(dir: &std::path::Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut v: Vec<(PathBuf, Vec<u8>)> = walk(dir).into_iter().map(|p| (p.clone(), std::fs::read(&p).unwrap())).collect();
+    let mut v: Vec<(PathBuf, Vec<u8>)> =
+        walk(dir).into_iter().map(|p| (p.clone(), std::fs::read(&p).unwrap())).collect();
     v.sort();
     v
 }
@@ -1280,7 +1426,20 @@ fn an_output_never_replaces_an_input_or_an_output_of_another_kind() {
     let rec = tmp("kinds-rec");
     let _ = std::fs::remove_dir_all(&rec);
     let r = rec.to_str().unwrap();
-    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "1", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    let (ok, _, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "1",
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--focal-px",
+        "130",
+        "--out",
+        r,
+    ]);
     assert!(ok, "{err}");
     let marker = std::fs::read_to_string(rec.join(umesh_core::OUTPUT_MARKER)).unwrap();
     assert!(marker.contains("kind: recording"), "{marker}");
@@ -1289,7 +1448,11 @@ fn an_output_never_replaces_an_input_or_an_output_of_another_kind() {
     // naming both paths.
     for out in [rec.clone(), rec.parent().unwrap().to_path_buf(), rec.join("reg")] {
         let (ok, _, err) = umesh(&["register", "--recording", r, "--out", out.to_str().unwrap()]);
-        assert!(!ok && err.contains("--recording") && err.contains(&out.display().to_string()), "{}: {err}", out.display());
+        assert!(
+            !ok && err.contains("--recording") && err.contains(&out.display().to_string()),
+            "{}: {err}",
+            out.display()
+        );
     }
     // Other commands' outputs of another kind: a recording is not surfaces or a simulation.
     let ph = "assets/phantom.nii.gz";
@@ -1308,7 +1471,20 @@ fn an_output_never_replaces_an_input_or_an_output_of_another_kind() {
     assert!(!ok && err.contains("holds a model"), "{err}");
     assert!(model.join("model.json").is_file());
     // A recording written over by a recording: the same kind, replaced.
-    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "1", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    let (ok, _, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "1",
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--focal-px",
+        "130",
+        "--out",
+        r,
+    ]);
     assert!(ok, "{err}");
     // A ground truth of another organ (its markers 400 mm away): no TRE of tens of mm that
     // describes nothing, from register or choose-correction; the model is not written.
@@ -1367,7 +1543,10 @@ fn counts_and_sizes_no_run_can_afford_are_refused_naming_the_option() {
         (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--channels", "100000"], "--channels 100000"),
         (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--steps", "40"], "--steps 40"),
         (vec!["train", "--dataset", "no-such-dataset", "--out", o, "--batch-size", "0"], "--batch-size 0"),
-        (vec!["train", "--dataset", "no-such-dataset", "--out", "no-such-dataset/model"], "lies inside the input --dataset"),
+        (
+            vec!["train", "--dataset", "no-such-dataset", "--out", "no-such-dataset/model"],
+            "lies inside the input --dataset",
+        ),
         (vec!["surface", "--step", "0", "--out", o], "--step 0"),
         (vec!["surface", "--step", "100000", "--out", o], "--step 100000"),
         (vec!["eval", "--dataset", "no-such-dataset", "--markers", "0"], "--markers 0"),
@@ -1403,7 +1582,20 @@ fn a_recording_made_on_another_organs_grid_is_refused_by_register_and_choose_cor
     let rec = tmp("other-grid-rec");
     let _ = std::fs::remove_dir_all(&rec);
     let r = rec.to_str().unwrap();
-    let (ok, _, err) = umesh(&["rgbd", "synth", "--frames", "2", "--width", "160", "--height", "120", "--focal-px", "130", "--out", r]);
+    let (ok, _, err) = umesh(&[
+        "rgbd",
+        "synth",
+        "--frames",
+        "2",
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--focal-px",
+        "130",
+        "--out",
+        r,
+    ]);
     assert!(ok, "{err}");
     // The truth names the grid it was made on; another hash is another organ (a scaled copy of
     // this one keeps its markers within this organ's bounds, so the bounds check cannot see it).
@@ -1421,8 +1613,16 @@ fn a_recording_made_on_another_organs_grid_is_refused_by_register_and_choose_cor
     }
     let before = snapshot(&model);
     let out = tmp("other-grid-reg");
-    let (ok, _, err) =
-        umesh(&["register", "--model", model.to_str().unwrap(), "--recording", r, "--no-overlay", "--out", out.to_str().unwrap()]);
+    let (ok, _, err) = umesh(&[
+        "register",
+        "--model",
+        model.to_str().unwrap(),
+        "--recording",
+        r,
+        "--no-overlay",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(!ok && err.contains("another organ's grid") && err.contains("0123456789abcdef"), "{err}");
     let (ok, _, err) = umesh(&["choose-correction", "--model", model.to_str().unwrap(), "--recording", r]);
     assert!(!ok && err.contains("another organ's grid"), "{err}");

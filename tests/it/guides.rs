@@ -49,12 +49,18 @@ fn every_command_of_the_research_guide_runs_on_the_bundled_phantom() {
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "`{l}` (from `{line}`) failed:\n{stderr}");
         if args.contains(&"--json") {
-            let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("`{l}`: not JSON ({e})"));
+            let v: serde_json::Value =
+                serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("`{l}`: not JSON ({e})"));
             assert!(v.is_object() || v.is_array(), "`{l}`: {v}");
         }
     }
     // What the steps leave, as the guide says.
-    for f in ["data/phantom/manifest.json", "models/phantom/model.json", "rec/grasp/ground_truth.json", "out/grasp/report.json"] {
+    for f in [
+        "data/phantom/manifest.json",
+        "models/phantom/model.json",
+        "rec/grasp/ground_truth.json",
+        "out/grasp/report.json",
+    ] {
         assert!(dir.join(f).is_file(), "{f} missing after the guide's commands");
     }
 }

@@ -14,7 +14,11 @@ const CHANNEL_TOLERANCE: u8 = 40;
 const PIXEL_FRACTION: f64 = 0.02;
 
 fn render(scene: &str, out: &std::path::Path) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_umesh")).args(["screenshot", "--scene", scene, "--size", SIZE, "--out"]).arg(out).output().unwrap()
+    Command::new(env!("CARGO_BIN_EXE_umesh"))
+        .args(["screenshot", "--scene", scene, "--size", SIZE, "--out"])
+        .arg(out)
+        .output()
+        .unwrap()
 }
 
 #[test]
@@ -38,7 +42,10 @@ fn named_scenes_render_headless_and_match_the_references() {
         if !r.status.success() {
             let err = String::from_utf8_lossy(&r.stderr);
             let tail: Vec<&str> = err.lines().rev().take(15).collect();
-            let msg = format!("scene {scene}: the renderer failed:\n{}", tail.into_iter().rev().collect::<Vec<_>>().join("\n"));
+            let msg = format!(
+                "scene {scene}: the renderer failed:\n{}",
+                tail.into_iter().rev().collect::<Vec<_>>().join("\n")
+            );
             if in_ci {
                 panic!("{msg}");
             }
@@ -78,7 +85,10 @@ fn named_scenes_render_headless_and_match_the_references() {
 
 #[test]
 fn an_unknown_scene_is_a_clear_error() {
-    let r = Command::new(env!("CARGO_BIN_EXE_umesh")).args(["screenshot", "--scene", "nope", "--out", "/tmp/x.png"]).output().unwrap();
+    let r = Command::new(env!("CARGO_BIN_EXE_umesh"))
+        .args(["screenshot", "--scene", "nope", "--out", "/tmp/x.png"])
+        .output()
+        .unwrap();
     assert!(!r.status.success());
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(err.contains("unknown scene") && err.contains("phantom"), "{err}");

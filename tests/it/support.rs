@@ -6,7 +6,11 @@ use std::process::Command;
 /// Run `umesh ARGS`: (exit 0, stdout, stderr).
 pub fn umesh(args: &[&str]) -> (bool, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_umesh")).args(args).output().expect("run umesh");
-    (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
 }
 
 /// The one JSON object a `--json` command prints.

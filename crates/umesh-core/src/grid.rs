@@ -13,7 +13,8 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 /// Corner offsets of a hexahedron in VTK order.
-pub const HEX_CORNERS: [[usize; 3]; 8] = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]];
+pub const HEX_CORNERS: [[usize; 3]; 8] =
+    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]];
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GridSettings {
@@ -45,7 +46,9 @@ pub enum GridError {
     CellsTooLarge { cell_size_mm: f64, extent_mm: [f64; 3] },
     #[error("invalid grid settings: {0}")]
     Settings(String),
-    #[error("the grid would have {cells} cells in its bounding box, more than the limit of {limit}; use a larger --cell-size-mm")]
+    #[error(
+        "the grid would have {cells} cells in its bounding box, more than the limit of {limit}; use a larger --cell-size-mm"
+    )]
     TooLarge { cells: usize, limit: usize },
     #[error(
         "the immersed boundary would take {samples} inside tests (box cells x (2^subdivisions x samples per leaf axis)^3), more than the limit of {limit}; use a larger --cell-size-mm or fewer --subdivisions"
@@ -232,7 +235,11 @@ impl ImmersedGrid {
                             let ijk = ijk.map(|v| v as usize);
                             if let Some(cell) = self.cell_at(ijk) {
                                 let lo = Vector3::new(ijk[0] as f64, ijk[1] as f64, ijk[2] as f64);
-                                let q = Vector3::new(c.x.clamp(lo.x, lo.x + 1.0), c.y.clamp(lo.y, lo.y + 1.0), c.z.clamp(lo.z, lo.z + 1.0));
+                                let q = Vector3::new(
+                                    c.x.clamp(lo.x, lo.x + 1.0),
+                                    c.y.clamp(lo.y, lo.y + 1.0),
+                                    c.z.clamp(lo.z, lo.z + 1.0),
+                                );
                                 let d = (q - c).norm_squared();
                                 if best.is_none_or(|(bd, _)| d < bd) {
                                     best = Some((d, cell));
@@ -253,7 +260,12 @@ impl ImmersedGrid {
     }
 
     /// Build the grid of a mask.
-    pub fn from_mask(mask: &Mask, settings: &GridSettings, progress: &Progress, cancel: &Cancel) -> Result<Self, GridError> {
+    pub fn from_mask(
+        mask: &Mask,
+        settings: &GridSettings,
+        progress: &Progress,
+        cancel: &Cancel,
+    ) -> Result<Self, GridError> {
         let (lo, hi) = mask.world_bounds().ok_or(GridError::EmptyMask)?;
         let sampler = mask.world_sampler();
         build(lo, hi, |p| sampler.inside(p), settings, progress, cancel)
@@ -322,7 +334,11 @@ impl ImmersedGrid {
             if cell >= m {
                 return Err(bad(format!("quadrature point {i} refers to cell {cell} of {m}")));
             }
-            quadrature.push(QuadPoint { cell: cell as u32, xi: [qp_xi[3 * i], qp_xi[3 * i + 1], qp_xi[3 * i + 2]], weight_mm3: qp_w[i] });
+            quadrature.push(QuadPoint {
+                cell: cell as u32,
+                xi: [qp_xi[3 * i], qp_xi[3 * i + 1], qp_xi[3 * i + 2]],
+                weight_mm3: qp_w[i],
+            });
         }
         if quadrature.windows(2).any(|w| w[1].cell < w[0].cell) {
             return Err(bad("quadrature points are not grouped by cell".into()));
@@ -375,7 +391,18 @@ pub fn assemble_grid(
     for c in 0..cells.len() {
         qp_offsets[c + 1] += qp_offsets[c];
     }
-    ImmersedGrid { origin_mm, cell_size_mm, cell_dims, cells, node_ijk, quadrature, qp_offsets, pooling_steps, cell_lookup, node_lookup }
+    ImmersedGrid {
+        origin_mm,
+        cell_size_mm,
+        cell_dims,
+        cells,
+        node_ijk,
+        quadrature,
+        qp_offsets,
+        pooling_steps,
+        cell_lookup,
+        node_lookup,
+    }
 }
 
 /// Build the grid over the world box [lo, hi] from an inside test.
@@ -551,7 +578,10 @@ pub fn grid_vtu(grid: &ImmersedGrid) -> crate::vtk::Vtu {
         point_data: vec![],
         cell_data: vec![
             VtkData::Scalars("volume_fraction".into(), grid.cells.iter().map(|c| c.volume_fraction).collect()),
-            VtkData::Scalars("boundary".into(), grid.cells.iter().map(|c| (c.kind == CellKind::Boundary) as u8 as f64).collect()),
+            VtkData::Scalars(
+                "boundary".into(),
+                grid.cells.iter().map(|c| (c.kind == CellKind::Boundary) as u8 as f64).collect(),
+            ),
         ],
     }
 }

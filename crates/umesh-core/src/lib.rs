@@ -204,7 +204,12 @@ impl StagedDir {
     /// Like [`StagedDir::new`], but the staging folder has a fixed name and survives a failure
     /// or a cancel, so long work (training) can resume in it; `resume` reuses one left by an
     /// earlier run, otherwise it starts empty.
-    pub fn resumable(target: &std::path::Path, kind: OutputKind, recognised: &[&str], resume: bool) -> std::io::Result<Self> {
+    pub fn resumable(
+        target: &std::path::Path,
+        kind: OutputKind,
+        recognised: &[&str],
+        resume: bool,
+    ) -> std::io::Result<Self> {
         check_replaceable(target, kind, recognised)?;
         let staging = Self::pending_path(target);
         if !resume {

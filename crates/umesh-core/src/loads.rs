@@ -121,7 +121,10 @@ impl ForceSettings {
             return Err(crate::Invalid(format!("{} probes: between 1 and 100000", self.probes)));
         }
         if !(self.target_displacement_mm > 0.0 && self.target_displacement_mm < 1e4) {
-            return Err(crate::Invalid(format!("target displacement {} mm: must be positive and below 10 m", self.target_displacement_mm)));
+            return Err(crate::Invalid(format!(
+                "target displacement {} mm: must be positive and below 10 m",
+                self.target_displacement_mm
+            )));
         }
         if !(self.direction_spread >= 0.0 && self.direction_spread.is_finite()) {
             return Err(crate::Invalid(format!("direction spread {}: must be finite and >= 0", self.direction_spread)));
@@ -130,13 +133,18 @@ impl ForceSettings {
             return Err(crate::Invalid(format!("target spread {}: must lie in [0, 1)", self.target_spread)));
         }
         if !(self.patch_radius_mm >= 0.0 && self.patch_radius_mm <= 100.0) {
-            return Err(crate::Invalid(format!("probe contact radius {} mm: between 0 and 100 mm", self.patch_radius_mm)));
+            return Err(crate::Invalid(format!(
+                "probe contact radius {} mm: between 0 and 100 mm",
+                self.patch_radius_mm
+            )));
         }
         if !(self.max_strain >= 0.0 && self.max_strain <= 1.0) {
             return Err(crate::Invalid(format!("strain limit {}: between 0 (none) and 1", self.max_strain)));
         }
         if self.families.is_empty() {
-            return Err(crate::Invalid::from("no load family: give at least one of pressing, instrument, grasp, gravity"));
+            return Err(crate::Invalid::from(
+                "no load family: give at least one of pressing, instrument, grasp, gravity",
+            ));
         }
         if self.families.iter().enumerate().any(|(i, f)| self.families[..i].contains(f)) {
             return Err(crate::Invalid(format!(
@@ -145,7 +153,9 @@ impl ForceSettings {
             )));
         }
         if self.calibration == LoadCalibration::EnergyScale && self.mixes_families() {
-            return Err(crate::Invalid::from("load families other than pressing need the mean-displacement calibration"));
+            return Err(crate::Invalid::from(
+                "load families other than pressing need the mean-displacement calibration",
+            ));
         }
         Ok(())
     }
@@ -186,7 +196,9 @@ impl ForceSettings {
 /// for the forces as given, becomes `target_mm`. Errors when the pattern moves nothing.
 pub fn scale_forces(forces: &mut [PointForce], linear_mean_mm: f64, target_mm: f64) -> Result<f64, crate::Invalid> {
     if !(linear_mean_mm > 1e-12) || !linear_mean_mm.is_finite() {
-        return Err(crate::Invalid(format!("the force pattern displaces the organ by {linear_mean_mm:e} mm: nothing to calibrate")));
+        return Err(crate::Invalid(format!(
+            "the force pattern displaces the organ by {linear_mean_mm:e} mm: nothing to calibrate"
+        )));
     }
     let s = target_mm / linear_mean_mm;
     for f in forces {
@@ -271,8 +283,10 @@ pub fn anchor_label(seg: &Segmentation) -> Option<(i64, String)> {
     if let Some((_, l, n)) = named.into_iter().next() {
         return Some((l, n));
     }
-    (seg.volume.label_names.is_empty() && seg.organ_labels.contains(&TOTALSEGMENTATOR_LIVER) && counts.contains_key(&TOTALSEGMENTATOR_IVC))
-        .then(|| (TOTALSEGMENTATOR_IVC, "inferior vena cava (TotalSegmentator label 63)".to_string()))
+    (seg.volume.label_names.is_empty()
+        && seg.organ_labels.contains(&TOTALSEGMENTATOR_LIVER)
+        && counts.contains_key(&TOTALSEGMENTATOR_IVC))
+    .then(|| (TOTALSEGMENTATOR_IVC, "inferior vena cava (TotalSegmentator label 63)".to_string()))
 }
 
 /// The default fixed region: nodes within `distance_mm` of the label given, else of the
@@ -343,13 +357,19 @@ pub fn spread_forces(surface: &TriMesh, forces: &[PointForce], radius_mm: f64) -
             continue;
         }
         let force = Vector3::from(f.force_n);
-        out.extend(near.into_iter().map(|(v, w)| PointForce { point_mm: v.into(), force_n: (force * (w / total)).into() }));
+        out.extend(
+            near.into_iter().map(|(v, w)| PointForce { point_mm: v.into(), force_n: (force * (w / total)).into() }),
+        );
     }
     out
 }
 
 /// Apply point forces to boundary conditions.
-pub fn apply_forces(grid: &ImmersedGrid, bc: &mut BoundaryConditions, forces: &[PointForce]) -> Result<(), crate::Invalid> {
+pub fn apply_forces(
+    grid: &ImmersedGrid,
+    bc: &mut BoundaryConditions,
+    forces: &[PointForce],
+) -> Result<(), crate::Invalid> {
     for f in forces {
         bc.add_point_force(grid, &Vector3::from(f.point_mm), &Vector3::from(f.force_n))?;
     }
@@ -416,10 +436,9 @@ impl LoadFamily {
     }
 
     pub fn parse(s: &str) -> Result<Self, crate::Invalid> {
-        Self::ALL
-            .into_iter()
-            .find(|f| f.name() == s)
-            .ok_or_else(|| crate::Invalid(format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", "))))
+        Self::ALL.into_iter().find(|f| f.name() == s).ok_or_else(|| {
+            crate::Invalid(format!("unknown load family {s:?} (one of {})", Self::ALL.map(|f| f.name()).join(", ")))
+        })
     }
 
     /// The share of the sample's target (the mean displacement of the free organ) this family is
@@ -470,7 +489,10 @@ pub fn family_forces(
     settings: &ForceSettings,
     rng: &mut SplitMix64,
 ) -> Vec<PointForce> {
-    let contact = |(p, _): &(Vector3<f64>, Vector3<f64>), f: Vector3<f64>| PointForce { point_mm: [p.x, p.y, p.z], force_n: f.into() };
+    let contact = |(p, _): &(Vector3<f64>, Vector3<f64>), f: Vector3<f64>| PointForce {
+        point_mm: [p.x, p.y, p.z],
+        force_n: f.into(),
+    };
     match family {
         LoadFamily::Pressing => random_forces(visible_points, organ_size_mm(grid), material, settings, rng),
         LoadFamily::Instrument => {
@@ -492,7 +514,9 @@ pub fn family_forces(
                 .map(|pn| {
                     let nrm = pn.1;
                     let r = random_unit(rng);
-                    let tangent = (r - nrm * r.dot(&nrm)).try_normalize(1e-9).unwrap_or_else(|| nrm.cross(&Vector3::x()).normalize());
+                    let tangent = (r - nrm * r.dot(&nrm))
+                        .try_normalize(1e-9)
+                        .unwrap_or_else(|| nrm.cross(&Vector3::x()).normalize());
                     let dir = (nrm * 0.6 + tangent).normalize();
                     contact(pn, dir * (0.5 + rng.next_f64()))
                 })

@@ -39,8 +39,12 @@ impl TriMesh {
                 *directed.entry((t[e], t[(e + 1) % 3])).or_insert(0) += 1;
             }
         }
-        let mut report =
-            TopologyReport { triangles: self.triangles.len(), boundary_edges: 0, non_manifold_edges: 0, inconsistent_edges: 0 };
+        let mut report = TopologyReport {
+            triangles: self.triangles.len(),
+            boundary_edges: 0,
+            non_manifold_edges: 0,
+            inconsistent_edges: 0,
+        };
         for (&(a, b), &n_ab) in &directed {
             let n_ba = directed.get(&(b, a)).copied().unwrap_or(0);
             if n_ba > 0 && a > b {
@@ -255,7 +259,12 @@ impl TriMesh {
             }
             let dist = e2.dot(&q) * inv;
             if dist > 1e-9 && best.is_none_or(|h| dist < h.distance_mm) {
-                best = Some(RayHit { distance_mm: dist, triangle: ti, point: origin + d * dist, normal: e1.cross(&e2).normalize() });
+                best = Some(RayHit {
+                    distance_mm: dist,
+                    triangle: ti,
+                    point: origin + d * dist,
+                    normal: e1.cross(&e2).normalize(),
+                });
             }
         }
         best

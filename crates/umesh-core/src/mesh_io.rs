@@ -98,8 +98,12 @@ fn parse_obj(text: &str) -> Result<TriMesh, crate::Invalid> {
                 let n = m.positions.len() as i64;
                 let idx: Vec<u32> = it
                     .map(|s| {
-                        let i: i64 =
-                            s.split('/').next().unwrap_or("").parse().map_err(|_| format!("line {}: bad face index {s:?}", ln + 1))?;
+                        let i: i64 = s
+                            .split('/')
+                            .next()
+                            .unwrap_or("")
+                            .parse()
+                            .map_err(|_| format!("line {}: bad face index {s:?}", ln + 1))?;
                         let i = if i < 0 { n + i } else { i - 1 };
                         if i < 0 || i >= n {
                             return Err(crate::Invalid(format!("line {}: face index {s} out of range", ln + 1)));
@@ -152,7 +156,8 @@ fn parse_stl(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
             .collect();
         return Ok(weld(tris));
     }
-    let text = std::str::from_utf8(bytes).map_err(|_| "neither binary STL (size mismatch) nor ASCII STL".to_string())?;
+    let text =
+        std::str::from_utf8(bytes).map_err(|_| "neither binary STL (size mismatch) nor ASCII STL".to_string())?;
     if !text.trim_start().starts_with("solid") {
         return Err(crate::Invalid::from("neither binary STL (size mismatch) nor ASCII STL"));
     }
@@ -160,7 +165,8 @@ fn parse_stl(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
     for line in text.lines() {
         let mut it = line.split_whitespace();
         if it.next() == Some("vertex") {
-            let v: Vec<f64> = it.map(|s| s.parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("bad vertex: {e}"))?;
+            let v: Vec<f64> =
+                it.map(|s| s.parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("bad vertex: {e}"))?;
             if v.len() != 3 {
                 return Err(crate::Invalid::from("a vertex needs 3 coordinates"));
             }
@@ -196,10 +202,14 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
                     "le"
                 }
             }
-            ["element", name, n] => elements.push((name.to_string(), n.parse().map_err(|_| "bad element count")?, Vec::new())),
-            ["property", "list", ct, it, name] => {
-                elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), it.to_string(), Some(ct.to_string())))
+            ["element", name, n] => {
+                elements.push((name.to_string(), n.parse().map_err(|_| "bad element count")?, Vec::new()))
             }
+            ["property", "list", ct, it, name] => elements.last_mut().ok_or("property before element")?.2.push((
+                name.to_string(),
+                it.to_string(),
+                Some(ct.to_string()),
+            )),
             ["property", ty, name] => {
                 elements.last_mut().ok_or("property before element")?.2.push((name.to_string(), ty.to_string(), None))
             }
@@ -219,7 +229,9 @@ fn parse_ply(bytes: &[u8]) -> Result<TriMesh, crate::Invalid> {
         })
     };
     let body = &bytes[body_start.min(bytes.len())..];
-    let mut tokens = std::str::from_utf8(if format == "ascii" { body } else { b"" }).map_err(|_| "bad ascii body")?.split_whitespace();
+    let mut tokens = std::str::from_utf8(if format == "ascii" { body } else { b"" })
+        .map_err(|_| "bad ascii body")?
+        .split_whitespace();
     let mut off = 0usize;
     let mut read = |t: &str| -> Result<f64, crate::Invalid> {
         if format == "ascii" {

@@ -360,8 +360,11 @@ pub fn read_volume(path: &Path, options: &ReadOptions) -> Result<Volume, NiftiEr
 
 /// Read a single-file NIfTI (`.nii` or `.nii.gz`) held in memory; `name` is used in errors.
 pub fn read_volume_bytes(name: &Path, bytes: &[u8], options: &ReadOptions) -> Result<Volume, NiftiError> {
-    let r: Box<dyn Read + '_> =
-        if bytes.starts_with(&[0x1f, 0x8b]) { Box::new(flate2::read::MultiGzDecoder::new(bytes)) } else { Box::new(bytes) };
+    let r: Box<dyn Read + '_> = if bytes.starts_with(&[0x1f, 0x8b]) {
+        Box::new(flate2::read::MultiGzDecoder::new(bytes))
+    } else {
+        Box::new(bytes)
+    };
     read_from(r, name, options)
 }
 
@@ -370,7 +373,10 @@ fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> R
     let mut head = vec![0u8; 540];
     let got = read_up_to(&mut r, &mut head[..4]).map_err(io)?;
     if got < 4 {
-        return Err(NiftiError::NotNifti { path: path.into(), reason: "the file is shorter than a NIfTI header".into() });
+        return Err(NiftiError::NotNifti {
+            path: path.into(),
+            reason: "the file is shorter than a NIfTI header".into(),
+        });
     }
     let size = match (
         i32::from_le_bytes(head[0..4].try_into().unwrap_or_default()),
@@ -405,8 +411,11 @@ fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> R
     if voxels > options.max_voxels {
         return Err(NiftiError::TooLarge { path: path.into(), voxels, limit: options.max_voxels });
     }
-    let (bpv, _name) =
-        datatype_info(h.datatype).map_err(|name| NiftiError::UnsupportedDatatype { path: path.into(), code: h.datatype, name })?;
+    let (bpv, _name) = datatype_info(h.datatype).map_err(|name| NiftiError::UnsupportedDatatype {
+        path: path.into(),
+        code: h.datatype,
+        name,
+    })?;
     if h.bitpix != 0 && h.bitpix as usize != bpv * 8 {
         return Err(bad(format!("bitpix {} does not match datatype {}", h.bitpix, h.datatype)));
     }
@@ -416,7 +425,9 @@ fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> R
     if source != AffineSource::Sform {
         let d = [h.pixdim[1], h.pixdim[2], h.pixdim[3]];
         if !d.iter().all(|v| v.is_finite() && *v > 0.0) {
-            return Err(bad(format!("pixdim[1..4] = {d:?}: voxel sizes must be positive and finite (no sform to take them from)")));
+            return Err(bad(format!(
+                "pixdim[1..4] = {d:?}: voxel sizes must be positive and finite (no sform to take them from)"
+            )));
         }
     }
     if !affine.iter().all(|v| v.is_finite()) || affine.fixed_view::<3, 3>(0, 0).determinant().abs() < 1e-12 {
@@ -453,14 +464,22 @@ fn read_from(mut r: Box<dyn Read + '_>, path: &Path, options: &ReadOptions) -> R
         (ir, img)
     };
     let mut raw = Vec::new();
-    raw.try_reserve_exact(nbytes as usize).map_err(|_| bad(format!("cannot allocate {nbytes} bytes for the voxels")))?;
-    let got =
-        (&mut data_reader).take(nbytes).read_to_end(&mut raw).map_err(|source| NiftiError::Io { path: data_path.clone(), source })? as u64;
+    raw.try_reserve_exact(nbytes as usize)
+        .map_err(|_| bad(format!("cannot allocate {nbytes} bytes for the voxels")))?;
+    let got = (&mut data_reader)
+        .take(nbytes)
+        .read_to_end(&mut raw)
+        .map_err(|source| NiftiError::Io { path: data_path.clone(), source })? as u64;
     if got < nbytes {
         return Err(NiftiError::Truncated { path: data_path, expected: nbytes, got });
     }
     let data = decode(&raw, h.datatype, h.little_endian, h.scl_slope, h.scl_inter);
-    let mut vol = Volume { dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize], data, world_from_voxel: affine, label_names };
+    let mut vol = Volume {
+        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        data,
+        world_from_voxel: affine,
+        label_names,
+    };
     if vol.label_names.is_empty() {
         vol.label_names = read_sidecar_names(path);
     }
@@ -502,7 +521,9 @@ fn decode(raw: &[u8], datatype: i32, le: bool, slope: f64, inter: f64) -> Vec<f3
     };
     // The standard: slope 0 means no scaling.
     let scale = slope != 0.0 && slope.is_finite() && !(slope == 1.0 && inter == 0.0);
-    vals.into_iter().map(|v| if scale { (v * slope + if inter.is_finite() { inter } else { 0.0 }) as f32 } else { v as f32 }).collect()
+    vals.into_iter()
+        .map(|v| if scale { (v * slope + if inter.is_finite() { inter } else { 0.0 }) as f32 } else { v as f32 })
+        .collect()
 }
 
 /// Label names from NIfTI extensions: Caret/GIFTI-style XML `<Label Key="5" ...>liver</Label>`
@@ -569,7 +590,8 @@ pub fn parse_label_text(text: &str) -> std::collections::BTreeMap<i64, String> {
 /// `seg.nii.gz` -> `seg.json` (or `seg.nii.gz.json`) holding `{"5": "liver", ...}`.
 fn read_sidecar_names(path: &Path) -> std::collections::BTreeMap<i64, String> {
     let s = path.to_string_lossy();
-    let stem = s.strip_suffix(".nii.gz").or_else(|| s.strip_suffix(".nii")).or_else(|| s.strip_suffix(".hdr")).unwrap_or(&s);
+    let stem =
+        s.strip_suffix(".nii.gz").or_else(|| s.strip_suffix(".nii")).or_else(|| s.strip_suffix(".hdr")).unwrap_or(&s);
     for cand in [format!("{stem}.json"), format!("{s}.json")] {
         if let Ok(text) = std::fs::read_to_string(&cand) {
             let names = parse_label_text(&text);
@@ -640,8 +662,9 @@ pub fn encode_nifti1(vol: &Volume, ty: WriteType) -> Vec<u8> {
 
     let mut ext = Vec::new();
     if !vol.label_names.is_empty() {
-        let mut xml =
-            String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?><CaretExtension><VolumeInformation Index=\"0\"><LabelTable>\n");
+        let mut xml = String::from(
+            "<?xml version=\"1.0\" encoding=\"UTF-8\"?><CaretExtension><VolumeInformation Index=\"0\"><LabelTable>\n",
+        );
         for (k, v) in &vol.label_names {
             xml.push_str(&format!("<Label Key=\"{k}\"><![CDATA[{v}]]></Label>\n"));
         }

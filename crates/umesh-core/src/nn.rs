@@ -26,7 +26,11 @@ pub struct PointIndex {
 
 impl std::fmt::Debug for PointIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("PointIndex").field("cell_mm", &self.size).field("dims", &self.dims).field("points", &self.points.len()).finish()
+        f.debug_struct("PointIndex")
+            .field("cell_mm", &self.size)
+            .field("dims", &self.dims)
+            .field("points", &self.points.len())
+            .finish()
     }
 }
 
@@ -34,7 +38,14 @@ impl PointIndex {
     /// The points near a lattice (`shape` cells of `h` from `lattice_origin`): its box grown
     /// by `band` (points beyond cannot be nearest to a node), cells half the band wide. Returns
     /// the number of points bucketed.
-    pub fn fill(&mut self, points: &[Vector3<f64>], lattice_origin: Vector3<f64>, band: f64, shape: [usize; 3], h: f64) -> usize {
+    pub fn fill(
+        &mut self,
+        points: &[Vector3<f64>],
+        lattice_origin: Vector3<f64>,
+        band: f64,
+        shape: [usize; 3],
+        h: f64,
+    ) -> usize {
         let extent = Vector3::new(shape[0] as f64, shape[1] as f64, shape[2] as f64) * h + Vector3::repeat(2.0 * band);
         self.fill_box(points, lattice_origin - Vector3::repeat(band), extent, 0.5 * band)
     }
@@ -42,9 +53,10 @@ impl PointIndex {
     /// Every finite point of `points` in cells of about `cell_mm` over their bounding box.
     pub fn new(points: &[Vector3<f64>], cell_mm: f64) -> Self {
         let finite = points.iter().filter(|p| p.iter().all(|v| v.is_finite()));
-        let (lo, hi) = finite.fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
-            (lo.inf(p), hi.sup(p))
-        });
+        let (lo, hi) = finite
+            .fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
+                (lo.inf(p), hi.sup(p))
+            });
         let mut index = Self::default();
         if lo.x <= hi.x {
             let cell_mm = cell_mm.max(1e-3);
@@ -57,7 +69,13 @@ impl PointIndex {
     /// The points inside the box from `origin` spanning `extent`, in cells of `cell_mm` or, for a
     /// box that would need more than about MAX_BUCKETS of them, larger (the shell search finds
     /// the same nearest point with any cell size). The others are kept aside (`nearest_moved`).
-    pub fn fill_box(&mut self, points: &[Vector3<f64>], origin: Vector3<f64>, extent: Vector3<f64>, cell_mm: f64) -> usize {
+    pub fn fill_box(
+        &mut self,
+        points: &[Vector3<f64>],
+        origin: Vector3<f64>,
+        extent: Vector3<f64>,
+        cell_mm: f64,
+    ) -> usize {
         self.origin = origin;
         self.size = cell_mm.max((extent.x * extent.y * extent.z / MAX_BUCKETS).cbrt());
         self.dims = [0, 1, 2].map(|a| ((extent[a] / self.size).ceil() as usize).max(1));
@@ -119,7 +137,14 @@ impl PointIndex {
     /// `nearest` on buckets filled with `now`, without the fill. The nearest is now within
     /// `reach`, so it was within `reach + moved` when filled: only the buckets that far are
     /// looked at.
-    pub fn nearest_moved(&self, x: &Vector3<f64>, now: &[Vector3<f64>], reach: f64, moved: f64, band: f64) -> Option<usize> {
+    pub fn nearest_moved(
+        &self,
+        x: &Vector3<f64>,
+        now: &[Vector3<f64>],
+        reach: f64,
+        moved: f64,
+        band: f64,
+    ) -> Option<usize> {
         // A micrometre's slack for the rounding of the positions keeps every candidate.
         let r = reach.min(band) + moved + 1e-3;
         if !(self.size > 0.0 && r.is_finite() && x.iter().all(|v| v.is_finite())) {
@@ -187,7 +212,13 @@ impl PointIndex {
         let reach = (band / self.size).ceil().clamp(1.0, 64.0) as i64;
         let mut best: Option<(f64, usize, Vector3<f64>)> = None;
         let visit = |i: i64, j: i64, k: i64, best: &mut Option<(f64, usize, Vector3<f64>)>| {
-            if i < 0 || j < 0 || k < 0 || i >= self.dims[0] as i64 || j >= self.dims[1] as i64 || k >= self.dims[2] as i64 {
+            if i < 0
+                || j < 0
+                || k < 0
+                || i >= self.dims[0] as i64
+                || j >= self.dims[1] as i64
+                || k >= self.dims[2] as i64
+            {
                 return;
             }
             let b = (i as usize * self.dims[1] + j as usize) * self.dims[2] + k as usize;
@@ -264,16 +295,18 @@ mod tests {
                     let p = points[(r(1.0) * points.len() as f64) as usize % points.len()];
                     p + Vector3::new(r(band) - 0.5 * band, r(band) - 0.5 * band, r(band) - 0.5 * band) * 0.5
                 };
-                let brute =
-                    points.iter().enumerate().map(|(i, p)| ((p - q).norm_squared(), i)).filter(|(d2, _)| *d2 <= band * band).min_by(
-                        |a, b| {
-                            a.0.total_cmp(&b.0).then_with(|| {
-                                (points[a.1].x, points[a.1].y, points[a.1].z, a.1)
-                                    .partial_cmp(&(points[b.1].x, points[b.1].y, points[b.1].z, b.1))
-                                    .unwrap()
-                            })
-                        },
-                    );
+                let brute = points
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| ((p - q).norm_squared(), i))
+                    .filter(|(d2, _)| *d2 <= band * band)
+                    .min_by(|a, b| {
+                        a.0.total_cmp(&b.0).then_with(|| {
+                            (points[a.1].x, points[a.1].y, points[a.1].z, a.1)
+                                .partial_cmp(&(points[b.1].x, points[b.1].y, points[b.1].z, b.1))
+                                .unwrap()
+                        })
+                    });
                 let got = b.nearest(&q, band).map(|(i, _)| i);
                 assert_eq!(got, brute.map(|(_, i)| i), "band {band} mm, query {q:?}");
             }
@@ -288,8 +321,10 @@ mod tests {
         let band = 10.0;
         // Moves small and large against the band, some points crossing the box's side.
         for moved in [0.3, 2.0, 8.0] {
-            let mut now: Vec<Vector3<f64>> =
-                filled.iter().map(|p| p + Vector3::new(r(2.0) - 1.0, r(2.0) - 1.0, r(2.0) - 1.0).normalize() * r(moved)).collect();
+            let mut now: Vec<Vector3<f64>> = filled
+                .iter()
+                .map(|p| p + Vector3::new(r(2.0) - 1.0, r(2.0) - 1.0, r(2.0) - 1.0).normalize() * r(moved))
+                .collect();
             // The duplicates moved alike (ties by index after the move).
             for i in 0..50 {
                 now[4000 + i] = now[i];
@@ -306,7 +341,8 @@ mod tests {
                 let q = if k % 2 == 0 {
                     Vector3::new(r(90.0) - 5.0, r(90.0) - 5.0, r(90.0) - 5.0)
                 } else {
-                    now[(r(1.0) * now.len() as f64) as usize % now.len()] + Vector3::new(r(4.0) - 2.0, r(4.0) - 2.0, r(4.0) - 2.0)
+                    now[(r(1.0) * now.len() as f64) as usize % now.len()]
+                        + Vector3::new(r(4.0) - 2.0, r(4.0) - 2.0, r(4.0) - 2.0)
                 };
                 // A known point's distance bounds the nearest's, as the previous match does.
                 let known = now[(r(1.0) * now.len() as f64) as usize % now.len()];

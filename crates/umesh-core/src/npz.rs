@@ -135,7 +135,8 @@ impl Array {
             }
             v => return Err(crate::Invalid(format!("unsupported NPY version {v}"))),
         };
-        let header = std::str::from_utf8(bytes.get(hstart..hstart + hlen).ok_or("truncated header")?).map_err(|_| "header is not text")?;
+        let header = std::str::from_utf8(bytes.get(hstart..hstart + hlen).ok_or("truncated header")?)
+            .map_err(|_| "header is not text")?;
         let field = |key: &str| -> Result<&str, crate::Invalid> {
             let i = header.find(&format!("'{key}'")).ok_or(format!("header lacks '{key}'"))?;
             Ok(header[i + key.len() + 2..].trim_start().trim_start_matches(':').trim_start())
@@ -245,8 +246,10 @@ pub fn encode_npz(arrays: &[(&str, Array)]) -> std::io::Result<Vec<u8>> {
 pub fn encode_npz_with(arrays: &[(&str, Array)], compressed: bool) -> std::io::Result<Vec<u8>> {
     let mut zw = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
     let method = if compressed { zip::CompressionMethod::Deflated } else { zip::CompressionMethod::Stored };
-    let opts =
-        zip::write::SimpleFileOptions::default().compression_method(method).last_modified_time(zip::DateTime::default()).large_file(false);
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(method)
+        .last_modified_time(zip::DateTime::default())
+        .large_file(false);
     for (name, arr) in arrays {
         let npy = arr.to_npy();
         let opts = if npy.len() as u64 >= u32::MAX as u64 { opts.large_file(true) } else { opts };

@@ -72,8 +72,14 @@ impl ObservationSettings {
         if !(self.band_mm.is_finite() && self.band_mm > 0.0 && self.band_mm <= 200.0) {
             return Err(crate::Invalid(format!("observation band {} mm: above 0 and at most 200 mm", self.band_mm)));
         }
-        if !(self.rest_density_per_mm2.is_finite() && self.rest_density_per_mm2 > 0.0 && self.rest_density_per_mm2 <= 10.0) {
-            return Err(crate::Invalid(format!("rest sampling density {} per mm^2: above 0 and at most 10", self.rest_density_per_mm2)));
+        if !(self.rest_density_per_mm2.is_finite()
+            && self.rest_density_per_mm2 > 0.0
+            && self.rest_density_per_mm2 <= 10.0)
+        {
+            return Err(crate::Invalid(format!(
+                "rest sampling density {} per mm^2: above 0 and at most 10",
+                self.rest_density_per_mm2
+            )));
         }
         Ok(())
     }
@@ -106,12 +112,19 @@ pub struct ObservationStats {
 }
 
 impl Observer {
-    pub fn new(grid: &ImmersedGrid, rest_surface: &TriMesh, settings: ObservationSettings) -> Result<Self, crate::Invalid> {
+    pub fn new(
+        grid: &ImmersedGrid,
+        rest_surface: &TriMesh,
+        settings: ObservationSettings,
+    ) -> Result<Self, crate::Invalid> {
         if !(settings.band_mm > 0.0 && settings.band_mm.is_finite()) {
             return Err(crate::Invalid(format!("observation band {} mm: must be positive", settings.band_mm)));
         }
         if !(settings.rest_density_per_mm2 > 0.0 && settings.rest_density_per_mm2.is_finite()) {
-            return Err(crate::Invalid(format!("rest sampling density {} per mm^2: must be positive", settings.rest_density_per_mm2)));
+            return Err(crate::Invalid(format!(
+                "rest sampling density {} per mm^2: must be positive",
+                settings.rest_density_per_mm2
+            )));
         }
         let shape = grid.padded_shape();
         let cells = shape.iter().product::<usize>();
@@ -247,8 +260,9 @@ impl Observer {
         let t = Vector3::new(l.x - fi, l.y - fj, l.z - fk);
         for a in 0..8 {
             let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
-            let w =
-                (if di == 1 { t.x } else { 1.0 - t.x }) * (if dj == 1 { t.y } else { 1.0 - t.y }) * (if dk == 1 { t.z } else { 1.0 - t.z });
+            let w = (if di == 1 { t.x } else { 1.0 - t.x })
+                * (if dj == 1 { t.y } else { 1.0 - t.y })
+                * (if dk == 1 { t.z } else { 1.0 - t.z });
             let d = self.dense(i + di, j + dj, k + dk);
             let v = value(self.node_position(i + di, j + dj, k + dk));
             self.acc[d] += v * w;
@@ -341,7 +355,8 @@ impl Default for ViewSettings {
 
 impl ViewSettings {
     pub fn validate(&self) -> Result<(), crate::Invalid> {
-        let finite = [self.jitter_mm, self.jitter_deg, self.min_fraction, self.max_fraction, self.noise_mm, self.dropout];
+        let finite =
+            [self.jitter_mm, self.jitter_deg, self.min_fraction, self.max_fraction, self.noise_mm, self.dropout];
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
             return Err(crate::Invalid(format!("camera view settings must be finite and non-negative: {self:?}")));
         }
@@ -393,8 +408,11 @@ pub fn simulated_view(
     let n_holes = (rng.next_u64() % (settings.max_holes as u64 + 1)) as usize;
     let n_tools = (rng.next_u64() % (settings.max_instruments as u64 + 1)) as usize;
     let pick = |rng: &mut crate::rng::SplitMix64| seen[(rng.next_u64() % seen.len().max(1) as u64) as usize].0;
-    let holes: Vec<(Vector3<f64>, f64)> =
-        if seen.is_empty() { Vec::new() } else { (0..n_holes).map(|_| (pick(rng), 8.0 + 12.0 * rng.next_f64())).collect() };
+    let holes: Vec<(Vector3<f64>, f64)> = if seen.is_empty() {
+        Vec::new()
+    } else {
+        (0..n_holes).map(|_| (pick(rng), 8.0 + 12.0 * rng.next_f64())).collect()
+    };
     // An instrument: a shaft from beside the camera to a seen point (its tip on the organ).
     let tools: Vec<(Vector3<f64>, Vector3<f64>)> = if seen.is_empty() {
         Vec::new()
@@ -429,7 +447,8 @@ fn segment_line_distance(a: &Vector3<f64>, b: &Vector3<f64>, e: &Vector3<f64>, p
     let w = a - e;
     let (aa, bb, cc, dd, ee) = (u.dot(&u), u.dot(&v), v.dot(&v), u.dot(&w), v.dot(&w));
     let den = aa * cc - bb * bb;
-    let (mut s, mut t) = if den > 1e-12 { ((bb * ee - cc * dd) / den, (aa * ee - bb * dd) / den) } else { (0.0, ee / cc.max(1e-12)) };
+    let (mut s, mut t) =
+        if den > 1e-12 { ((bb * ee - cc * dd) / den, (aa * ee - bb * dd) / den) } else { (0.0, ee / cc.max(1e-12)) };
     s = s.clamp(0.0, 1.0);
     t = t.clamp(0.0, 1.0);
     ((a + u * s) - (e + v * t)).norm()

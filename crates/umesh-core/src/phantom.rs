@@ -102,8 +102,11 @@ pub fn generate(settings: &PhantomSettings) -> Volume {
     }
     let mut rng = SplitMix64(settings.seed);
     let tree = portal_tree(&mut rng);
-    let tumours =
-        [(Vector3::new(55.0, 10.0, 12.0), 14.0), (Vector3::new(-48.0, 18.0, 16.0), 10.0), (Vector3::new(20.0, 28.0, -22.0), 12.0)];
+    let tumours = [
+        (Vector3::new(55.0, 10.0, 12.0), 14.0),
+        (Vector3::new(-48.0, 18.0, 16.0), 10.0),
+        (Vector3::new(20.0, 28.0, -22.0), 12.0),
+    ];
     let ivc = Segment { a: Vector3::new(12.0, -58.0, -90.0), b: Vector3::new(12.0, -58.0, 90.0), radius_mm: 11.0 };
     let [nx, ny, _] = dims;
     let mut vol = Volume::new(dims, world_from_voxel);

@@ -56,7 +56,10 @@ impl Segmentation {
             }
         }
         if self.organ_labels.is_empty() {
-            return Err(SegmentationError::Invalid { path: self.source.clone(), reason: "no organ label chosen".into() });
+            return Err(SegmentationError::Invalid {
+                path: self.source.clone(),
+                reason: "no organ label chosen".into(),
+            });
         }
         // An organ made only of labels named as vessels or tumours (`--organ-label 63`, the vena
         // cava) would run a whole job on the wrong tissue: said before any stage runs.
@@ -100,7 +103,12 @@ pub fn load_nifti(
     with_labels(path, read_volume(path, options)?, organ_labels.to_vec(), structure_labels.to_vec())
 }
 
-fn with_labels(path: &Path, volume: Volume, organ_labels: Vec<i64>, structure_labels: Vec<i64>) -> Result<Segmentation, SegmentationError> {
+fn with_labels(
+    path: &Path,
+    volume: Volume,
+    organ_labels: Vec<i64>,
+    structure_labels: Vec<i64>,
+) -> Result<Segmentation, SegmentationError> {
     let seg = Segmentation { source: path.into(), volume, organ_labels, structure_labels };
     seg.validate()?;
     Ok(seg)
@@ -116,8 +124,11 @@ pub fn load_nifti_labels(
 ) -> Result<Segmentation, SegmentationError> {
     let volume = read_volume(path, options)?;
     let by_name = labels_by_name(&volume);
-    let organ =
-        if !organ_labels.is_empty() { organ_labels.to_vec() } else { by_name.as_ref().map(|b| b.0.clone()).unwrap_or_else(|| vec![1]) };
+    let organ = if !organ_labels.is_empty() {
+        organ_labels.to_vec()
+    } else {
+        by_name.as_ref().map(|b| b.0.clone()).unwrap_or_else(|| vec![1])
+    };
     let structures = if !structure_labels.is_empty() || !organ_labels.is_empty() {
         structure_labels.to_vec()
     } else {
@@ -181,7 +192,12 @@ pub fn bundled_phantom(bytes: &[u8]) -> Result<Segmentation, SegmentationError> 
 
 /// Closed meshes (organ first, then internal structures) voxelised into a label volume:
 /// organ = 1, structures = 2, 3, ... `scale_to_mm` converts the files' units.
-pub fn load_meshes(organ: &Path, structures: &[PathBuf], spacing_mm: f64, scale_to_mm: f64) -> Result<Segmentation, SegmentationError> {
+pub fn load_meshes(
+    organ: &Path,
+    structures: &[PathBuf],
+    spacing_mm: f64,
+    scale_to_mm: f64,
+) -> Result<Segmentation, SegmentationError> {
     let read = |p: &Path| -> Result<TriMesh, SegmentationError> {
         let mut m = read_closed_mesh(p)?;
         for v in &mut m.positions {
@@ -191,7 +207,9 @@ pub fn load_meshes(organ: &Path, structures: &[PathBuf], spacing_mm: f64, scale_
     };
     let organ_mesh = read(organ)?;
     let invalid = |reason: String| SegmentationError::Invalid { path: organ.into(), reason };
-    let mask = organ_mesh.voxelize(spacing_mm).ok_or_else(|| invalid(format!("the mesh is too large to voxelise at {spacing_mm} mm")))?;
+    let mask = organ_mesh
+        .voxelize(spacing_mm)
+        .ok_or_else(|| invalid(format!("the mesh is too large to voxelise at {spacing_mm} mm")))?;
     if mask.count() == 0 {
         return Err(SegmentationError::EmptyMask { path: organ.into() });
     }
@@ -266,12 +284,21 @@ pub enum Role {
 pub fn labels_by_name(volume: &Volume) -> Option<(Vec<i64>, Vec<i64>)> {
     let counts = volume.label_counts();
     let present = |l: &i64| counts.contains_key(l);
-    let organ: Vec<i64> =
-        volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Organ)).map(|x| *x.0).collect();
+    let organ: Vec<i64> = volume
+        .label_names
+        .iter()
+        .filter(|(l, n)| present(l) && name_role(n) == Some(Role::Organ))
+        .map(|x| *x.0)
+        .collect();
     if organ.is_empty() {
         return None;
     }
-    let structures = volume.label_names.iter().filter(|(l, n)| present(l) && name_role(n) == Some(Role::Structure)).map(|x| *x.0).collect();
+    let structures = volume
+        .label_names
+        .iter()
+        .filter(|(l, n)| present(l) && name_role(n) == Some(Role::Structure))
+        .map(|x| *x.0)
+        .collect();
     Some((organ, structures))
 }
 
@@ -340,7 +367,10 @@ pub struct MaskFolder {
 /// mask with voxels but none on the organ's lattice is an error. Structures enclosed by the
 /// organ (most voxels around them are organ) become part of it, as tumours and vessels in the
 /// phantom; anchors and other structures never take voxels from the organ.
-pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segmentation, AssemblyNotes), SegmentationError> {
+pub fn assemble_masks(
+    files: &[MaskFile],
+    options: &ReadOptions,
+) -> Result<(Segmentation, AssemblyNotes), SegmentationError> {
     let organ_file = files
         .iter()
         .find(|f| f.role == Role::Organ)
@@ -364,7 +394,11 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
     let to_index = volume.world_from_voxel;
     for (label, f) in (2i64..).zip(files.iter().filter(|f| f.role != Role::Organ)) {
         let m = read_volume(&f.path, options)?;
-        let mask = Mask { dims: m.dims, data: m.data.iter().map(|v| v.round() != 0.0).collect(), world_from_voxel: m.world_from_voxel };
+        let mask = Mask {
+            dims: m.dims,
+            data: m.data.iter().map(|v| v.round() != 0.0).collect(),
+            world_from_voxel: m.world_from_voxel,
+        };
         if mask.count() == 0 {
             return Err(SegmentationError::EmptyMask { path: f.path.clone() });
         }
@@ -409,7 +443,11 @@ pub fn assemble_masks(files: &[MaskFile], options: &ReadOptions) -> Result<(Segm
         if count == 0 {
             return Err(SegmentationError::Invalid {
                 path: f.path.clone(),
-                reason: format!("its {} voxels do not overlap the lattice of {}", mask.count(), organ_file.path.display()),
+                reason: format!(
+                    "its {} voxels do not overlap the lattice of {}",
+                    mask.count(),
+                    organ_file.path.display()
+                ),
             });
         }
         if !same {

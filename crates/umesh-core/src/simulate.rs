@@ -105,14 +105,22 @@ pub fn calibrated_random_forces(
         return Err(SimulateError::Boundary(format!("target displacement {target_mm} mm: must lie in (0, 1000]")));
     }
     let force_settings = ForceSettings { probes, target_displacement_mm: target_mm, ..ForceSettings::default() };
-    let drawn = crate::loads::visible_random_forces(surface, grid, &settings.material, &force_settings, &Default::default(), seed)
-        .map_err(|e| SimulateError::Boundary(e.into()))?;
+    let drawn = crate::loads::visible_random_forces(
+        surface,
+        grid,
+        &settings.material,
+        &force_settings,
+        &Default::default(),
+        seed,
+    )
+    .map_err(|e| SimulateError::Boundary(e.into()))?;
     let mut forces = crate::loads::spread_forces(surface, &drawn, force_settings.patch_radius_mm);
     let mut trial = bc.clone();
     apply_forces(grid, &mut trial, &forces).map_err(|e| SimulateError::Boundary(e.into()))?;
     let linear = SimulationSettings { method: SolveMethod::Linear, ..settings.clone() };
     let lin = solve_bc(grid, &trial, &linear, &Progress::none(), cancel)?;
     let mean = force_settings.mean_over.mean_mm(&lin.displacement_mm, &bc.fixed);
-    let scale = crate::loads::scale_forces(&mut forces, mean, target_mm).map_err(|e| SimulateError::Boundary(e.into()))?;
+    let scale =
+        crate::loads::scale_forces(&mut forces, mean, target_mm).map_err(|e| SimulateError::Boundary(e.into()))?;
     Ok((forces, scale))
 }

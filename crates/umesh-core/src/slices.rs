@@ -23,7 +23,10 @@ pub enum SliceError {
 
 /// Read a scan to show under an organ and check it: at least 2 voxels along each axis, mostly
 /// finite values, and, given the organ's world bounds (mm), lying where the organ is.
-pub fn read_scan(path: &std::path::Path, organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>) -> Result<Volume, SliceError> {
+pub fn read_scan(
+    path: &std::path::Path,
+    organ_bounds: Option<(Vector3<f64>, Vector3<f64>)>,
+) -> Result<Volume, SliceError> {
     let volume = crate::nifti_io::read_volume(path, &Default::default())?;
     let bad = |reason: String| SliceError::BadScan { path: path.to_path_buf(), reason };
     if volume.dims.iter().any(|&d| d < 2) {
@@ -31,7 +34,11 @@ pub fn read_scan(path: &std::path::Path, organ_bounds: Option<(Vector3<f64>, Vec
     }
     let finite = volume.data.iter().filter(|v| v.is_finite()).count();
     if finite * 2 < volume.data.len() {
-        return Err(bad(format!("{} of {} voxels are not finite numbers", volume.data.len() - finite, volume.data.len())));
+        return Err(bad(format!(
+            "{} of {} voxels are not finite numbers",
+            volume.data.len() - finite,
+            volume.data.len()
+        )));
     }
     let (lo, hi) = world_bounds(&volume);
     if let Some((olo, ohi)) = organ_bounds
@@ -205,7 +212,13 @@ pub fn world_bounds(vol: &Volume) -> (Vector3<f64>, Vector3<f64>) {
 /// The slice of `vol` at `position_mm` along the axis normal to `axis` (clamped into the volume),
 /// windowed by `window`, at half the finest voxel spacing and at most `max_side_px` pixels on its
 /// longer side.
-pub fn slice(vol: &Volume, axis: SliceAxis, position_mm: f64, window: Window, max_side_px: usize) -> Result<Slice, SliceError> {
+pub fn slice(
+    vol: &Volume,
+    axis: SliceAxis,
+    position_mm: f64,
+    window: Window,
+    max_side_px: usize,
+) -> Result<Slice, SliceError> {
     if !position_mm.is_finite() {
         return Err(SliceError::NotFinite(position_mm));
     }
@@ -242,10 +255,15 @@ pub fn slice(vol: &Volume, axis: SliceAxis, position_mm: f64, window: Window, ma
         }
         let c = |x: f64, d: usize| x.clamp(0.0, (d - 1) as f64);
         let (x, y, z) = (c(q.x, nx), c(q.y, ny), c(q.z, nz));
-        let (i, j, k) =
-            ((x as usize).min(nx.saturating_sub(2)), (y as usize).min(ny.saturating_sub(2)), (z as usize).min(nz.saturating_sub(2)));
+        let (i, j, k) = (
+            (x as usize).min(nx.saturating_sub(2)),
+            (y as usize).min(ny.saturating_sub(2)),
+            (z as usize).min(nz.saturating_sub(2)),
+        );
         let (fx, fy, fz) = ((x - i as f64) as f32, (y - j as f64) as f32, (z - k as f64) as f32);
-        let at = |a: usize, b: usize, c: usize| vol.data[vol.index((i + a).min(nx - 1), (j + b).min(ny - 1), (k + c).min(nz - 1))];
+        let at = |a: usize, b: usize, c: usize| {
+            vol.data[vol.index((i + a).min(nx - 1), (j + b).min(ny - 1), (k + c).min(nz - 1))]
+        };
         let lx = |b: usize, c: usize| at(0, b, c) * (1.0 - fx) + at(1, b, c) * fx;
         let ly = |c: usize| lx(0, c) * (1.0 - fy) + lx(1, c) * fy;
         Some(ly(0) * (1.0 - fz) + ly(1) * fz)
@@ -337,8 +355,11 @@ mod tests {
 
     /// The box [0, size] as 12 triangles.
     fn box_mesh(size: Vector3<f64>) -> TriMesh {
-        let positions =
-            (0..8).map(|c| Vector3::new(size.x * (c & 1) as f64, size.y * ((c >> 1) & 1) as f64, size.z * ((c >> 2) & 1) as f64)).collect();
+        let positions = (0..8)
+            .map(|c| {
+                Vector3::new(size.x * (c & 1) as f64, size.y * ((c >> 1) & 1) as f64, size.z * ((c >> 2) & 1) as f64)
+            })
+            .collect();
         let quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
         let triangles = quads.iter().flat_map(|q: &[u32; 4]| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
         TriMesh { positions, triangles }
@@ -360,7 +381,10 @@ mod tests {
     fn bad_positions_and_windows_are_errors_and_outside_pixels_are_transparent() {
         let v = ramp();
         assert!(matches!(slice(&v, SliceAxis::Axial, f64::NAN, Window::ABDOMEN, 256), Err(SliceError::NotFinite(_))));
-        assert!(matches!(slice(&v, SliceAxis::Axial, 0.0, Window { level: 0.0, width: 0.0 }, 256), Err(SliceError::BadWindow(_))));
+        assert!(matches!(
+            slice(&v, SliceAxis::Axial, 0.0, Window { level: 0.0, width: 0.0 }, 256),
+            Err(SliceError::BadWindow(_))
+        ));
         // An oblique volume (rotated 30° about z): the axis-aligned slice has empty corners.
         let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
         let mut r = Matrix4::identity();

@@ -127,8 +127,16 @@ pub fn extract_surface(mask: &Mask, settings: &SurfaceSettings) -> TriMesh {
                     let outward = centroid(&outside) - centroid(&inside);
                     let mut tris: Vec<[u32; 3]> = Vec::new();
                     match (inside.len(), outside.len()) {
-                        (1, 3) => tris.push([vert(inside[0], outside[0]), vert(inside[0], outside[1]), vert(inside[0], outside[2])]),
-                        (3, 1) => tris.push([vert(inside[0], outside[0]), vert(inside[1], outside[0]), vert(inside[2], outside[0])]),
+                        (1, 3) => tris.push([
+                            vert(inside[0], outside[0]),
+                            vert(inside[0], outside[1]),
+                            vert(inside[0], outside[2]),
+                        ]),
+                        (3, 1) => tris.push([
+                            vert(inside[0], outside[0]),
+                            vert(inside[1], outside[0]),
+                            vert(inside[2], outside[0]),
+                        ]),
                         _ => {
                             let a = vert(inside[0], outside[0]);
                             let b = vert(inside[0], outside[1]);

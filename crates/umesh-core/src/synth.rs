@@ -212,7 +212,13 @@ fn instrument_sweeps(n: usize, k: &Intrinsics, rng: &mut SplitMix64) -> Vec<(Sha
 
 /// The camera pose at sequence position `t` in [0, 1]: moved sideways by `t` times the
 /// offset and turned by `t` times the angle about `axis` (camera frame).
-fn moved_pose(pose: &Matrix4<f64>, offset_cam_mm: &Vector3<f64>, axis_cam: &Vector3<f64>, angle_rad: f64, t: f64) -> Matrix4<f64> {
+fn moved_pose(
+    pose: &Matrix4<f64>,
+    offset_cam_mm: &Vector3<f64>,
+    axis_cam: &Vector3<f64>,
+    angle_rad: f64,
+    t: f64,
+) -> Matrix4<f64> {
     let r = nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(*axis_cam), angle_rad * t);
     let mut local = Matrix4::identity();
     local.fixed_view_mut::<3, 3>(0, 0).copy_from(r.matrix());
@@ -336,7 +342,10 @@ pub fn run_rgbd_synth(
         return Err(bad(format!("{} frames per second: between 0.001 and 10000", settings.fps)));
     }
     if !finite_in(settings.hole_radius_px, 0.0, 1e4) || settings.holes > 10_000 {
-        return Err(bad(format!("{} holes of {} px: at most 10000 holes of 0-10000 px", settings.holes, settings.hole_radius_px)));
+        return Err(bad(format!(
+            "{} holes of {} px: at most 10000 holes of 0-10000 px",
+            settings.holes, settings.hole_radius_px
+        )));
     }
     if !(finite_in(settings.load_scale, 0.0, 100.0) && settings.load_scale > 0.0) {
         return Err(bad(format!("load scale {}: above 0 and at most 100", settings.load_scale)));
@@ -347,12 +356,19 @@ pub fn run_rgbd_synth(
             settings.camera_motion_mm, settings.camera_motion_deg
         )));
     }
-    if settings.loads != LoadFamily::Pressing && config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+    if settings.loads != LoadFamily::Pressing && config.forces.calibration == crate::loads::LoadCalibration::EnergyScale
+    {
         // Checked before the grid is built: only pressing has an uncalibrated scale.
-        return Err(bad(format!("--loads {}: needs a dataset with mean-displacement calibration", settings.loads.name())));
+        return Err(bad(format!(
+            "--loads {}: needs a dataset with mean-displacement calibration",
+            settings.loads.name()
+        )));
     }
     if !finite_in(settings.first_load, 0.0, 1.0) {
-        return Err(bad(format!("first-frame load {}: between 0 and 1 (a share of the final load)", settings.first_load)));
+        return Err(bad(format!(
+            "first-frame load {}: between 0 and 1 (a share of the final load)",
+            settings.first_load
+        )));
     }
     // Markers measure the TRE: none gives a recording whose every figure is empty; each is
     // written to the ground truth of every frame.
@@ -411,13 +427,23 @@ pub fn run_rgbd_synth(
                 crate::loads::family_points(settings.loads, &config.forces),
                 &mut rng,
             );
-            let mut f = crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
+            let mut f = crate::loads::family_forces(
+                settings.loads,
+                &pts,
+                &ctx.grid,
+                &config.material,
+                &config.forces,
+                &mut rng,
+            );
             let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-            let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+            let mut s0 =
+                FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
             let target = config.forces.target_displacement_mm * load_scale * settings.loads.target_factor();
-            ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads).map_err(|e| bad(format!("the recording's load: {e}")))?;
+            ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads)
+                .map_err(|e| bad(format!("the recording's load: {e}")))?;
             let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
-            let sol = r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+            let sol =
+                r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
             reached(&sol, r.target_mm)?;
             r.forces
         } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
@@ -426,7 +452,8 @@ pub fn run_rgbd_synth(
             f
         } else {
             let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-            let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+            let mut s0 =
+                FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
             let r = ctx.solve_sample(&mut s0, config, index, load_scale, 0.5, cancel);
             let sol = r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
             reached(&sol, r.target_mm)?;
@@ -458,8 +485,12 @@ pub fn run_rgbd_synth(
     // The truth is solved with a larger budget than the dataset's (a frame must not be
     // dropped), but a bounded one: a truth collapsing under its load (a softer material than
     // the loads were calibrated on) ran over 6 minutes a frame; it now falls to the bisection.
-    let truth_solver =
-        SolverSettings { max_total_iterations: Some(TRUTH_ITERATIONS), max_halvings: 8, reject_indefinite: false, ..config.solver.clone() };
+    let truth_solver = SolverSettings {
+        max_total_iterations: Some(TRUTH_ITERATIONS),
+        max_halvings: 8,
+        reject_indefinite: false,
+        ..config.solver.clone()
+    };
     let material = settings.material.unwrap_or(config.material);
     let mut solver = FeSolver::new(grid, material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
     let fixed_count = fixed.iter().filter(|&&f| f).count();
@@ -476,8 +507,11 @@ pub fn run_rgbd_synth(
     };
     let mut side = unit(&mut motion_rng);
     side.z = 0.0;
-    let offset_cam =
-        if side.norm() > 1e-6 { side.normalize() * settings.camera_motion_mm } else { Vector3::x() * settings.camera_motion_mm };
+    let offset_cam = if side.norm() > 1e-6 {
+        side.normalize() * settings.camera_motion_mm
+    } else {
+        Vector3::x() * settings.camera_motion_mm
+    };
     let axis_cam = unit(&mut motion_rng);
     let sweeps = instrument_sweeps(settings.instruments, &k, &mut motion_rng);
     let moving = settings.camera_motion_mm > 0.0 || settings.camera_motion_deg > 0.0;
@@ -555,7 +589,10 @@ pub fn run_rgbd_synth(
         let shafts: Vec<Shaft> = sweeps
             .iter()
             .map(|(a, b)| Shaft {
-                tip_px: [a.tip_px[0] + (b.tip_px[0] - a.tip_px[0]) * ramp, a.tip_px[1] + (b.tip_px[1] - a.tip_px[1]) * ramp],
+                tip_px: [
+                    a.tip_px[0] + (b.tip_px[0] - a.tip_px[0]) * ramp,
+                    a.tip_px[1] + (b.tip_px[1] - a.tip_px[1]) * ramp,
+                ],
                 ..*a
             })
             .collect();
@@ -563,8 +600,10 @@ pub fn run_rgbd_synth(
         let m: Vec<[f64; 3]> = markers
             .iter()
             .map(|p| {
-                let d: Vector3<f64> =
-                    grid.embed(p).map(|e| e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum()).unwrap_or_default();
+                let d: Vector3<f64> = grid
+                    .embed(p)
+                    .map(|e| e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum())
+                    .unwrap_or_default();
                 disp.push(d.norm());
                 [p.x + d.x, p.y + d.y, p.z + d.z]
             })
@@ -618,9 +657,16 @@ pub fn run_rgbd_synth(
 
 /// A frame as a camera's sparse cloud: `count` organ pixels with depth drawn at random
 /// (fewer when the organ shows fewer), back-projected; the colour image beside it.
-fn write_cloud_frame(dir: &Path, stem: &str, frame: &Frame, count: usize, rng: &mut SplitMix64) -> Result<(), RgbdError> {
-    let mut organ: Vec<usize> =
-        (0..frame.depth.depth_mm.len()).filter(|&i| frame.mask.as_ref().is_none_or(|m| m[i]) && frame.depth.depth_mm[i] > 0.0).collect();
+fn write_cloud_frame(
+    dir: &Path,
+    stem: &str,
+    frame: &Frame,
+    count: usize,
+    rng: &mut SplitMix64,
+) -> Result<(), RgbdError> {
+    let mut organ: Vec<usize> = (0..frame.depth.depth_mm.len())
+        .filter(|&i| frame.mask.as_ref().is_none_or(|m| m[i]) && frame.depth.depth_mm[i] > 0.0)
+        .collect();
     // A partial Fisher-Yates shuffle: the first `count` are a uniform draw.
     let n = count.min(organ.len());
     for i in 0..n {
@@ -628,8 +674,10 @@ fn write_cloud_frame(dir: &Path, stem: &str, frame: &Frame, count: usize, rng: &
         organ.swap(i, j);
     }
     let k = &frame.intrinsics;
-    let points: Vec<Vector3<f64>> =
-        organ[..n].iter().map(|&i| k.unproject((i % k.width) as f64, (i / k.width) as f64, frame.depth.depth_mm[i] as f64)).collect();
+    let points: Vec<Vector3<f64>> = organ[..n]
+        .iter()
+        .map(|&i| k.unproject((i % k.width) as f64, (i / k.width) as f64, frame.depth.depth_mm[i] as f64))
+        .collect();
     let p = dir.join("points").join(format!("{stem}.ply"));
     crate::mesh_io::write_point_cloud(&p, &points, "umesh synthetic cloud, camera frame millimetres")
         .map_err(|e| crate::rgbd::invalid(&p, e.to_string()))?;

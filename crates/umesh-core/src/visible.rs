@@ -123,7 +123,9 @@ pub fn visible_surface(mesh: &TriMesh, settings: &VisibilitySettings) -> Result<
     let mut depth = vec![f64::INFINITY; res * res];
     let proj: Vec<Option<(f64, f64, f64)>> = mesh.positions.iter().map(project).collect();
     for t in &mesh.triangles {
-        let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else { continue };
+        let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else {
+            continue;
+        };
         let x0 = a.0.min(b.0).min(c.0).floor().max(0.0) as usize;
         let x1 = (a.0.max(b.0).max(c.0).ceil() as usize).min(res - 1);
         let y0 = a.1.min(b.1).min(c.1).floor().max(0.0) as usize;
@@ -193,7 +195,12 @@ impl VisibilitySettings {
 }
 
 /// `n` points uniformly distributed by area over the visible triangles, with their normals.
-pub fn sample_points(mesh: &TriMesh, visible: &[bool], n: usize, rng: &mut crate::rng::SplitMix64) -> Vec<(Vector3<f64>, Vector3<f64>)> {
+pub fn sample_points(
+    mesh: &TriMesh,
+    visible: &[bool],
+    n: usize,
+    rng: &mut crate::rng::SplitMix64,
+) -> Vec<(Vector3<f64>, Vector3<f64>)> {
     let mut cum = Vec::new();
     let mut ids = Vec::new();
     let mut acc = 0.0;

@@ -137,7 +137,10 @@ impl Mask {
 
     /// An inside test in world coordinates (nearest voxel).
     pub fn world_sampler(&self) -> MaskSampler<'_> {
-        MaskSampler { mask: self, voxel_from_world: self.world_from_voxel.try_inverse().unwrap_or_else(Matrix4::identity) }
+        MaskSampler {
+            mask: self,
+            voxel_from_world: self.world_from_voxel.try_inverse().unwrap_or_else(Matrix4::identity),
+        }
     }
 }
 

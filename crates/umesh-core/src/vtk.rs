@@ -33,7 +33,8 @@ fn write_data(s: &mut String, d: &VtkData) {
             }
         }
         VtkData::Vectors(name, v) => {
-            let _ = writeln!(s, "<DataArray type=\"Float64\" Name=\"{name}\" NumberOfComponents=\"3\" format=\"ascii\">");
+            let _ =
+                writeln!(s, "<DataArray type=\"Float64\" Name=\"{name}\" NumberOfComponents=\"3\" format=\"ascii\">");
             for x in v {
                 let _ = write!(s, "{} {} {} ", x.x, x.y, x.z);
             }
@@ -51,7 +52,9 @@ impl Vtu {
         for p in &self.points {
             let _ = write!(s, "{} {} {} ", p.x, p.y, p.z);
         }
-        s.push_str("\n</DataArray>\n</Points>\n<Cells>\n<DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n");
+        s.push_str(
+            "\n</DataArray>\n</Points>\n<Cells>\n<DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n",
+        );
         for (c, _) in &self.cells {
             for i in c {
                 let _ = write!(s, "{i} ");

@@ -49,14 +49,16 @@ impl SampleSet {
     /// With u_s, or with each sample's simulated camera view encoded by `observation`.
     pub fn load_inputs(dir: &std::path::Path, observation: Option<&ObservationSettings>) -> Result<Self, DatasetError> {
         let ds = Dataset::open(dir)?;
-        let flagged: std::collections::BTreeSet<usize> = ds.manifest.samples.iter().filter(|s| s.flagged).map(|s| s.index).collect();
+        let flagged: std::collections::BTreeSet<usize> =
+            ds.manifest.samples.iter().filter(|s| s.flagged).map(|s| s.index).collect();
         let npz = umesh_core::dataset::read_grid_npz(dir, &ds.manifest)?;
         let grid = ImmersedGrid::from_npz(&npz)?;
         let shape = ds.manifest.padded_shape;
         let n = 3 * shape[0] * shape[1] * shape[2];
         let mut observer = match observation {
             Some(o) => {
-                let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
+                let surface = rest_surface(&npz)
+                    .map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
                 Some(
                     Observer::new(&grid, &surface, o.clone())
                         .map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?,
@@ -161,9 +163,21 @@ impl ViewRefresher {
     pub fn new(dir: &std::path::Path, observation: &ObservationSettings) -> Result<Self, DatasetError> {
         let manifest = umesh_core::dataset::Manifest::read(dir)?;
         let npz = umesh_core::dataset::read_grid_npz(dir, &manifest)?;
-        let surface = rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
-        let camera = manifest.config.visibility.camera.clone().unwrap_or_else(|| umesh_core::visible::Camera::anterior(&surface));
-        Ok(Self { surface, camera, view: manifest.config.view.clone(), observation: observation.clone(), seed: manifest.config.seed })
+        let surface =
+            rest_surface(&npz).map_err(|e| DatasetError::Invalid { path: dir.join("grid.npz"), reason: e.into() })?;
+        let camera = manifest
+            .config
+            .visibility
+            .camera
+            .clone()
+            .unwrap_or_else(|| umesh_core::visible::Camera::anterior(&surface));
+        Ok(Self {
+            surface,
+            camera,
+            view: manifest.config.view.clone(),
+            observation: observation.clone(),
+            seed: manifest.config.seed,
+        })
     }
 
     /// Replace the inputs of samples `ids` (positions in `set`) by new views for `epoch`.
@@ -190,8 +204,11 @@ impl ViewRefresher {
                 || Observer::new(grid, &self.surface, self.observation.clone()),
                 |obs, &k| {
                     let i = set.indices[k] as u64;
-                    let mut rng =
-                        SplitMix64(self.seed ^ i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (epoch as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+                    let mut rng = SplitMix64(
+                        self.seed
+                            ^ i.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                            ^ (epoch as u64).wrapping_mul(0xD1B5_4A32_D192_ED03),
+                    );
                     let at_rest = rng.next_f64() < rest_fraction;
                     let Ok(obs) = obs else { return (k, false, None) };
                     let deformed = if at_rest {

@@ -8,8 +8,8 @@ pub enum NetError {
     Invalid(String),
     #[error("{}: {source}", path.display())]
     Io { path: std::path::PathBuf, source: std::io::Error },
-    #[error("weights: {0}")]
-    Store(String),
+    #[error("the weights {}", path.display())]
+    Weights { path: std::path::PathBuf, source: burn::store::SafetensorsStoreError },
     #[error(transparent)]
     Cancelled(#[from] umesh_core::Cancelled),
 }

@@ -46,7 +46,10 @@ pub fn run_eval(model_dir: &Path, dataset: &Path, markers_per_sample: usize) -> 
         moved.extend(d);
     }
     if val.is_empty() {
-        return Err(NetError::Invalid(format!("{}: no validation sample to evaluate (indices i with i mod 5 = 4)", dataset.display())));
+        return Err(NetError::Invalid(format!(
+            "{}: no validation sample to evaluate (indices i with i mod 5 = 4)",
+            dataset.display()
+        )));
     }
     let (mean, std, max) = tre::summary(&all);
     if !(mean.is_finite() && max.is_finite()) {
@@ -102,7 +105,8 @@ pub fn calibrate_confidence(
     }
     let ds = Dataset::open(dataset)?;
     let npz = umesh_core::dataset::read_grid_npz(dataset, &ds.manifest)?;
-    let surface = crate::data::rest_surface(&npz).map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.join("grid.npz").display())))?;
+    let surface = crate::data::rest_surface(&npz)
+        .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.join("grid.npz").display())))?;
     let (train, val) = set.split();
     let val_index: std::collections::BTreeMap<usize, usize> = val.iter().map(|&k| (set.indices[k], k)).collect();
     let mut r = ConfidenceReference {
@@ -118,7 +122,11 @@ pub fn calibrate_confidence(
     // (view's TRE, residual mean, residual p95)
     let (mut residuals, mut coverages) = (Vec::new(), Vec::new());
     for &k in &train {
-        let moved = umesh_core::loads::deform_mesh(&set.grid, &surface, &crate::data::node_displacements(&set.grid, &set.u_v[k]));
+        let moved = umesh_core::loads::deform_mesh(
+            &set.grid,
+            &surface,
+            &crate::data::node_displacements(&set.grid, &set.u_v[k]),
+        );
         let d = moved.positions.iter().zip(&surface.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
         r.displacement_max_mm = r.displacement_max_mm.max(d);
     }
@@ -132,7 +140,8 @@ pub fn calibrate_confidence(
                 continue;
             }
             let pred = predictor.predict(&set.u_s[k], set.shape)?.to_vec();
-            let predicted = umesh_core::loads::deform_mesh(&set.grid, &surface, &crate::data::node_displacements(&set.grid, &pred));
+            let predicted =
+                umesh_core::loads::deform_mesh(&set.grid, &surface, &crate::data::node_displacements(&set.grid, &pred));
             let (mean, p95) = surface_residual(points, &predicted);
             let (errors, _) = tre::marker_errors(&set.grid, &markers, &pred, &set.u_v[k]);
             residuals.push((tre::summary(&errors).0, mean, p95));
@@ -166,7 +175,10 @@ pub fn calibrate_confidence(
 }
 
 /// Write `reference` into the model folder (atomically).
-pub fn write_confidence(model_dir: &Path, reference: &umesh_core::register::confidence::ConfidenceReference) -> Result<(), NetError> {
+pub fn write_confidence(
+    model_dir: &Path,
+    reference: &umesh_core::register::confidence::ConfidenceReference,
+) -> Result<(), NetError> {
     let path = model_dir.join(umesh_core::register::confidence::ConfidenceReference::FILE);
     let text = serde_json::to_string_pretty(reference).map_err(|e| NetError::Invalid(e.to_string()))?;
     umesh_core::write_atomic(&path, text.as_bytes()).map_err(|e| NetError::Io { path: path.to_path_buf(), source: e })

@@ -97,7 +97,9 @@ impl FastUNet {
             .chain(self.up.iter().flat_map(|u| u.w.iter().chain(&u.b)));
         for v in all {
             if !(v.is_finite() && v.abs() <= MAX_WEIGHT) {
-                return Err(umesh_core::Invalid(format!("a weight is {v} (not finite or over {MAX_WEIGHT}): the weights are corrupt")));
+                return Err(umesh_core::Invalid(format!(
+                    "a weight is {v} (not finite or over {MAX_WEIGHT}): the weights are corrupt"
+                )));
             }
         }
         Ok(())
@@ -117,7 +119,12 @@ impl FastUNet {
         };
         let in_channels = net.down.first().map(|d| d.0.cin).unwrap_or(net.bottom.0.cin);
         let out_channels = net.head.cout;
-        let ok = net.down.iter().chain(&net.dec).chain(std::iter::once(&net.bottom)).all(|(a, b)| a.taps == 27 && b.taps == 27)
+        let ok = net
+            .down
+            .iter()
+            .chain(&net.dec)
+            .chain(std::iter::once(&net.bottom))
+            .all(|(a, b)| a.taps == 27 && b.taps == 27)
             && net.head.taps == 1
             && net.up.len() == net.down.len();
         if !ok {
@@ -327,7 +334,13 @@ fn window(i: usize, n: usize, kernel: usize) -> (usize, usize) {
 /// `C` output channels (held in registers), `B` consecutive voxels along z computed together
 /// so that each weight row loaded serves B of them.
 #[inline(always)]
-fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
+fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(
+    x: &Map,
+    k: &Conv,
+    relu: bool,
+    i: usize,
+    out: &mut [f32],
+) {
     let [a, b, c] = x.dims;
     let cin = k.cin;
     let kernel = if k.taps == 1 { 1 } else { 3 };

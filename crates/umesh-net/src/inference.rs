@@ -54,7 +54,8 @@ impl Predictor {
         if let Some(f) = &p.fast {
             f.check_weights().map_err(|e| NetError::Invalid(format!("{}: {e}", dir.join(file).display())))?;
         }
-        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir).map_err(|e| NetError::Invalid(e.into()))?;
+        p.confidence = umesh_core::register::confidence::ConfidenceReference::read(dir)
+            .map_err(|e| NetError::Invalid(e.into()))?;
         Ok(p)
     }
 
@@ -74,7 +75,10 @@ impl Predictor {
         self.info.config.check_shape([1, c, shape[0], shape[1], shape[2]]).map_err(|e| NetError::Invalid(e.into()))?;
         let n = c * shape[0] * shape[1] * shape[2];
         if u_s.len() != n {
-            return Err(NetError::Invalid(format!("the input holds {} values, the grid {shape:?} x {c} needs {n}", u_s.len())));
+            return Err(NetError::Invalid(format!(
+                "the input holds {} values, the grid {shape:?} x {c} needs {n}",
+                u_s.len()
+            )));
         }
         let s = self.info.normalization.input_scale_mm;
         self.input.clear();
@@ -138,9 +142,10 @@ impl InputEncoder {
         rest_surface: &umesh_core::mesh::TriMesh,
     ) -> Result<Self, NetError> {
         let observer = match &info.settings.observation {
-            Some(o) => {
-                Some(umesh_core::observation::Observer::new(grid, rest_surface, o.clone()).map_err(|e| NetError::Invalid(e.into()))?)
-            }
+            Some(o) => Some(
+                umesh_core::observation::Observer::new(grid, rest_surface, o.clone())
+                    .map_err(|e| NetError::Invalid(e.into()))?,
+            ),
             None => None,
         };
         Ok(Self { observer })
@@ -153,7 +158,11 @@ impl InputEncoder {
 
     /// The network input from the observed points `points_mm` or, for an exact-input model,
     /// `u_s` (whichever the model takes must be given).
-    pub fn input(&mut self, points_mm: Option<&[nalgebra::Vector3<f64>]>, u_s: Option<&[f32]>) -> Result<Vec<f32>, NetError> {
+    pub fn input(
+        &mut self,
+        points_mm: Option<&[nalgebra::Vector3<f64>]>,
+        u_s: Option<&[f32]>,
+    ) -> Result<Vec<f32>, NetError> {
         match (&mut self.observer, points_mm, u_s) {
             (Some(o), Some(p), _) => {
                 let mut out = Vec::new();
@@ -161,7 +170,9 @@ impl InputEncoder {
                 Ok(out)
             }
             (None, _, Some(u)) => Ok(u.to_vec()),
-            (Some(_), None, _) => Err(NetError::Invalid("this model takes observed surface points (a camera view)".into())),
+            (Some(_), None, _) => {
+                Err(NetError::Invalid("this model takes observed surface points (a camera view)".into()))
+            }
             (None, _, None) => Err(NetError::Invalid("this model takes the surface displacement u_s".into())),
         }
     }

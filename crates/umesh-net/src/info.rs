@@ -82,7 +82,11 @@ impl LrSchedule {
         match self {
             Self::Constant => base,
             Self::Cosine => {
-                let t = if last_epoch > 1 { ((epoch.saturating_sub(1)) as f64 / (last_epoch - 1) as f64).min(1.0) } else { 1.0 };
+                let t = if last_epoch > 1 {
+                    ((epoch.saturating_sub(1)) as f64 / (last_epoch - 1) as f64).min(1.0)
+                } else {
+                    1.0
+                };
                 let floor = 0.05 * base;
                 floor + (base - floor) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
             }
@@ -157,8 +161,8 @@ impl ModelInfo {
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("model.json");
         let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })?;
-        let info: Self =
-            serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))?;
+        let info: Self = serde_json::from_str(&text)
+            .map_err(|e| NetError::Invalid(format!("{}: not a umesh model description: {e}", p.display())))?;
         info.validate().map_err(|e| NetError::Invalid(format!("{}: {e}", p.display())))?;
         Ok(info)
     }
@@ -193,7 +197,10 @@ impl ModelInfo {
         // The organ model is rebuilt from these on loading: bounds on what that costs.
         if let Some(c) = &self.dataset_config {
             if !(1..=16).contains(&c.surface_step) {
-                return Err(umesh_core::Invalid(format!("dataset_config.surface_step {}: 1 to 16 voxels", c.surface_step)));
+                return Err(umesh_core::Invalid(format!(
+                    "dataset_config.surface_step {}: 1 to 16 voxels",
+                    c.surface_step
+                )));
             }
             if let umesh_core::fem::FixedRegion::Label { distance_mm, .. } = c.fixed
                 && !(distance_mm.is_finite() && (0.0..=umesh_core::fem::bc::MAX_FIX_DISTANCE_MM).contains(&distance_mm))

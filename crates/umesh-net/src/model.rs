@@ -38,7 +38,9 @@ impl UNetConfig {
     }
 
     pub fn init(&self, device: &Device) -> UNet {
-        let conv = |i: usize, o: usize| Conv3dConfig::new([i, o], [3, 3, 3]).with_padding(PaddingConfig3d::Explicit(1, 1, 1)).init(device);
+        let conv = |i: usize, o: usize| {
+            Conv3dConfig::new([i, o], [3, 3, 3]).with_padding(PaddingConfig3d::Explicit(1, 1, 1)).init(device)
+        };
         let double = |i: usize, o: usize| DoubleConv { a: conv(i, o), b: conv(o, o) };
         let c = self.channels;
         let mut down = Vec::new();
@@ -64,10 +66,16 @@ impl UNetConfig {
     /// channels x 2^steps channels (the paper's 128 x 2^3 is about what 24 GiB trains).
     pub fn check_size(&self) -> Result<(), umesh_core::Invalid> {
         if !(1..=MAX_CHANNELS).contains(&self.channels) {
-            return Err(umesh_core::Invalid(format!("--channels {}: between 1 and {MAX_CHANNELS} (the paper uses 128)", self.channels)));
+            return Err(umesh_core::Invalid(format!(
+                "--channels {}: between 1 and {MAX_CHANNELS} (the paper uses 128)",
+                self.channels
+            )));
         }
         if !(1..=MAX_STEPS).contains(&self.steps) {
-            return Err(umesh_core::Invalid(format!("--steps {}: between 1 and {MAX_STEPS} (the paper uses 3)", self.steps)));
+            return Err(umesh_core::Invalid(format!(
+                "--steps {}: between 1 and {MAX_STEPS} (the paper uses 3)",
+                self.steps
+            )));
         }
         Ok(())
     }
@@ -76,7 +84,10 @@ impl UNetConfig {
         self.check_size()?;
         let m = 1usize << self.steps;
         if shape[1] != self.in_channels {
-            return Err(umesh_core::Invalid(format!("the input has {} channels, the network expects {}", shape[1], self.in_channels)));
+            return Err(umesh_core::Invalid(format!(
+                "the input has {} channels, the network expects {}",
+                shape[1], self.in_channels
+            )));
         }
         if let Some(a) = (2..5).find(|&a| shape[a] == 0 || !shape[a].is_multiple_of(m)) {
             return Err(umesh_core::Invalid(format!(
@@ -140,10 +151,10 @@ impl UNet {
 
 pub fn save_weights(model: &UNet, path: &Path) -> Result<(), NetError> {
     let mut store = SafetensorsStore::from_file(path).overwrite(true);
-    model.save_into(&mut store).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
+    model.save_into(&mut store).map_err(|source| NetError::Weights { path: path.into(), source })
 }
 
 pub fn load_weights(model: &mut UNet, path: &Path) -> Result<(), NetError> {
     let mut store = SafetensorsStore::from_file(path);
-    model.load_from(&mut store).map(|_| ()).map_err(|e| NetError::Store(format!("{}: {e}", path.display())))
+    model.load_from(&mut store).map(|_| ()).map_err(|source| NetError::Weights { path: path.into(), source })
 }

@@ -139,7 +139,8 @@ pub(crate) fn validate(
         let y = batch(&set.u_v, &[k], set.shape, norm.output_scale_mm, device);
         let p = model.forward(x);
         loss += (p.clone() - y).square().mean().into_scalar::<f32>() as f64;
-        let pred: Vec<f32> = p.into_data().try_to_vec::<f32>().unwrap_or_default().iter().map(|v| v * norm.output_scale_mm).collect();
+        let pred: Vec<f32> =
+            p.into_data().try_to_vec::<f32>().unwrap_or_default().iter().map(|v| v * norm.output_scale_mm).collect();
         let (err, disp) = tre::marker_errors(&set.grid, markers, &pred, &set.u_v[k]);
         tres.extend(err);
         moved.extend(disp);
@@ -161,7 +162,10 @@ pub fn run_train(
         return Err(NetError::Invalid(format!("rest_views must be in [0, 0.5], got {}", settings.rest_views)));
     }
     if !(settings.time_budget_s.is_finite() && settings.time_budget_s >= 0.0) {
-        return Err(NetError::Invalid(format!("the time budget must be a finite number of seconds >= 0, got {}", settings.time_budget_s)));
+        return Err(NetError::Invalid(format!(
+            "the time budget must be a finite number of seconds >= 0, got {}",
+            settings.time_budget_s
+        )));
     }
     // Adam's step: above 1 the weights leave any useful range at the first batch; 0 or less
     // (or NaN) learns nothing. Either would end without usable weights.
@@ -200,7 +204,11 @@ pub fn run_train(
     };
     let (train, val) = set.split();
     if train.is_empty() || val.is_empty() {
-        return Err(NetError::Invalid(format!("{}: {} samples are too few for an 80/20 split", dataset.display(), set.len())));
+        return Err(NetError::Invalid(format!(
+            "{}: {} samples are too few for an 80/20 split",
+            dataset.display(),
+            set.len()
+        )));
     }
     let cfg = &settings.network();
     cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
@@ -270,9 +278,9 @@ pub fn run_train(
     if resume && out.join("last.safetensors").exists() {
         // Resuming into a model trained on another dataset would mix both.
         if let Ok(old) = ModelInfo::read(out) {
-            let same = manifest
-                .as_ref()
-                .is_some_and(|m| old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config));
+            let same = manifest.as_ref().is_some_and(|m| {
+                old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config)
+            });
             if !same || old.config != *cfg {
                 return Err(NetError::Invalid(format!(
                     "{}: --resume: the model there was trained on another dataset or network configuration than {} (start in an empty folder)",
@@ -290,7 +298,8 @@ pub fn run_train(
     // The grid travels with the model: registration needs its visible nodes and surface.
     let grid_src = dataset.join("grid.npz");
     if let Ok(bytes) = std::fs::read(&grid_src) {
-        umesh_core::write_atomic(&out.join("grid.npz"), &bytes).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
+        umesh_core::write_atomic(&out.join("grid.npz"), &bytes)
+            .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     }
     let info = ModelInfo {
         config: cfg.clone(),
@@ -309,8 +318,13 @@ pub fn run_train(
     let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
     let total_batches = settings.epochs.saturating_mul(train.len().div_ceil(settings.batch_size.max(1)));
     let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
-    let mut plan =
-        EpochPlan { asked: settings.epochs, patience: settings.patience, budget_s: settings.time_budget_s, spent_s: 0.0, run_epochs: 0 };
+    let mut plan = EpochPlan {
+        asked: settings.epochs,
+        patience: settings.patience,
+        budget_s: settings.time_budget_s,
+        spent_s: 0.0,
+        run_epochs: 0,
+    };
     let mut stopped_early = epochs.last().and_then(|e| plan.stop(e.epoch, best_epoch));
     for epoch in epochs.len() + 1..=settings.epochs {
         if stopped_early.is_some() {
@@ -326,7 +340,11 @@ pub fn run_train(
         if let Some(r) = &refresher
             && epoch > 1
         {
-            progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}: new camera views", settings.epochs));
+            progress.report(
+                done_batches as u64,
+                total_batches as u64,
+                &format!("epoch {epoch}/{}: new camera views", settings.epochs),
+            );
             r.refresh(&mut set, &train, epoch, settings.rest_views, &mut rest)
                 .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
         }
@@ -393,7 +411,14 @@ pub fn run_train(
         crate::eval::write_confidence(out, &r)?;
     }
     staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
-    Ok(TrainReport { out: final_out.into(), epochs, train_samples: train.len(), val_samples: val.len(), best_epoch, stopped_early })
+    Ok(TrainReport {
+        out: final_out.into(),
+        epochs,
+        train_samples: train.len(),
+        val_samples: val.len(),
+        best_epoch,
+        stopped_early,
+    })
 }
 
 #[cfg(test)]

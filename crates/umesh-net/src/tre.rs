@@ -15,7 +15,12 @@ pub fn displacement_at(grid: &ImmersedGrid, field: &[f32], p: &Vector3<f64>) -> 
 }
 
 /// Per-marker errors |predicted - true| (mm) and true displacements |true| (mm).
-pub fn marker_errors(grid: &ImmersedGrid, markers: &[Vector3<f64>], predicted: &[f32], truth: &[f32]) -> (Vec<f64>, Vec<f64>) {
+pub fn marker_errors(
+    grid: &ImmersedGrid,
+    markers: &[Vector3<f64>],
+    predicted: &[f32],
+    truth: &[f32],
+) -> (Vec<f64>, Vec<f64>) {
     markers
         .iter()
         .map(|m| {

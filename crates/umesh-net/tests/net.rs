@@ -29,7 +29,10 @@ fn output_shape_equals_input_shape_for_every_allowed_grid() {
         assert_eq!(model.forward(x).dims(), [1, 3, shape[0], shape[1], shape[2]], "steps {steps}, {shape:?}");
     }
     // Max pooling keeps the maximum of each 2x2x2 block.
-    let x = Tensor::<5>::from_data(TensorData::new((0..64).map(|v| v as f32).collect::<Vec<_>>(), [1, 1, 4, 4, 4]), &device);
+    let x = Tensor::<5>::from_data(
+        TensorData::new((0..64).map(|v| v as f32).collect::<Vec<_>>(), [1, 1, 4, 4, 4]),
+        &device,
+    );
     let p: Vec<f32> = umesh_net::model::max_pool_2x2x2(x).into_data().try_to_vec().unwrap();
     assert_eq!(p, vec![21.0, 23.0, 29.0, 31.0, 53.0, 55.0, 61.0, 63.0]);
 }
@@ -81,7 +84,8 @@ fn the_fast_forward_pass_matches_burns_within_1e_4_of_the_largest_output() {
         let n = cfg.in_channels * shape.iter().product::<usize>();
         let mut rng = umesh_core::rng::SplitMix64(seed);
         // Inputs as sparse as an encoded view: most voxels zero.
-        let input: Vec<f32> = (0..n).map(|_| if rng.next_f64() < 0.3 { (rng.next_f64() * 4.0 - 2.0) as f32 } else { 0.0 }).collect();
+        let input: Vec<f32> =
+            (0..n).map(|_| if rng.next_f64() < 0.3 { (rng.next_f64() * 4.0 - 2.0) as f32 } else { 0.0 }).collect();
         let fast = p.predict(&input, shape).unwrap().to_vec();
         p.use_burn = true;
         let burn = p.predict(&input, shape).unwrap().to_vec();
@@ -154,8 +158,15 @@ fn save_then_load_reproduces_predictions_exactly() {
 fn tre_of_a_known_offset_is_that_offset() {
     let r = Vector3::new(30.0, 20.0, 15.0);
     let s = umesh_core::grid::GridSettings { cell_size_mm: 5.0, pooling_steps: 2, ..Default::default() };
-    let g = umesh_core::grid::build(-r, r, move |p| p.coords.component_div(&r).norm() <= 1.0, &s, &Default::default(), &Default::default())
-        .unwrap();
+    let g = umesh_core::grid::build(
+        -r,
+        r,
+        move |p| p.coords.component_div(&r).norm() <= 1.0,
+        &s,
+        &Default::default(),
+        &Default::default(),
+    )
+    .unwrap();
     let [x, y, z] = g.padded_shape();
     let cells = x * y * z;
     let mut truth = vec![0f32; 3 * cells];
@@ -189,15 +200,23 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
         &std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/phantom.nii.gz")).unwrap(),
     )
     .unwrap();
-    let mut c = umesh_core::dataset::DatasetConfig::paper(umesh_core::fem::FixedRegion::Label { label: 2, distance_mm: 8.0 });
+    let mut c =
+        umesh_core::dataset::DatasetConfig::paper(umesh_core::fem::FixedRegion::Label { label: 2, distance_mm: 8.0 });
     c.samples = 10;
     c.shard_size = 5;
     c.grid.cell_size_mm = 14.0;
     c.forces.probes = 20;
     c.surface_step = 3;
     let ds = tmp("ds");
-    umesh_core::dataset::run_generate(&seg, &ds, &c, umesh_core::dataset::ShardSelection::all(), &Default::default(), &Default::default())
-        .unwrap();
+    umesh_core::dataset::run_generate(
+        &seg,
+        &ds,
+        &c,
+        umesh_core::dataset::ShardSelection::all(),
+        &Default::default(),
+        &Default::default(),
+    )
+    .unwrap();
     let out = tmp("model");
     let settings = TrainSettings { model: tiny(3, 2), epochs: 2, batch_size: 2, ..Default::default() };
     let r = run_train(&ds, &out, &settings, false, &Default::default(), &|_| {}, &Default::default()).unwrap();
@@ -227,7 +246,8 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     let grid_npz = umesh_core::npz::Npz::read(&out.join("grid.npz")).unwrap();
     let surface = umesh_net::data::rest_surface(&grid_npz).unwrap();
     let grid = umesh_core::grid::ImmersedGrid::from_npz(&grid_npz).unwrap();
-    let mut obs = umesh_core::observation::Observer::new(&grid, &surface, info.settings.observation.clone().unwrap()).unwrap();
+    let mut obs =
+        umesh_core::observation::Observer::new(&grid, &surface, info.settings.observation.clone().unwrap()).unwrap();
     let mut p = Predictor::load(&out).unwrap();
     let mut predict = |pts: &[Vector3<f64>]| {
         let mut x = Vec::new();
@@ -260,7 +280,10 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     assert_eq!(r2.epochs.len(), 3);
     assert_eq!(r2.epochs[0].epoch, 1);
     assert!((r2.epochs[0].train_loss - r.epochs[0].train_loss).abs() < 1e-12);
-    assert!(!out.join(umesh_core::register::correction::CorrectionChoice::FILE).exists(), "a stale correction choice was kept");
+    assert!(
+        !out.join(umesh_core::register::correction::CorrectionChoice::FILE).exists(),
+        "a stale correction choice was kept"
+    );
     assert_eq!(r2.epochs[2].epoch, 3);
     assert_eq!(std::fs::read_to_string(out.join("metrics.jsonl")).unwrap().lines().count(), 3);
     // A new training that fails (an --init-from that is not a model) or is cancelled leaves the

@@ -66,10 +66,16 @@ impl InputSpec {
             return Ok(seg);
         };
         if !(self.mesh_voxel_mm >= 0.05 && self.mesh_voxel_mm <= 50.0) {
-            return Err(WorkflowError::option(format!("--mesh-voxel-mm {}", self.mesh_voxel_mm), "must lie in [0.05, 50]"));
+            return Err(WorkflowError::option(
+                format!("--mesh-voxel-mm {}", self.mesh_voxel_mm),
+                "must lie in [0.05, 50]",
+            ));
         }
         if !(self.mesh_scale_mm > 0.0 && self.mesh_scale_mm.is_finite()) {
-            return Err(WorkflowError::option(format!("--mesh-scale-mm {}", self.mesh_scale_mm), "must be positive and finite"));
+            return Err(WorkflowError::option(
+                format!("--mesh-scale-mm {}", self.mesh_scale_mm),
+                "must be positive and finite",
+            ));
         }
         let options = ReadOptions { max_voxels: self.max_voxels };
         let files = if path.is_dir() {
@@ -92,8 +98,9 @@ impl InputSpec {
                 role: segmentation::Role::Organ,
             }];
             for s in &self.structure_files {
-                let (name, file) =
-                    s.split_once('=').ok_or_else(|| WorkflowError::option(format!("--structure {s:?}"), "expected NAME=FILE"))?;
+                let (name, file) = s
+                    .split_once('=')
+                    .ok_or_else(|| WorkflowError::option(format!("--structure {s:?}"), "expected NAME=FILE"))?;
                 if name.trim().is_empty() {
                     return Err(WorkflowError::option(format!("--structure {s:?}"), "the name is empty"));
                 }
@@ -109,14 +116,22 @@ impl InputSpec {
         };
         if let Some(files) = files {
             if !(self.organ_labels.is_empty() && self.structure_labels.is_empty()) {
-                return Err(WorkflowError::option("--organ-label/--structure-label", "apply to a multi-label file, not to separate masks"));
+                return Err(WorkflowError::option(
+                    "--organ-label/--structure-label",
+                    "apply to a multi-label file, not to separate masks",
+                ));
             }
             let (seg, assembly) = segmentation::assemble_masks(&files, &options)?;
             notes.extend(assembly.resampled.iter().chain(&assembly.carved).cloned());
             return Ok(seg);
         }
         if segmentation::is_mesh_path(path) {
-            return Ok(segmentation::load_meshes(path, &self.structure_meshes, self.mesh_voxel_mm, self.mesh_scale_mm)?);
+            return Ok(segmentation::load_meshes(
+                path,
+                &self.structure_meshes,
+                self.mesh_voxel_mm,
+                self.mesh_scale_mm,
+            )?);
         }
         Ok(segmentation::load_nifti_labels(path, &self.organ_labels, &self.structure_labels, &options)?)
     }
@@ -159,7 +174,11 @@ pub fn bundled_model() -> PathBuf {
 
 /// The dataset configuration of a model (its grid, loads and camera), or the paper's
 /// default for `seg` when the model predates that record.
-pub fn model_dataset_config(info: Option<&umesh_net::ModelInfo>, seg: &Segmentation) -> umesh_core::dataset::DatasetConfig {
-    info.and_then(|i| i.dataset_config.clone())
-        .unwrap_or_else(|| umesh_core::dataset::DatasetConfig::paper(umesh_core::loads::default_fixed(seg, None, 6.0).region))
+pub fn model_dataset_config(
+    info: Option<&umesh_net::ModelInfo>,
+    seg: &Segmentation,
+) -> umesh_core::dataset::DatasetConfig {
+    info.and_then(|i| i.dataset_config.clone()).unwrap_or_else(|| {
+        umesh_core::dataset::DatasetConfig::paper(umesh_core::loads::default_fixed(seg, None, 6.0).region)
+    })
 }

@@ -82,7 +82,10 @@ pub struct DatasetOptions {
     #[cfg_attr(feature = "clap", arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "camera_to"))]
     pub camera_from: Vec<f64>,
     /// Point the camera looks at, x,y,z (world mm).
-    #[cfg_attr(feature = "clap", arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "camera_from"))]
+    #[cfg_attr(
+        feature = "clap",
+        arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "camera_from")
+    )]
     pub camera_to: Vec<f64>,
     #[cfg_attr(feature = "clap", arg(long, default_value_t = DatasetOptions::default().fov_deg))]
     pub fov_deg: f64,
@@ -120,7 +123,10 @@ impl Default for DatasetOptions {
             camera_from: Vec::new(),
             camera_to: Vec::new(),
             fov_deg: 50.0,
-            max_newton_iterations: DatasetConfig::paper(FixedRegion::Nodes { nodes: vec![] }).solver.max_total_iterations.unwrap_or(40),
+            max_newton_iterations: DatasetConfig::paper(FixedRegion::Nodes { nodes: vec![] })
+                .solver
+                .max_total_iterations
+                .unwrap_or(40),
         }
     }
 }
@@ -137,7 +143,11 @@ impl DatasetOptions {
             }
         };
         opt("probes", self.probes != d.probes, self.probes.to_string());
-        opt("target-displacement-mm", self.target_displacement_mm != d.target_displacement_mm, self.target_displacement_mm.to_string());
+        opt(
+            "target-displacement-mm",
+            self.target_displacement_mm != d.target_displacement_mm,
+            self.target_displacement_mm.to_string(),
+        );
         opt("target-spread", self.target_spread != d.target_spread, self.target_spread.to_string());
         opt("probe-radius-mm", self.probe_radius_mm != d.probe_radius_mm, self.probe_radius_mm.to_string());
         opt("max-strain", self.max_strain != d.max_strain, self.max_strain.to_string());
@@ -147,7 +157,11 @@ impl DatasetOptions {
         opt("young-pa", self.young_pa != d.young_pa, self.young_pa.to_string());
         opt("poisson", self.poisson != d.poisson, self.poisson.to_string());
         opt("poisson-range", !self.poisson_range.is_empty(), list(&self.poisson_range));
-        opt("neo-hookean-fraction", self.neo_hookean_fraction != d.neo_hookean_fraction, self.neo_hookean_fraction.to_string());
+        opt(
+            "neo-hookean-fraction",
+            self.neo_hookean_fraction != d.neo_hookean_fraction,
+            self.neo_hookean_fraction.to_string(),
+        );
         opt("fix-label", self.fix_label.is_some(), self.fix_label.map(|l| l.to_string()).unwrap_or_default());
         opt("fix-distance-mm", self.fix_distance_mm != d.fix_distance_mm, self.fix_distance_mm.to_string());
         opt("fix-box", !self.fix_box.is_empty(), list(&self.fix_box));
@@ -156,7 +170,11 @@ impl DatasetOptions {
         opt("camera-from", !self.camera_from.is_empty(), list(&self.camera_from));
         opt("camera-to", !self.camera_to.is_empty(), list(&self.camera_to));
         opt("fov-deg", self.fov_deg != d.fov_deg, self.fov_deg.to_string());
-        opt("max-newton-iterations", self.max_newton_iterations != d.max_newton_iterations, self.max_newton_iterations.to_string());
+        opt(
+            "max-newton-iterations",
+            self.max_newton_iterations != d.max_newton_iterations,
+            self.max_newton_iterations.to_string(),
+        );
         out.join(" ")
     }
 
@@ -192,7 +210,11 @@ impl DatasetOptions {
             self.fix_distance_mm
         );
         if let Some(l) = self.fix_label {
-            ensure!(seg.volume.label_counts().contains_key(&l), "--fix-label {l}: {} has no voxel of that label", seg.source.display());
+            ensure!(
+                seg.volume.label_counts().contains_key(&l),
+                "--fix-label {l}: {} has no voxel of that label",
+                seg.source.display()
+            );
         }
         Ok(umesh_core::loads::default_fixed(seg, self.fix_label, self.fix_distance_mm))
     }
@@ -200,16 +222,25 @@ impl DatasetOptions {
     pub fn camera(&self, seg: &Segmentation) -> Result<Option<Camera>, WorkflowError> {
         ensure!(self.fov_deg > 0.0 && self.fov_deg < 170.0, "--fov-deg {}: must lie in (0, 170)", self.fov_deg);
         if !self.camera_from.is_empty() {
-            ensure!(self.camera_from.len() == 3 && self.camera_to.len() == 3, "--camera-from and --camera-to: x,y,z (3 numbers each)");
+            ensure!(
+                self.camera_from.len() == 3 && self.camera_to.len() == 3,
+                "--camera-from and --camera-to: x,y,z (3 numbers each)"
+            );
             let (f, t) = (Vector3::from_column_slice(&self.camera_from), Vector3::from_column_slice(&self.camera_to));
-            ensure!(f.iter().chain(t.iter()).all(|v| v.is_finite()), "--camera-from/--camera-to: numbers must be finite");
+            ensure!(
+                f.iter().chain(t.iter()).all(|v| v.is_finite()),
+                "--camera-from/--camera-to: numbers must be finite"
+            );
             ensure!((f - t).norm() > 1e-6, "--camera-from and --camera-to are the same point");
             return Ok(Some(Camera::look_at(&f, &t, self.fov_deg)));
         }
         let Some(view) = &self.camera else { return Ok(None) };
-        let (lo, hi) =
-            seg.organ_mask().world_bounds().ok_or_else(|| WorkflowError::option_message("the organ mask is empty".to_string()))?;
-        let mut c = Camera::named(view, &lo, &hi).map_err(|e| WorkflowError::option_message(format!("--camera: {e}")))?;
+        let (lo, hi) = seg
+            .organ_mask()
+            .world_bounds()
+            .ok_or_else(|| WorkflowError::option_message("the organ mask is empty".to_string()))?;
+        let mut c =
+            Camera::named(view, &lo, &hi).map_err(|e| WorkflowError::option_message(format!("--camera: {e}")))?;
         c.fov_deg = self.fov_deg;
         Ok(Some(c))
     }
@@ -234,7 +265,11 @@ impl DatasetOptions {
             target_displacement_mm: self.target_displacement_mm,
             target_spread: self.target_spread,
             patch_radius_mm: self.probe_radius_mm,
-            calibration: if self.calibration == "energy-scale" { LoadCalibration::EnergyScale } else { LoadCalibration::MeanDisplacement },
+            calibration: if self.calibration == "energy-scale" {
+                LoadCalibration::EnergyScale
+            } else {
+                LoadCalibration::MeanDisplacement
+            },
             // The uncalibrated scale knows only pressing: its default is that, not the mixture.
             families: if self.calibration == "energy-scale" && self.loads == Self::default().loads {
                 vec![umesh_core::loads::LoadFamily::Pressing]
@@ -273,7 +308,8 @@ impl DatasetOptions {
                 poisson_max: hi,
                 neo_hookean_fraction: self.neo_hookean_fraction,
             };
-            v.validate().map_err(|e| WorkflowError::option_message(format!("--poisson-range/--neo-hookean-fraction: {e}")))?;
+            v.validate()
+                .map_err(|e| WorkflowError::option_message(format!("--poisson-range/--neo-hookean-fraction: {e}")))?;
             c.material_variation = Some(v);
         }
         Ok((c, fixed))

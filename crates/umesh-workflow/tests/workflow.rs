@@ -12,7 +12,8 @@ fn a_patient_resumes_with_camera_coordinates_that_have_decimals() {
     for i in 0..2000 {
         let x = -173.0 + i as f64 * 0.173_205_080_756_887_7;
         let mut c = DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 });
-        c.visibility.camera = Some(Camera { position_mm: [x, 0.1 * x + 0.3, 88.81], direction: [0.01 * x, -1.0, 0.3], fov_deg: 47.3 });
+        c.visibility.camera =
+            Some(Camera { position_mm: [x, 0.1 * x + 0.3, 88.81], direction: [0.01 * x, -1.0, 0.3], fov_deg: 47.3 });
         let s = PrepareSettings::paper(c, "chosen".into());
         let stored: PrepareSettings = serde_json::from_str(&serde_json::to_string_pretty(&s).unwrap()).unwrap();
         differs += (stored != s) as usize;
@@ -20,7 +21,8 @@ fn a_patient_resumes_with_camera_coordinates_that_have_decimals() {
     }
     eprintln!("{differs} of 2000 settings differ from themselves after the JSON round trip");
     // Other settings are still told apart.
-    let base = PrepareSettings::paper(DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 }), "a".into());
+    let base =
+        PrepareSettings::paper(DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 }), "a".into());
     let mut other = base.clone();
     other.eval_markers += 1;
     assert!(!same_as_stored(&base, &other).unwrap());
@@ -68,7 +70,8 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
     };
     let dir = std::path::Path::new("/patients/p1");
     let falling = epochs(&[4.0, 3.0, 2.5, 2.0]);
-    let time = Some("time budget: another epoch (about 60 s) would end after 600 s of training; stopped after epoch 4 of 20");
+    let time =
+        Some("time budget: another epoch (about 60 s) would end after 600 s of training; stopped after epoch 4 of 20");
     // Ready: 14 % of the motion, the check at 1.2 mm (10 % of rigid).
     let v = judge(&falling, 20, None, &eval(1.4, 10.0), &check(1.2, 12.0, 12.0), dir);
     assert!(v.ready && v.problems.is_empty() && v.line() == "ready", "{v:?}");
@@ -77,7 +80,9 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
     let v = judge(&falling, 20, time, &eval(3.71, 5.9), &check(0.5, 2.9, 2.96), dir);
     assert!(!v.ready, "{v:?}");
     assert!(
-        v.line().contains("63 %") && v.line().contains("4 of 20 epochs") && v.line().contains("--init-from /patients/p1/model"),
+        v.line().contains("63 %")
+            && v.line().contains("4 of 20 epochs")
+            && v.line().contains("--init-from /patients/p1/model"),
         "{}",
         v.line()
     );
@@ -85,7 +90,9 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
     // Cut by time at 5 of 20 epochs with one noisy last epoch (a 2.15 l liver prepared beside
     // other jobs: 6.8, 5.8, 5.2, 4.0, 4.1 mm): still falling, the advice is to train on.
     let noisy = epochs(&[6.8, 5.81, 5.22, 4.04, 4.13]);
-    let five = Some("time budget: another epoch (about 368 s) would end after 1807 s of training; stopped after epoch 5 of 20");
+    let five = Some(
+        "time budget: another epoch (about 368 s) would end after 1807 s of training; stopped after epoch 5 of 20",
+    );
     let v = judge(&noisy, 20, five, &eval(4.04, 9.69), &check(1.48, 8.46, 8.45), dir);
     assert!(!v.ready && v.line().contains("5 of 20 epochs") && v.line().contains("--init-from"), "{}", v.line());
     // Stopped by a plateau, not by time: training longer is not the advice.
@@ -99,7 +106,14 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
     let v = judge(&falling, 20, time, &eval(1.4, 10.0), &check(1.2, 12.0, 12.0), dir);
     assert!(v.ready && v.notes.iter().any(|n| n.contains("4 of 20 epochs")), "{v:?}");
     // No check: not ready, the reason given.
-    let v = judge(&falling, 20, None, &eval(1.4, 10.0), &CheckReport::not_run("the check recording could not be made".into()), dir);
+    let v = judge(
+        &falling,
+        20,
+        None,
+        &eval(1.4, 10.0),
+        &CheckReport::not_run("the check recording could not be made".into()),
+        dir,
+    );
     assert!(!v.ready && v.line().contains("could not be made"), "{v:?}");
     // A validation set that did not move cannot be judged ready.
     assert!(!judge(&falling, 20, None, &eval(0.0, 0.0), &check(1.2, 12.0, 12.0), dir).ready);

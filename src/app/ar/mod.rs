@@ -159,12 +159,18 @@ fn draw_points(img: &mut ColorImage, frame: &Frame, settings: &RegisterSettings)
     }
 }
 
-fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<ArCommand>, tx: &EventSender) -> anyhow::Result<()> {
+fn worker(
+    source: ArSource,
+    seg: &Segmentation,
+    am: &ActiveModel,
+    rx: Receiver<ArCommand>,
+    tx: &EventSender,
+) -> anyhow::Result<()> {
     let log = |s: String| {
         let _ = tx.send(ArEvent::Log(s));
     };
-    let mut net =
-        umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint).with_context(|| am.dir.display().to_string())?;
+    let mut net = umesh_net::inference::Predictor::load_checkpoint(&am.dir, &am.checkpoint)
+        .with_context(|| am.dir.display().to_string())?;
     let config = umesh_workflow::input::model_dataset_config(Some(&net.info), seg);
     let dctx = DatasetContext::prepare(seg, &config, &umesh_core::Cancel::new())?;
     net.info
@@ -194,7 +200,14 @@ fn worker(source: ArSource, seg: &Segmentation, am: &ActiveModel, rx: Receiver<A
     let _ = tx.send(ArEvent::Pose(pose, why));
     let true_pose = truth.as_ref().map(|g| g.pose());
     let rest = truth.as_ref().map(|g| g.markers_rest_mm.as_slice());
-    let mut state = Playback { playing: false, record: None, show_points: true, next_due: Instant::now(), want: Some(0), last_index: None };
+    let mut state = Playback {
+        playing: false,
+        record: None,
+        show_points: true,
+        next_due: Instant::now(),
+        want: Some(0),
+        last_index: None,
+    };
     // While a recording plays, the next frame's files are decoded on a helper thread during
     // this frame's registration (a few ms of PNG decoding off the frame's path).
     let mut prefetch: Option<(usize, std::thread::JoinHandle<Result<Frame, umesh_core::rgbd::RgbdError>>)> = None;
@@ -271,7 +284,8 @@ fn live_frame(state: &mut Playback, s: &mut dyn FrameSource, tx: &EventSender, l
             for l in s.take_log() {
                 log(l);
             }
-            let _ = tx.send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
+            let _ = tx
+                .send(ArEvent::Ended(format!("the live stream ended: {}", reason.unwrap_or_else(|| "closed".into()))));
             state.playing = false;
             None
         }
@@ -330,7 +344,10 @@ fn open_source(
                 anyhow::bail!("{}: the recording holds no frame", dir.display());
             }
             let pose = rec.trajectory.as_ref().and_then(|t| t.first().copied()).with_context(|| {
-                format!("{}: no trajectory.log, so no initial camera pose; the AR view needs one to start the alignment", dir.display())
+                format!(
+                    "{}: no trajectory.log, so no initial camera pose; the AR view needs one to start the alignment",
+                    dir.display()
+                )
             })?;
             let gt_path = dir.join("ground_truth.json");
             let truth = if gt_path.is_file() { Some(GroundTruth::read(&gt_path)?) } else { None };
@@ -643,6 +660,7 @@ pub struct ArPlugin;
 
 impl Plugin for ArPlugin {
     fn build(&self, app: &mut App) {
-        app.insert_resource(Ar { show_points: true, correction: true, ..Default::default() }).add_systems(Update, poll_ar);
+        app.insert_resource(Ar { show_points: true, correction: true, ..Default::default() })
+            .add_systems(Update, poll_ar);
     }
 }

@@ -29,7 +29,9 @@ pub fn left_panel(
     ui.weak(format!("model: {} ({})", crate::app::state::short_path(&model.dir), model.checkpoint));
     // Held outside `ar` while the sections below edit it; put back unless closed.
     let Some(s) = ar.session.take() else {
-        ui.label("Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.");
+        ui.label(
+            "Open a recording (Open3D layout: color/, depth/, intrinsics, trajectory.log) or connect to a live stream.",
+        );
         return want_synth;
     };
     playback_ui(ui, ar, &s);
@@ -72,7 +74,11 @@ fn source_ui(
         if ui.button("Open recording").clicked() {
             start = Some(ArSource::Recording(PathBuf::from(ar.source_text.trim())));
         }
-        if ui.button("Make a synthetic one").on_hover_text("umesh rgbd synth on the bundled phantom, into out/ar-synthetic").clicked() {
+        if ui
+            .button("Make a synthetic one")
+            .on_hover_text("umesh rgbd synth on the bundled phantom, into out/ar-synthetic")
+            .clicked()
+        {
             want_synth = true;
         }
     });
@@ -126,7 +132,11 @@ fn camera_ui(ui: &mut egui::Ui, ar: &mut Ar) -> Option<ArSource> {
         ui.label("RealSense");
         if c.listing.is_some() {
             ui.spinner();
-        } else if ui.button("Find cameras").on_hover_text("asks librealsense (pyrealsense2) for the connected cameras").clicked() {
+        } else if ui
+            .button("Find cameras")
+            .on_hover_text("asks librealsense (pyrealsense2) for the connected cameras")
+            .clicked()
+        {
             c.list();
         }
     });
@@ -143,11 +153,14 @@ fn camera_ui(ui: &mut egui::Ui, ar: &mut Ar) -> Option<ArSource> {
                 format!("{} {}", x.name.as_deref().unwrap_or("camera"), x.serial.as_deref().unwrap_or(""))
             };
             ui.horizontal(|ui| {
-                egui::ComboBox::from_id_salt("ar_camera").selected_text(label(c.chosen.min(d.len() - 1))).show_ui(ui, |ui| {
-                    for i in 0..d.len() {
-                        ui.selectable_value(&mut c.chosen, i, label(i));
-                    }
-                });
+                egui::ComboBox::from_id_salt("ar_camera").selected_text(label(c.chosen.min(d.len() - 1))).show_ui(
+                    ui,
+                    |ui| {
+                        for i in 0..d.len() {
+                            ui.selectable_value(&mut c.chosen, i, label(i));
+                        }
+                    },
+                );
             });
             ui.horizontal(|ui| {
                 ui.add(egui::DragValue::new(&mut c.width).range(1..=4096));
@@ -171,7 +184,11 @@ fn camera_ui(ui: &mut egui::Ui, ar: &mut Ar) -> Option<ArSource> {
     ui.horizontal(|ui| {
         ui.label("RealSense file");
         ui.add(egui::TextEdit::singleline(&mut c.file).hint_text(".db3 or .bag").desired_width(110.0));
-        if ui.button("Play").on_hover_text("played at its own rate through the RealSense bridge, as a camera would be").clicked() {
+        if ui
+            .button("Play")
+            .on_hover_text("played at its own rate through the RealSense bridge, as a camera would be")
+            .clicked()
+        {
             start = Some(ArSource::RealSense(RealSenseRequest::recording(std::path::Path::new(c.file.trim()))));
         }
     });
@@ -220,12 +237,15 @@ fn alignment_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
              tracked: keep the recording's or stream's camera pose, refined on the first frame by at most 1.5 mm; \
              icp-first: full ICP on the first frame; icp-every-frame: full ICP on each frame",
         );
-        egui::ComboBox::from_id_salt("ar_pose").selected_text(ar.pose.map_or("auto", PosePolicy::name)).show_ui(ui, |ui| {
-            ui.selectable_value(&mut ar.pose, None, "auto");
-            for p in PosePolicy::ALL {
-                ui.selectable_value(&mut ar.pose, Some(p), p.name());
-            }
-        });
+        egui::ComboBox::from_id_salt("ar_pose").selected_text(ar.pose.map_or("auto", PosePolicy::name)).show_ui(
+            ui,
+            |ui| {
+                ui.selectable_value(&mut ar.pose, None, "auto");
+                for p in PosePolicy::ALL {
+                    ui.selectable_value(&mut ar.pose, Some(p), p.name());
+                }
+            },
+        );
     });
     if ar.pose != before {
         s.send(ArCommand::Pose(ar.pose));
@@ -470,10 +490,17 @@ pub fn central(ui: &mut egui::Ui, ar: &mut Ar, texture: &mut Option<egui::Textur
                 size.y = size.x / aspect;
             }
             let r = egui::Rect::from_center_size(rect.center(), size);
-            ui.painter().image(t.id(), r, egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)), egui::Color32::WHITE);
+            ui.painter().image(
+                t.id(),
+                r,
+                egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
+                egui::Color32::WHITE,
+            );
         }
         _ => {
-            ui.centered_and_justified(|ui| ui.label(if ar.session.is_some() { "waiting for the first frame..." } else { "no source" }));
+            ui.centered_and_justified(|ui| {
+                ui.label(if ar.session.is_some() { "waiting for the first frame..." } else { "no source" })
+            });
         }
     }
 }

@@ -44,8 +44,9 @@ fn panels(InMut(root): InMut<egui::Ui>, mut s: ArState, mut texture: Local<Optio
     });
     let mut synth = false;
     egui::Panel::left("ar_left").default_size(290.0).show(root, |ui| {
-        egui::ScrollArea::vertical()
-            .show(ui, |ui| synth = crate::app::ar::panel::left_panel(ui, &mut s.ar, &s.organ, &s.active, &mut s.messages, waker));
+        egui::ScrollArea::vertical().show(ui, |ui| {
+            synth = crate::app::ar::panel::left_panel(ui, &mut s.ar, &s.organ, &s.active, &mut s.messages, waker)
+        });
     });
     egui::Panel::right("ar_right").default_size(250.0).show(root, |ui| {
         egui::ScrollArea::vertical().show(ui, |ui| crate::app::ar::panel::right_panel(ui, &s.ar));
@@ -54,8 +55,12 @@ fn panels(InMut(root): InMut<egui::Ui>, mut s: ArState, mut texture: Local<Optio
     if synth {
         match &s.organ.data {
             Some(d) if !s.jobs.is_running("synthetic") => {
-                let job =
-                    crate::app::ar::panel::synth_job(d.clone(), s.active.dir.clone(), crate::app::ar::panel::synthetic_recording_dir(), 20);
+                let job = crate::app::ar::panel::synth_job(
+                    d.clone(),
+                    s.active.dir.clone(),
+                    crate::app::ar::panel::synthetic_recording_dir(),
+                    20,
+                );
                 s.jobs.spawn("synthetic recording", job);
             }
             Some(_) => {}

@@ -68,10 +68,19 @@ impl DatasetForm {
 
     /// The configuration `umesh dataset generate` builds from the same values (its checks
     /// too), with the camera and fixed region chosen in the model view.
-    pub fn config_with(&self, seg: &Segmentation, setup: &ObservationSetup, fixed: &FixedChoice) -> anyhow::Result<DatasetConfig> {
-        let grid =
-            umesh_core::grid::GridSettings { cell_size_mm: self.cell_size_mm, subdivisions: self.subdivisions, ..Default::default() };
-        let (mut c, _) = self.config_args(setup, fixed).config(seg, grid, self.samples.max(1), self.seed, self.shard_size)?;
+    pub fn config_with(
+        &self,
+        seg: &Segmentation,
+        setup: &ObservationSetup,
+        fixed: &FixedChoice,
+    ) -> anyhow::Result<DatasetConfig> {
+        let grid = umesh_core::grid::GridSettings {
+            cell_size_mm: self.cell_size_mm,
+            subdivisions: self.subdivisions,
+            ..Default::default()
+        };
+        let (mut c, _) =
+            self.config_args(setup, fixed).config(seg, grid, self.samples.max(1), self.seed, self.shard_size)?;
         // Regions the options cannot spell (a posterior slab, a patient's region) are set as they are.
         c.fixed = fixed.region(seg);
         Ok(c)
@@ -276,9 +285,9 @@ fn dataset_form(
     if ui.add_enabled(organ.data.is_some(), egui::Button::new("Queue dataset generation")).clicked()
         && let Some(o) = &organ.data
     {
-        let submitted = d
-            .config_with(&o.seg, setup, fixed)
-            .and_then(|config| q.submit(WorkKind::Dataset { seg: o.seg.clone(), config: Box::new(config) }, PathBuf::from(d.out.trim())));
+        let submitted = d.config_with(&o.seg, setup, fixed).and_then(|config| {
+            q.submit(WorkKind::Dataset { seg: o.seg.clone(), config: Box::new(config) }, PathBuf::from(d.out.trim()))
+        });
         match submitted {
             Ok(id) => {
                 messages.info(format!("dataset job #{id} queued"));
@@ -310,7 +319,8 @@ fn patient_form(
         ui.label("epochs");
         ui.add(egui::DragValue::new(&mut pf.epochs).range(1..=10_000));
         ui.end_row();
-        ui.label("time budget (min)").on_hover_text("the whole job; training stops before an epoch that would not fit (0: none)");
+        ui.label("time budget (min)")
+            .on_hover_text("the whole job; training stops before an epoch that would not fit (0: none)");
         ui.add(egui::DragValue::new(&mut pf.time_budget_min).range(0.0..=10_000.0));
         ui.end_row();
         ui.label("network");
@@ -325,7 +335,10 @@ fn patient_form(
     {
         let inputs: Vec<PathBuf> = Some(o.seg.source.clone()).filter(|p| p.is_file()).into_iter().collect();
         let submitted = pf.settings(&f.dataset, &o.seg, setup, fixed).and_then(|settings| {
-            q.submit(WorkKind::Prepare { seg: o.seg.clone(), inputs, settings: Box::new(settings) }, PathBuf::from(pf.out.trim()))
+            q.submit(
+                WorkKind::Prepare { seg: o.seg.clone(), inputs, settings: Box::new(settings) },
+                PathBuf::from(pf.out.trim()),
+            )
         });
         match submitted {
             Ok(id) => messages.info(format!("patient job #{id} queued")),
@@ -369,7 +382,8 @@ fn training_form(ui: &mut egui::Ui, f: &mut JobsUi, q: &mut WorkQueue, messages:
     });
     ui.checkbox(&mut t.resume, "resume from last.safetensors");
     if ui.button("Queue training").clicked() {
-        let kind = WorkKind::Train { dataset: PathBuf::from(t.dataset.trim()), settings: t.settings(), resume: t.resume };
+        let kind =
+            WorkKind::Train { dataset: PathBuf::from(t.dataset.trim()), settings: t.settings(), resume: t.resume };
         match q.submit(kind, PathBuf::from(t.out.trim())) {
             Ok(id) => {
                 messages.info(format!("training job #{id} queued"));
@@ -447,7 +461,10 @@ pub fn queue_and_dashboard(
                         ui.add(egui::ProgressBar::new(frac).desired_width(300.0).text(text));
                     }
                     WorkStatus::Done(m) => {
-                        ui.colored_label(egui::Color32::LIGHT_GREEN, format!("done in {}: {m}", fmt_secs(item.seconds.unwrap_or(0.0))));
+                        ui.colored_label(
+                            egui::Color32::LIGHT_GREEN,
+                            format!("done in {}: {m}", fmt_secs(item.seconds.unwrap_or(0.0))),
+                        );
                     }
                     WorkStatus::Failed(e) => {
                         ui.colored_label(egui::Color32::LIGHT_RED, format!("failed: {e:#}"));
@@ -489,7 +506,8 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
         ui.add(egui::TextEdit::singleline(&mut f.folder_text).desired_width(200.0));
         if ui.button("Show").clicked() {
             f.folder_metrics = None;
-            f.dash = (!f.folder_text.trim().is_empty()).then(|| DashSource::Folder(PathBuf::from(f.folder_text.trim())));
+            f.dash =
+                (!f.folder_text.trim().is_empty()).then(|| DashSource::Folder(PathBuf::from(f.folder_text.trim())));
         }
     });
     let (metrics, folder): (Vec<EpochMetrics>, Option<PathBuf>) = match &f.dash {
@@ -528,21 +546,31 @@ fn dashboard(ui: &mut egui::Ui, f: &mut JobsUi, q: &WorkQueue, active: &ActiveMo
             last.train_samples_per_s
         ));
     }
-    let pts = |g: &dyn Fn(&EpochMetrics) -> f64| -> PlotPoints { metrics.iter().map(|m| [m.epoch as f64, g(m)]).collect() };
+    let pts =
+        |g: &dyn Fn(&EpochMetrics) -> f64| -> PlotPoints { metrics.iter().map(|m| [m.epoch as f64, g(m)]).collect() };
     let h = (ui.available_height() - 40.0).max(120.0);
     let w = ui.available_width() / 2.0 - 8.0;
     ui.horizontal(|ui| {
-        Plot::new("loss").width(w).height(h).legend(Legend::default()).x_axis_label("epoch").y_axis_label("log10 loss").show(ui, |p| {
-            p.line(Line::new("train loss", pts(&|m| m.train_loss.max(1e-12).log10())));
-            p.line(Line::new("validation loss", pts(&|m| m.val_loss.max(1e-12).log10())));
-        });
-        Plot::new("tre").width(w).height(h).legend(Legend::default()).x_axis_label("epoch").y_axis_label("validation TRE (mm)").show(
-            ui,
-            |p| {
+        Plot::new("loss")
+            .width(w)
+            .height(h)
+            .legend(Legend::default())
+            .x_axis_label("epoch")
+            .y_axis_label("log10 loss")
+            .show(ui, |p| {
+                p.line(Line::new("train loss", pts(&|m| m.train_loss.max(1e-12).log10())));
+                p.line(Line::new("validation loss", pts(&|m| m.val_loss.max(1e-12).log10())));
+            });
+        Plot::new("tre")
+            .width(w)
+            .height(h)
+            .legend(Legend::default())
+            .x_axis_label("epoch")
+            .y_axis_label("validation TRE (mm)")
+            .show(ui, |p| {
                 p.line(Line::new("mean", pts(&|m| m.val_tre_mean_mm)));
                 p.line(Line::new("max", pts(&|m| m.val_tre_max_mm)));
-            },
-        );
+            });
     });
     let mut load = None;
     if let Some(dir) = folder {

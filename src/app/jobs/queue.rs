@@ -103,7 +103,11 @@ pub struct WorkQueue {
 
 /// A folder path made comparable: absolute, and canonical where it exists.
 pub fn normalize(p: &Path) -> PathBuf {
-    let joined = if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.into()) };
+    let joined = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.into())
+    };
     // Lexically first: "a/x/.." is "a" even when "a/x" does not exist.
     let mut abs = PathBuf::new();
     for c in joined.components() {
@@ -200,7 +204,8 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
         WorkKind::Dataset { seg, config } => {
             let c = config;
             let src = seg.source.display().to_string();
-            let input = if src.contains("phantom") && !Path::new(&src).exists() { String::new() } else { format!("{src} ") };
+            let input =
+                if src.contains("phantom") && !Path::new(&src).exists() { String::new() } else { format!("{src} ") };
             let command = format!(
                 "umesh dataset generate {input}--samples {} --seed {} --shard-size {} {} --out {}",
                 c.samples,
@@ -225,7 +230,11 @@ fn describe(kind: &WorkKind, out: &Path) -> (serde_json::Value, String) {
                 s.learning_rate,
                 s.seed,
                 if s.observation.is_some() && !s.fresh_views { " --stored-views" } else { "" },
-                if s.observation.is_some() && s.fresh_views { format!(" --rest-views {}", s.rest_views) } else { String::new() },
+                if s.observation.is_some() && s.fresh_views {
+                    format!(" --rest-views {}", s.rest_views)
+                } else {
+                    String::new()
+                },
                 if *resume { " --resume" } else { "" }
             );
             (serde_json::json!({ "kind": "training", "dataset": dataset, "settings": s, "resume": resume }), command)
@@ -271,12 +280,15 @@ fn camera_and_fixed_options(c: &DatasetConfig) -> String {
     let mut out = String::new();
     if let Some(cam) = &c.visibility.camera {
         let to: Vec<f64> = (0..3).map(|i| cam.position_mm[i] + cam.direction[i]).collect();
-        out += &format!(" --camera-from {} --camera-to {} --fov-deg {}", list(&cam.position_mm), list(&to), cam.fov_deg);
+        out +=
+            &format!(" --camera-from {} --camera-to {} --fov-deg {}", list(&cam.position_mm), list(&to), cam.fov_deg);
     }
     out += &match &c.fixed {
         FixedRegion::Label { label, distance_mm } => format!(" --fix-label {label} --fix-distance-mm {distance_mm}"),
         FixedRegion::Box { min_mm, max_mm } => format!(" --fix-box {},{}", list(min_mm), list(max_mm)),
-        FixedRegion::Plane { normal, offset_mm, thickness_mm } => format!(" --fix-plane {},{offset_mm:.1},{thickness_mm:.1}", list(normal)),
+        FixedRegion::Plane { normal, offset_mm, thickness_mm } => {
+            format!(" --fix-plane {},{offset_mm:.1},{thickness_mm:.1}", list(normal))
+        }
         other => format!(" (fixed region {other:?} as chosen in the app)"),
     };
     out
@@ -299,7 +311,8 @@ fn start(item: &mut WorkItem) {
                 .with_context(|| job_file.display().to_string())?;
         }
         let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2);
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).start_handler(|_| lower_thread_priority()).build()?;
+        let pool =
+            rayon::ThreadPoolBuilder::new().num_threads(threads).start_handler(|_| lower_thread_priority()).build()?;
         // The pre-flight figures go to the job's log; a job it refuses ends at once with the
         // likely cause as its error.
         let report_preflight = |p: &umesh_core::dataset::Preflight| {
@@ -307,7 +320,11 @@ fn start(item: &mut WorkItem) {
                 l.push(p.summary());
             }
         };
-        let check = umesh_core::dataset::PreflightCheck { settings: Default::default(), force: false, report: &report_preflight };
+        let check = umesh_core::dataset::PreflightCheck {
+            settings: Default::default(),
+            force: false,
+            report: &report_preflight,
+        };
         pool.install(|| run_work(kind, &out, &check, &sink, &cancel, &log, &metrics))
     }));
 }
@@ -409,7 +426,10 @@ pub fn run_queue(mut q: ResMut<WorkQueue>, mut messages: ResMut<UiMessages>) {
                 WorkStatus::Done(msg)
             }
             Err(_) if item.cancel.is_cancelled() => {
-                messages.info(format!("{} job #{} cancelled (what was written is kept; run it again to resume)", item.label, item.id));
+                messages.info(format!(
+                    "{} job #{} cancelled (what was written is kept; run it again to resume)",
+                    item.label, item.id
+                ));
                 WorkStatus::Cancelled
             }
             Err(e) => {

@@ -43,8 +43,9 @@ fn panels(InMut(root): InMut<egui::Ui>, mut s: JobsState) {
         egui::ScrollArea::vertical()
             .show(ui, |ui| forms_panel(ui, &mut s.ui, &mut s.queue, &s.organ, &s.setup, &s.sim.fixed, &mut s.messages));
     });
-    let load =
-        egui::CentralPanel::default().show(root, |ui| queue_and_dashboard(ui, &mut s.ui, &mut s.queue, &s.active, &mut s.patient)).inner;
+    let load = egui::CentralPanel::default()
+        .show(root, |ui| queue_and_dashboard(ui, &mut s.ui, &mut s.queue, &s.active, &mut s.patient))
+        .inner;
     if let Some((dir, file)) = load {
         *s.active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
         // The rehearsal (model view) loads it onto the organ.

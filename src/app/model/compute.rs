@@ -74,11 +74,20 @@ pub fn organ_data(seg: umesh_core::segmentation::Segmentation, source: String) -
         .into_iter()
         .map(|(label, name, color, mesh)| StructureMesh { label, name, color, mesh: Arc::new(mesh) })
         .collect();
-    Ok(OrganData { seg: Arc::new(seg), surface: Arc::new(surface), structures, source, ct: None, opened: Default::default() })
+    Ok(OrganData {
+        seg: Arc::new(seg),
+        surface: Arc::new(surface),
+        structures,
+        source,
+        ct: None,
+        opened: Default::default(),
+    })
 }
 
 /// Open a patient folder made by `umesh prepare`: its segmentation and figures.
-pub fn open_patient_job(dir: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
+pub fn open_patient_job(
+    dir: std::path::PathBuf,
+) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |progress, _| {
         progress.report(0, 2, "reading the patient");
         let figures = umesh_workflow::patient::read_figures(&dir)?;
@@ -101,7 +110,8 @@ fn open_patient(world: &mut World, data: OrganData, figures: umesh_workflow::pat
     let settings = figures.patient.settings.clone();
     crate::app::shell::tasks::set_organ(world, data);
     world.resource_mut::<GridState>().settings = settings.dataset.grid.clone();
-    world.resource_mut::<Simulation>().fixed = FixedChoice::Region(settings.dataset.fixed.clone(), settings.fixed_description.clone());
+    world.resource_mut::<Simulation>().fixed =
+        FixedChoice::Region(settings.dataset.fixed.clone(), settings.fixed_description.clone());
     world.resource_mut::<crate::app::setup::ObservationSetup>().adopt(&settings.dataset.visibility);
     let model = if figures.has_model {
         *world.resource_mut::<ActiveModel>() =
@@ -135,7 +145,8 @@ pub fn deformation(
     source: &str,
 ) -> Deformation {
     let surface = deform_mesh(grid, &organ.surface, u);
-    let disp: Vec<f32> = surface.positions.iter().zip(&organ.surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
+    let disp: Vec<f32> =
+        surface.positions.iter().zip(&organ.surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
     let max = u.iter().map(|v| v.norm()).fold(0.0, f64::max);
     let mean = u.iter().map(|v| v.norm()).sum::<f64>() / u.len().max(1) as f64;
     Deformation {
@@ -158,7 +169,8 @@ pub const PROBE_TIP_RADIUS_MM: f64 = 8.0;
 pub fn spread_probes(surface: &umesh_core::mesh::TriMesh, probes: &[Probe], radius_mm: f64) -> Vec<PointForce> {
     let mut out = Vec::new();
     for p in probes {
-        let near: Vec<&Vector3<f64>> = surface.positions.iter().filter(|v| (*v - p.point_mm).norm() <= radius_mm).collect();
+        let near: Vec<&Vector3<f64>> =
+            surface.positions.iter().filter(|v| (*v - p.point_mm).norm() <= radius_mm).collect();
         if near.is_empty() {
             out.push(PointForce { point_mm: p.point_mm.into(), force_n: p.force_n.into() });
             continue;
@@ -189,12 +201,21 @@ pub fn simulate_job(
         let t = Instant::now();
         let out = run_simulate(&grid, Some(&organ.seg.volume), &settings, progress, cancel)?;
         let history = out.solution.history.iter().enumerate().map(|(i, h)| (i + 1, h.residual)).collect();
-        Ok(JobOutput::Simulated(deformation(&grid, &organ, &out.solution.displacement_mm, history, t.elapsed().as_secs_f64() * 1e3, "SVK")))
+        Ok(JobOutput::Simulated(deformation(
+            &grid,
+            &organ,
+            &out.solution.displacement_mm,
+            history,
+            t.elapsed().as_secs_f64() * 1e3,
+            "SVK",
+        )))
     }
 }
 
 /// Read a NIfTI's labels (names and voxel counts) so the user can choose organ and structures.
-pub fn inspect_job(path: std::path::PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
+pub fn inspect_job(
+    path: std::path::PathBuf,
+) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Result<JobOutput> + Send + 'static {
     move |_, _| {
         if umesh_core::segmentation::is_mesh_path(&path) {
             return Ok(JobOutput::Inspected(path, Vec::new()));

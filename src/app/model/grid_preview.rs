@@ -16,7 +16,10 @@ fn draw_grid(grid: Res<GridState>, mut gizmos: Gizmos) {
             umesh_core::grid::CellKind::Inside => Color::srgba(0.3, 0.9, 0.4, 0.18),
             _ => Color::srgba(1.0, 0.55, 0.1, 0.25 + 0.75 * c.volume_fraction as f32),
         };
-        gizmos.cube(Transform::from_translation(bevy_from_world(&centre)).with_scale(Vec3::splat(h as f32 * UNITS_PER_MM)), color);
+        gizmos.cube(
+            Transform::from_translation(bevy_from_world(&centre)).with_scale(Vec3::splat(h as f32 * UNITS_PER_MM)),
+            color,
+        );
     }
 }
 

@@ -52,7 +52,8 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     let mut sub = st.grid.settings.subdivisions;
     let r2 = ui.add(egui::Slider::new(&mut sub, 0..=3).text("boundary subdivisions"));
     st.grid.settings.subdivisions = sub;
-    let rebuild = r.drag_stopped() || r2.drag_stopped() || (r.changed() && !r.dragged()) || (r2.changed() && !r2.dragged());
+    let rebuild =
+        r.drag_stopped() || r2.drag_stopped() || (r.changed() && !r.dragged()) || (r2.changed() && !r2.dragged());
     if (ui.button("Build grid").clicked() || rebuild)
         && let Some(d) = &st.organ.data
     {
@@ -64,9 +65,19 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     ui.separator();
     ui.heading("Simulation");
     crate::app::setup::fixed_ui(ui, &mut st.sim.fixed, st.organ.data.as_ref());
-    ui.add(egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1).logarithmic(true).text("N per mm of drag"));
-    let can = st.organ.data.is_some() && st.grid.grid.is_some() && !st.probes.list.is_empty() && !st.jobs.is_running("simulate");
-    if ui.add_enabled(can, egui::Button::new("Simulate (SVK) (S)")).on_disabled_hover_text("needs a grid and at least one probe").clicked()
+    ui.add(
+        egui::Slider::new(&mut st.probe_settings.newtons_per_mm, 0.001..=0.1)
+            .logarithmic(true)
+            .text("N per mm of drag"),
+    );
+    let can = st.organ.data.is_some()
+        && st.grid.grid.is_some()
+        && !st.probes.list.is_empty()
+        && !st.jobs.is_running("simulate");
+    if ui
+        .add_enabled(can, egui::Button::new("Simulate (SVK) (S)"))
+        .on_disabled_hover_text("needs a grid and at least one probe")
+        .clicked()
     {
         start_simulation(st);
     }
@@ -77,7 +88,11 @@ pub fn left_panel(ui: &mut egui::Ui, st: &mut AppState) {
     {
         st.jobs.spawn(
             "load model",
-            crate::app::model::probes::load_model_job(umesh_workflow::input::bundled_model(), "model.safetensors".into(), d.clone()),
+            crate::app::model::probes::load_model_job(
+                umesh_workflow::input::bundled_model(),
+                "model.safetensors".into(),
+                d.clone(),
+            ),
         );
     }
     let has_model = st.rehearsal.model.is_some();

@@ -154,32 +154,52 @@ impl RehearsalModel {
 
     /// Load one checkpoint of a model folder (`model.safetensors`, `last.safetensors`).
     pub fn load_checkpoint(dir: &std::path::Path, file: &str, organ: &OrganData) -> anyhow::Result<Self> {
-        let predictor = umesh_net::inference::Predictor::load_checkpoint(dir, file).with_context(|| dir.display().to_string())?;
+        let predictor =
+            umesh_net::inference::Predictor::load_checkpoint(dir, file).with_context(|| dir.display().to_string())?;
         let config = umesh_workflow::input::model_dataset_config(Some(&predictor.info), &organ.seg);
         let ctx = DatasetContext::prepare(&organ.seg, &config, &umesh_core::Cancel::new())?;
-        predictor.info.check_grid(&ctx.grid_hash(), ctx.grid.padded_shape()).with_context(|| dir.display().to_string())?;
-        let encoder =
-            umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface).with_context(|| dir.display().to_string())?;
+        predictor
+            .info
+            .check_grid(&ctx.grid_hash(), ctx.grid.padded_shape())
+            .with_context(|| dir.display().to_string())?;
+        let encoder = umesh_net::inference::InputEncoder::new(&predictor.info, &ctx.grid, &ctx.surface)
+            .with_context(|| dir.display().to_string())?;
         let seen = umesh_core::mesh::TriMesh {
             positions: ctx.surface.positions.clone(),
-            triangles: ctx.surface.triangles.iter().zip(&ctx.visible.visible).filter(|(_, v)| **v).map(|(t, _)| *t).collect(),
+            triangles: ctx
+                .surface
+                .triangles
+                .iter()
+                .zip(&ctx.visible.visible)
+                .filter(|(_, v)| **v)
+                .map(|(t, _)| *t)
+                .collect(),
         };
-        let view_rest_mm = umesh_core::observation::dense_surface_points(&seen, 0.05).into_iter().map(|p| p.0).collect();
+        let view_rest_mm =
+            umesh_core::observation::dense_surface_points(&seen, 0.05).into_iter().map(|p| p.0).collect();
         Ok(Self { predictor, ctx, field: Vec::new(), encoder, view_rest_mm })
     }
 
     /// The probes' displacement (each probe's force over the drag stiffness, spread with a
     /// Gaussian of `radius_mm`) at `p`.
     fn probe_displacement(probes: &[Probe], newtons_per_mm: f64, radius_mm: f64, p: &Vector3<f64>) -> Vector3<f64> {
-        probes.iter().map(|q| q.force_n / newtons_per_mm * (-(p - q.point_mm).norm_squared() / (2.0 * radius_mm * radius_mm)).exp()).sum()
+        probes
+            .iter()
+            .map(|q| {
+                q.force_n / newtons_per_mm * (-(p - q.point_mm).norm_squared() / (2.0 * radius_mm * radius_mm)).exp()
+            })
+            .sum()
     }
 
     /// The network input for the probes: a camera view of the surface they move (models
     /// trained on camera views) or u_s.
     pub fn network_input(&mut self, probes: &[Probe], newtons_per_mm: f64, radius_mm: f64) -> anyhow::Result<Vec<f32>> {
         if self.encoder.takes_points() {
-            let pts: Vec<Vector3<f64>> =
-                self.view_rest_mm.iter().map(|p| p + Self::probe_displacement(probes, newtons_per_mm, radius_mm, p)).collect();
+            let pts: Vec<Vector3<f64>> = self
+                .view_rest_mm
+                .iter()
+                .map(|p| p + Self::probe_displacement(probes, newtons_per_mm, radius_mm, p))
+                .collect();
             self.encoder.input(Some(&pts), None).map_err(anyhow::Error::from)
         } else {
             Ok(self.surface_input(probes, newtons_per_mm, radius_mm))
@@ -233,14 +253,15 @@ fn rehearse(
     let t = std::time::Instant::now();
     let input = m.network_input(&probes.list, settings.newtons_per_mm, reh.radius_mm.max(1.0));
     let shape = m.ctx.grid.padded_shape();
-    let field = match input.and_then(|x| m.predictor.predict(&x, shape).map(|f| f.to_vec()).map_err(anyhow::Error::from)) {
-        Ok(f) => f,
-        Err(e) => {
-            messages.error(format!("prediction failed: {e:#}"));
-            reh.enabled = false;
-            return;
-        }
-    };
+    let field =
+        match input.and_then(|x| m.predictor.predict(&x, shape).map(|f| f.to_vec()).map_err(anyhow::Error::from)) {
+            Ok(f) => f,
+            Err(e) => {
+                messages.error(format!("prediction failed: {e:#}"));
+                reh.enabled = false;
+                return;
+            }
+        };
     let u = m.nodal(&field);
     m.field = field;
     reh.last_predict_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -250,7 +271,13 @@ fn rehearse(
 }
 
 /// Compare the rehearsal prediction with the SVK solution for the same surface displacement.
-pub fn start_fe_check(jobs: &mut Jobs, reh: &Rehearsal, probes: &Probes, organ: &Organ, settings: &ProbeSettings) -> anyhow::Result<()> {
+pub fn start_fe_check(
+    jobs: &mut Jobs,
+    reh: &Rehearsal,
+    probes: &Probes,
+    organ: &Organ,
+    settings: &ProbeSettings,
+) -> anyhow::Result<()> {
     let model = reh.model.clone().context("load a model first")?;
     let data = organ.data.clone().context("no organ")?;
     let list = probes.list.clone();
@@ -284,7 +311,8 @@ pub fn start_fe_check(jobs: &mut Jobs, reh: &Rehearsal, probes: &Probes, organ: 
         let sol = solve_bc(g, &bc, &settings, progress, cancel)?;
         let fe = deformation(g, &data, &sol.displacement_mm, Vec::new(), t.elapsed().as_secs_f64() * 1e3, "SVK check");
         let net = deformation(g, &data, &m.nodal(&m.field), Vec::new(), 0.0, "U-Net");
-        let diffs: Vec<f64> = fe.surface.positions.iter().zip(&net.surface.positions).map(|(a, b)| (a - b).norm()).collect();
+        let diffs: Vec<f64> =
+            fe.surface.positions.iter().zip(&net.surface.positions).map(|(a, b)| (a - b).norm()).collect();
         let mean = diffs.iter().sum::<f64>() / diffs.len().max(1) as f64;
         let max = diffs.iter().copied().fold(0.0, f64::max);
         Ok(JobOutput::Checked { fe, mean_mm: mean, max_mm: max })
@@ -320,7 +348,8 @@ impl Plugin for ProbeInputPlugin {
     fn build(&self, app: &mut App) {
         app.add_systems(
             Update,
-            (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes).run_if(in_state(Mode::Model)),
+            (mouse_probes.run_if(not(egui_wants_any_pointer_input)).before(place_probes), draw_probes)
+                .run_if(in_state(Mode::Model)),
         );
     }
 }

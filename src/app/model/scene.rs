@@ -56,7 +56,11 @@ fn sync(
     let Some(data) = &organ.data else { return };
     let def = sim.result.as_ref().filter(|_| deformed);
     let (surface, colors, seen) = match def {
-        Some(d) => (d.surface.as_ref(), Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32)), false),
+        Some(d) => (
+            d.surface.as_ref(),
+            Some(displacement_colors(&d.surface_displacement_mm, d.max_mm.max(1e-3) as f32)),
+            false,
+        ),
         None => {
             let seen = crate::app::setup::seen_colors(&setup, data, organ.generation);
             let tinted = seen.is_some();
@@ -74,7 +78,12 @@ fn sync(
             ..default()
         }
     } else if colors.is_some() {
-        StandardMaterial { base_color: Color::WHITE.with_alpha(0.55), alpha_mode: AlphaMode::Blend, perceptual_roughness: 0.7, ..default() }
+        StandardMaterial {
+            base_color: Color::WHITE.with_alpha(0.55),
+            alpha_mode: AlphaMode::Blend,
+            perceptual_roughness: 0.7,
+            ..default()
+        }
     } else {
         StandardMaterial {
             base_color: Color::srgba(0.62, 0.25, 0.2, 0.35),
@@ -85,7 +94,11 @@ fn sync(
             ..default()
         }
     };
-    commands.spawn((Mesh3d(meshes.add(mesh_from_trimesh(surface, colors))), MeshMaterial3d(materials.add(organ_mat)), OrganMesh));
+    commands.spawn((
+        Mesh3d(meshes.add(mesh_from_trimesh(surface, colors))),
+        MeshMaterial3d(materials.add(organ_mat)),
+        OrganMesh,
+    ));
     if ghost {
         // The rest shape, faint and unlit: where the organ was, without hiding where it is.
         let mat = StandardMaterial {
@@ -96,20 +109,31 @@ fn sync(
             cull_mode: None,
             ..default()
         };
-        commands.spawn((Mesh3d(meshes.add(mesh_from_trimesh(&data.surface, None))), MeshMaterial3d(materials.add(mat)), OrganMesh));
+        commands.spawn((
+            Mesh3d(meshes.add(mesh_from_trimesh(&data.surface, None))),
+            MeshMaterial3d(materials.add(mat)),
+            OrganMesh,
+        ));
     }
     for (i, s) in data.structures.iter().enumerate() {
         let m = def.and_then(|d| d.structures.get(i)).map(|m| m.as_ref()).unwrap_or(s.mesh.as_ref());
         commands.spawn((
             Mesh3d(meshes.add(mesh_from_trimesh(m, None))),
-            MeshMaterial3d(materials.add(StandardMaterial { base_color: color_u8(s.color), perceptual_roughness: 0.5, ..default() })),
+            MeshMaterial3d(materials.add(StandardMaterial {
+                base_color: color_u8(s.color),
+                perceptual_roughness: 0.5,
+                ..default()
+            })),
             StructureMesh,
         ));
     }
 }
 
 /// The organ and its structures show in the model view only (the QA view has its own).
-fn visibility(mode: Res<State<crate::app::state::Mode>>, mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>) {
+fn visibility(
+    mode: Res<State<crate::app::state::Mode>>,
+    mut q: Query<&mut Visibility, Or<(With<OrganMesh>, With<StructureMesh>)>>,
+) {
     let want = if *mode.get() == crate::app::state::Mode::Model { Visibility::Inherited } else { Visibility::Hidden };
     for mut v in &mut q {
         if *v != want {

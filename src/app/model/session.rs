@@ -65,7 +65,10 @@ impl Session {
             return bad(format!("format {} v{} is not {FORMAT} v{FORMAT_VERSION}", self.format, self.format_version));
         }
         if !(self.cell_size_mm.is_finite() && (1.0..=50.0).contains(&self.cell_size_mm)) || self.subdivisions > 4 {
-            return bad(format!("cell size {} mm / {} subdivisions out of range", self.cell_size_mm, self.subdivisions));
+            return bad(format!(
+                "cell size {} mm / {} subdivisions out of range",
+                self.cell_size_mm, self.subdivisions
+            ));
         }
         if self.probes.len() > 1000 {
             return bad(format!("{} probes (at most 1000)", self.probes.len()));
@@ -97,7 +100,8 @@ impl Session {
 
     pub fn read(path: &Path) -> anyhow::Result<Session> {
         let text = std::fs::read_to_string(path).with_context(|| path.display().to_string())?;
-        let s: Session = serde_json::from_str(&text).with_context(|| format!("{}: not a umesh session", path.display()))?;
+        let s: Session =
+            serde_json::from_str(&text).with_context(|| format!("{}: not a umesh session", path.display()))?;
         s.validate(path)?;
         Ok(s)
     }
@@ -156,7 +160,11 @@ pub fn capture(st: &SessionState) -> anyhow::Result<Session> {
         camera: SavedCamera { focus: c.focus.to_array(), yaw: c.yaw, pitch: c.pitch, distance: c.distance },
         model: Some((st.active.dir.clone(), st.active.checkpoint.clone())),
         rehearsal: st.rehearsal.enabled && st.rehearsal.model.is_some(),
-        slices: d.ct.as_ref().map(|_| SavedSlices { show: st.ct.show, position_mm: st.ct.position_mm, window: st.ct.window }),
+        slices: d.ct.as_ref().map(|_| SavedSlices {
+            show: st.ct.show,
+            position_mm: st.ct.position_mm,
+            window: st.ct.window,
+        }),
     })
 }
 
@@ -179,15 +187,21 @@ pub fn open_job(path: PathBuf) -> impl FnOnce(&Progress, &Cancel) -> anyhow::Res
         let s = Session::read(&path)?;
         let inner = match &s.organ {
             OrganSource::Phantom => {
-                crate::app::model::compute::load_job(OpenRequest { ct: s.ct.clone(), ..Default::default() })(progress, cancel)?
+                crate::app::model::compute::load_job(OpenRequest { ct: s.ct.clone(), ..Default::default() })(
+                    progress, cancel,
+                )?
             }
-            OrganSource::File { path: p, organ_labels, structure_labels } => crate::app::model::compute::load_job(OpenRequest {
-                path: Some(p.clone()),
-                organ_labels: organ_labels.clone(),
-                structure_labels: structure_labels.clone(),
-                ct: s.ct.clone(),
-            })(progress, cancel)?,
-            OrganSource::Patient { dir } => crate::app::model::compute::open_patient_job(dir.clone())(progress, cancel)?,
+            OrganSource::File { path: p, organ_labels, structure_labels } => {
+                crate::app::model::compute::load_job(OpenRequest {
+                    path: Some(p.clone()),
+                    organ_labels: organ_labels.clone(),
+                    structure_labels: structure_labels.clone(),
+                    ct: s.ct.clone(),
+                })(progress, cancel)?
+            }
+            OrganSource::Patient { dir } => {
+                crate::app::model::compute::open_patient_job(dir.clone())(progress, cancel)?
+            }
         };
         Ok(JobOutput::Apply(Box::new(move |world| {
             let msg = crate::app::shell::tasks::apply(world, inner)?;
@@ -206,7 +220,11 @@ pub fn apply_pending(mut pending: ResMut<PendingSession>, mut st: SessionState) 
     let v = |a: &[f64; 3]| nalgebra::Vector3::new(a[0], a[1], a[2]);
     st.grid.settings.cell_size_mm = s.cell_size_mm;
     st.grid.settings.subdivisions = s.subdivisions;
-    st.probes.list = s.probes.iter().map(|p| Probe { point_mm: v(&p.point_mm), normal: v(&p.normal), force_n: v(&p.force_n) }).collect();
+    st.probes.list = s
+        .probes
+        .iter()
+        .map(|p| Probe { point_mm: v(&p.point_mm), normal: v(&p.normal), force_n: v(&p.force_n) })
+        .collect();
     st.probes.selected = None;
     st.probes.generation += 1;
     st.sim.fixed = s.fixed.clone();
@@ -222,7 +240,8 @@ pub fn apply_pending(mut pending: ResMut<PendingSession>, mut st: SessionState) 
     if let (Some((dir, file)), Some(d)) = (&s.model, &st.organ.data) {
         *st.active = ActiveModel { dir: dir.clone(), checkpoint: file.clone() };
         if s.rehearsal {
-            st.jobs.spawn("load model", crate::app::model::probes::load_model_job(dir.clone(), file.clone(), d.clone()));
+            st.jobs
+                .spawn("load model", crate::app::model::probes::load_model_job(dir.clone(), file.clone(), d.clone()));
         }
     }
     st.messages.info(format!("session {} opened ({} probes)", path.display(), s.probes.len()));
@@ -270,8 +289,11 @@ impl Recent {
     /// The list kept in `file`.
     pub fn at(file: PathBuf) -> Recent {
         let file = Some(file);
-        let mut r: Recent =
-            file.as_ref().and_then(|f| std::fs::read_to_string(f).ok()).and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+        let mut r: Recent = file
+            .as_ref()
+            .and_then(|f| std::fs::read_to_string(f).ok())
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or_default();
         r.list.truncate(RECENT_MAX);
         r.file = file;
         r
@@ -327,7 +349,11 @@ impl Plugin for SessionPlugin {
             .insert_resource(Recent::load())
             .add_systems(
                 Update,
-                (apply_pending.after(crate::app::shell::tasks::poll_jobs), save_requested.after(apply_pending), export_view),
+                (
+                    apply_pending.after(crate::app::shell::tasks::poll_jobs),
+                    save_requested.after(apply_pending),
+                    export_view,
+                ),
             );
     }
 }

@@ -148,19 +148,28 @@ impl Qa {
 
     /// Flip the flag of the current sample and write the manifest (atomically).
     pub fn toggle_flag(&mut self) -> anyhow::Result<String> {
-        let (Some(ds), Some(pos)) = (&self.dataset, self.order.get(self.cursor).copied()) else { anyhow::bail!("no sample") };
+        let (Some(ds), Some(pos)) = (&self.dataset, self.order.get(self.cursor).copied()) else {
+            anyhow::bail!("no sample")
+        };
         let dir = ds.dir.clone();
         let m = self.manifest.as_mut().context("no dataset")?;
         // Re-read first: another process (a CLI run) may have changed the manifest since.
         let mut fresh = Manifest::read(&dir)?;
         let index = m.samples[pos].index;
-        let s =
-            fresh.samples.iter_mut().find(|s| s.index == index).with_context(|| format!("sample {index} is no longer in the manifest"))?;
+        let s = fresh
+            .samples
+            .iter_mut()
+            .find(|s| s.index == index)
+            .with_context(|| format!("sample {index} is no longer in the manifest"))?;
         s.flagged = !s.flagged;
         let flagged = s.flagged;
         fresh.write(&dir)?;
         *m = fresh;
-        let msg = format!("sample {index} {} in {}", if flagged { "flagged (training skips it)" } else { "unflagged" }, dir.display());
+        let msg = format!(
+            "sample {index} {} in {}",
+            if flagged { "flagged (training skips it)" } else { "unflagged" },
+            dir.display()
+        );
         self.reorder();
         Ok(msg)
     }
@@ -168,12 +177,15 @@ impl Qa {
     pub fn open(&mut self, dir: PathBuf, organ: &Organ, model: &ActiveModel) -> anyhow::Result<()> {
         let data = organ.data.clone().context("load the organ the dataset was made from first")?;
         let model = model.clone();
-        self.opening = Some(AsyncComputeTaskPool::get().spawn(async move { open_dataset(&dir, &data.seg, Some(&model)) }));
+        self.opening =
+            Some(AsyncComputeTaskPool::get().spawn(async move { open_dataset(&dir, &data.seg, Some(&model)) }));
         Ok(())
     }
 
     pub fn evaluate_all(&mut self) {
-        let (Some(ds), Some(m), Some(p)) = (self.dataset.clone(), self.manifest.clone(), self.predictor.clone()) else { return };
+        let (Some(ds), Some(m), Some(p)) = (self.dataset.clone(), self.manifest.clone(), self.predictor.clone()) else {
+            return;
+        };
         self.evaluating = Some(AsyncComputeTaskPool::get().spawn(async move { evaluate_dataset(&ds, &m, &p) }));
     }
 }
@@ -189,17 +201,25 @@ pub fn open_dataset(
     let m = ds.manifest;
     let seg_hash = umesh_core::dataset::segmentation_hash(seg);
     if m.segmentation_hash != seg_hash {
-        anyhow::bail!("{}: made from another segmentation ({}); open that segmentation first (File > Open)", dir.display(), m.segmentation);
+        anyhow::bail!(
+            "{}: made from another segmentation ({}); open that segmentation first (File > Open)",
+            dir.display(),
+            m.segmentation
+        );
     }
     let dctx = DatasetContext::prepare(seg, &m.config, &umesh_core::Cancel::new())?;
     if dctx.grid_hash() != m.grid_hash {
-        anyhow::bail!("{}: made on another grid than this program builds from its settings (grid hash differs)", dir.display());
+        anyhow::bail!(
+            "{}: made on another grid than this program builds from its settings (grid hash differs)",
+            dir.display()
+        );
     }
     let ctx = RegistrationContext::new(dctx, seg)?;
     let markers = virtual_markers(&ctx, 10, 0).iter().filter_map(|p| ctx.grid.embed(p)).collect();
     let predictor = match model {
         Some(am) => {
-            let p = Predictor::load_checkpoint(&am.dir, &am.checkpoint).with_context(|| am.dir.display().to_string())?;
+            let p =
+                Predictor::load_checkpoint(&am.dir, &am.checkpoint).with_context(|| am.dir.display().to_string())?;
             p.info.check_grid(&m.grid_hash, m.padded_shape).with_context(|| format!("model {}", am.dir.display()))?;
             Some(p)
         }
@@ -217,7 +237,11 @@ fn f32s(npz: &Npz, name: &str, path: &Path) -> anyhow::Result<Vec<f32>> {
 
 /// (u_s, u_v, probes, forces) of sample `index` and its position among its shard's samples.
 #[allow(clippy::type_complexity)]
-fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> anyhow::Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, usize)> {
+fn read_sample(
+    ds: &QaDataset,
+    m: &Manifest,
+    index: usize,
+) -> anyhow::Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, usize)> {
     let rec = m.samples.iter().find(|s| s.index == index).with_context(|| format!("no sample {index}"))?;
     let path = ds.dir.join(&rec.shard);
     let npz = Npz::read(&path)?;
@@ -225,10 +249,17 @@ fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> anyhow::Result<(Ve
         ArrayData::I64(v) => v.clone(),
         _ => anyhow::bail!("{}: 'index' is not int64", path.display()),
     };
-    let k = idx.iter().position(|&i| i as usize == index).with_context(|| format!("{}: sample {index} missing", path.display()))?;
+    let k = idx
+        .iter()
+        .position(|&i| i as usize == index)
+        .with_context(|| format!("{}: sample {index} missing", path.display()))?;
     let a = idx.len();
-    let (u_s, u_v, pr, fo) =
-        (f32s(&npz, "u_s", &path)?, f32s(&npz, "u_v", &path)?, f32s(&npz, "probes_mm", &path)?, f32s(&npz, "forces_n", &path)?);
+    let (u_s, u_v, pr, fo) = (
+        f32s(&npz, "u_s", &path)?,
+        f32s(&npz, "u_v", &path)?,
+        f32s(&npz, "probes_mm", &path)?,
+        f32s(&npz, "forces_n", &path)?,
+    );
     let n = u_s.len() / a.max(1);
     let p = pr.len() / a.max(1);
     Ok((
@@ -241,14 +272,24 @@ fn read_sample(ds: &QaDataset, m: &Manifest, index: usize) -> anyhow::Result<(Ve
 }
 
 fn sample_tre(ds: &QaDataset, pred: &[f32], truth: &[f32]) -> f64 {
-    let e: Vec<f64> =
-        ds.markers.iter().map(|e| (displacement_at(&ds.ctx.grid, pred, e) - displacement_at(&ds.ctx.grid, truth, e)).norm()).collect();
+    let e: Vec<f64> = ds
+        .markers
+        .iter()
+        .map(|e| (displacement_at(&ds.ctx.grid, pred, e) - displacement_at(&ds.ctx.grid, truth, e)).norm())
+        .collect();
     e.iter().sum::<f64>() / e.len().max(1) as f64
 }
 
 /// The network input of sample `index`, the `k`-th of its shard: its stored camera view
 /// encoded, or its u_s.
-fn model_input(ds: &QaDataset, m: &Manifest, index: usize, k: usize, p: &Predictor, u_s: &[f32]) -> anyhow::Result<Vec<f32>> {
+fn model_input(
+    ds: &QaDataset,
+    m: &Manifest,
+    index: usize,
+    k: usize,
+    p: &Predictor,
+    u_s: &[f32],
+) -> anyhow::Result<Vec<f32>> {
     let mut enc = umesh_net::inference::InputEncoder::new(&p.info, &ds.ctx.grid, &ds.ctx.surface)?;
     if !enc.takes_points() {
         return enc.input(None, Some(u_s)).map_err(anyhow::Error::from);
@@ -262,11 +303,18 @@ fn model_input(ds: &QaDataset, m: &Manifest, index: usize, k: usize, p: &Predict
     enc.input(Some(view), None).map_err(anyhow::Error::from)
 }
 
-pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option<&Mutex<Predictor>>) -> anyhow::Result<QaSample> {
+pub fn load_sample(
+    ds: &QaDataset,
+    m: &Manifest,
+    index: usize,
+    predictor: Option<&Mutex<Predictor>>,
+) -> anyhow::Result<QaSample> {
     let (u_s, u_v, pr, fo, k) = read_sample(ds, m, index)?;
     let ctx = &ds.ctx;
     let g = &ctx.grid;
-    let v3 = |v: &[f32]| -> Vec<Vector3<f64>> { v.chunks_exact(3).map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect() };
+    let v3 = |v: &[f32]| -> Vec<Vector3<f64>> {
+        v.chunks_exact(3).map(|c| Vector3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect()
+    };
     let cells = u_s.len() / 3;
     let u_s_arrows = ctx
         .visible_nodes
@@ -288,7 +336,8 @@ pub fn load_sample(ds: &QaDataset, m: &Manifest, index: usize, predictor: Option
             let x = model_input(ds, m, index, k, &p, &u_s)?;
             let pred = p.predict(&x, g.padded_shape())?.to_vec();
             let surface = ctx.deformed_surface(&pred);
-            let err: Vec<f32> = surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
+            let err: Vec<f32> =
+                surface.positions.iter().zip(&truth_surface.positions).map(|(a, b)| (a - b).norm() as f32).collect();
             let structures = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, &pred), s.color)).collect();
             let tre = sample_tre(ds, &pred, &u_v);
             (Some((surface, err, structures)), Some(tre))
@@ -393,7 +442,8 @@ fn poll_qa(mut qa: ResMut<Qa>, mut messages: ResMut<UiMessages>) {
         && let (Some(ds), Some(m)) = (qa.dataset.clone(), qa.manifest.clone())
     {
         let p = qa.predictor.clone();
-        qa.loading = Some((index, AsyncComputeTaskPool::get().spawn(async move { load_sample(&ds, &m, index, p.as_deref()) })));
+        qa.loading =
+            Some((index, AsyncComputeTaskPool::get().spawn(async move { load_sample(&ds, &m, index, p.as_deref()) })));
     }
 }
 

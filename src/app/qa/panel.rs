@@ -109,7 +109,8 @@ fn histogram(ui: &mut egui::Ui, id: &str, title: &str, values: &[f64], bins: usi
         counts[(((v - lo) / w) as usize).min(bins - 1)] += 1;
     }
     ui.label(title);
-    let bars: Vec<Bar> = counts.iter().enumerate().map(|(i, &c)| Bar::new(lo + (i as f64 + 0.5) * w, c as f64).width(w * 0.9)).collect();
+    let bars: Vec<Bar> =
+        counts.iter().enumerate().map(|(i, &c)| Bar::new(lo + (i as f64 + 0.5) * w, c as f64).width(w * 0.9)).collect();
     Plot::new(id)
         .height(90.0)
         .allow_drag(false)
@@ -176,10 +177,28 @@ pub fn right_panel(ui: &mut egui::Ui, qa: &Qa) {
     ui.heading("Dataset");
     let Some(m) = &qa.manifest else { return };
     let acc: Vec<_> = m.accepted().collect();
-    histogram(ui, "h_disp", "max displacement (mm)", &acc.iter().map(|s| s.max_displacement_mm).collect::<Vec<_>>(), 20);
-    histogram(ui, "h_newton", "Newton iterations", &acc.iter().map(|s| s.newton_iterations as f64).collect::<Vec<_>>(), 10);
+    histogram(
+        ui,
+        "h_disp",
+        "max displacement (mm)",
+        &acc.iter().map(|s| s.max_displacement_mm).collect::<Vec<_>>(),
+        20,
+    );
+    histogram(
+        ui,
+        "h_newton",
+        "Newton iterations",
+        &acc.iter().map(|s| s.newton_iterations as f64).collect::<Vec<_>>(),
+        10,
+    );
     let tre: Vec<f64> = qa.tre.values().copied().collect();
     if tre.len() > 1 {
-        histogram(ui, "h_tre", &format!("network TRE (mm), mean {:.2}", tre.iter().sum::<f64>() / tre.len() as f64), &tre, 20);
+        histogram(
+            ui,
+            "h_tre",
+            &format!("network TRE (mm), mean {:.2}", tre.iter().sum::<f64>() / tre.len() as f64),
+            &tre,
+            20,
+        );
     }
 }

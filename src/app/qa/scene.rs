@@ -3,7 +3,9 @@
 //! model, the prediction beside it, coloured by its error.
 
 use crate::app::qa::Qa;
-use crate::app::shell::convert::{UNITS_PER_MM, bevy_dir_from_world, bevy_from_world, color_u8, displacement_colors, mesh_from_trimesh};
+use crate::app::shell::convert::{
+    UNITS_PER_MM, bevy_dir_from_world, bevy_from_world, color_u8, displacement_colors, mesh_from_trimesh,
+};
 use crate::app::state::Mode;
 use bevy::prelude::*;
 use nalgebra::Vector3;
@@ -45,7 +47,11 @@ fn sync(
         commands.spawn((Mesh3d(meshes.add(mesh)), MeshMaterial3d(materials.add(mat)), QaMesh));
     };
     let max = s.max_mm.max(1e-3);
-    add(mesh_from_trimesh(&s.truth_surface, Some(displacement_colors(&s.truth_magnitude_mm, max))), organ_mat(), &mut commands);
+    add(
+        mesh_from_trimesh(&s.truth_surface, Some(displacement_colors(&s.truth_magnitude_mm, max))),
+        organ_mat(),
+        &mut commands,
+    );
     for (m, c) in &s.truth_structures {
         add(
             mesh_from_trimesh(m, None),
@@ -88,7 +94,12 @@ fn draw(qa: Res<Qa>, mut gizmos: Gizmos) {
         for (p, u) in s.u_s_arrows.iter().step_by(12) {
             let a = bevy_from_world(p);
             // True length: the line ends where the FE moved the node.
-            gizmos.line_gradient(a, a + bevy_dir_from_world(u) * UNITS_PER_MM, Color::srgb(0.2, 0.2, 0.2), Color::WHITE);
+            gizmos.line_gradient(
+                a,
+                a + bevy_dir_from_world(u) * UNITS_PER_MM,
+                Color::srgb(0.2, 0.2, 0.2),
+                Color::WHITE,
+            );
         }
     }
 }

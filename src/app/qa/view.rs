@@ -32,7 +32,8 @@ fn panels(
     mut messages: ResMut<UiMessages>,
 ) {
     egui::Panel::left("qa_left").default_size(280.0).show(root, |ui| {
-        egui::ScrollArea::vertical().show(ui, |ui| crate::app::qa::panel::left_panel(ui, &mut qa, &organ, &active, &mut messages));
+        egui::ScrollArea::vertical()
+            .show(ui, |ui| crate::app::qa::panel::left_panel(ui, &mut qa, &organ, &active, &mut messages));
     });
     egui::Panel::right("qa_right").default_size(280.0).show(root, |ui| {
         egui::ScrollArea::vertical().show(ui, |ui| {

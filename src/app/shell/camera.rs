@@ -100,7 +100,12 @@ impl Plugin for OrbitCameraPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<OrbitCamera>().add_systems(
             Update,
-            (orbit.run_if(not(egui_wants_any_pointer_input)), frame_key.run_if(not(egui_wants_any_keyboard_input)), apply).chain(),
+            (
+                orbit.run_if(not(egui_wants_any_pointer_input)),
+                frame_key.run_if(not(egui_wants_any_keyboard_input)),
+                apply,
+            )
+                .chain(),
         );
     }
 }

@@ -32,7 +32,8 @@ pub fn world_dir_from_bevy(v: Vec3) -> Vector3<f64> {
 /// A triangle mesh with smooth normals and optional per-vertex colours.
 pub fn mesh_from_trimesh(m: &TriMesh, colors: Option<Vec<[f32; 4]>>) -> Mesh {
     let positions: Vec<[f32; 3]> = m.positions.iter().map(|p| bevy_from_world(p).to_array()).collect();
-    let normals: Vec<[f32; 3]> = m.vertex_normals().iter().map(|n| bevy_dir_from_world(n).normalize_or_zero().to_array()).collect();
+    let normals: Vec<[f32; 3]> =
+        m.vertex_normals().iter().map(|n| bevy_dir_from_world(n).normalize_or_zero().to_array()).collect();
     let indices: Vec<u32> = m.triangles.iter().flat_map(|t| *t).collect();
     let mut mesh = Mesh::new(PrimitiveTopology::TriangleList, RenderAssetUsages::default());
     mesh.insert_attribute(Mesh::ATTRIBUTE_POSITION, positions);

@@ -79,13 +79,24 @@ impl Jobs {
             // in a pool one thread smaller than the machine, at a lower priority, so that the
             // renderer's threads win whenever they have work.
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2).saturating_sub(1).max(1);
-            match rayon::ThreadPoolBuilder::new().num_threads(threads).start_handler(|_| lower_thread_priority()).build() {
+            match rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .start_handler(|_| lower_thread_priority())
+                .build()
+            {
                 Ok(pool) => pool.install(|| work(&sink, &c2)),
                 Err(_) => work(&sink, &c2),
             }
         });
         self.next_id += 1;
-        self.running.push(Job { id: self.next_id, label: label.into(), progress, cancel, started: Instant::now(), task });
+        self.running.push(Job {
+            id: self.next_id,
+            label: label.into(),
+            progress,
+            cancel,
+            started: Instant::now(),
+            task,
+        });
         self.next_id
     }
 

@@ -69,7 +69,16 @@ impl FromWorld for View3d {
         };
         let quality_locked = forced.is_some();
         let quality = forced.unwrap_or(Quality::FULL);
-        Self { image, texture: None, rect: None, pixels_per_point: 1.0, quality, adapter: None, quality_locked, active: true }
+        Self {
+            image,
+            texture: None,
+            rect: None,
+            pixels_per_point: 1.0,
+            quality,
+            adapter: None,
+            quality_locked,
+            active: true,
+        }
     }
 }
 
@@ -104,7 +113,10 @@ pub fn detect_adapter(info: Option<Res<RenderAdapterInfo>>, mut view: ResMut<Vie
     let Some(info) = info else { return };
     let software = format!("{:?}", info.device_type) == "Cpu"
         || ["llvmpipe", "lavapipe", "softpipe", "swiftshader"].iter().any(|n| info.name.to_lowercase().contains(n));
-    info!("render adapter: {} ({:?}, {:?}); software rasteriser: {software}", info.name, info.backend, info.device_type);
+    info!(
+        "render adapter: {} ({:?}, {:?}); software rasteriser: {software}",
+        info.name, info.backend, info.device_type
+    );
     view.adapter = Some((info.name.clone(), software));
     if software && !view.quality_locked {
         view.quality = Quality::SOFTWARE;

@@ -98,7 +98,15 @@ impl DatasetContext {
                 return SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: 1.0, solution };
             }
         };
-        let solved = self.solve_calibrated(solver, config, forces, target_mm, self.sample_family(config, index), first_lambda, cancel);
+        let solved = self.solve_calibrated(
+            solver,
+            config,
+            forces,
+            target_mm,
+            self.sample_family(config, index),
+            first_lambda,
+            cancel,
+        );
         SolvedLoad { drawn_target_mm, ..solved }
     }
 
@@ -124,7 +132,13 @@ impl DatasetContext {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         if let Err(e) = self.apply_load(&mut bc, config, &forces, family) {
-            return SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: 1.0, solution: Err((Rejection::Failed, e.into())) };
+            return SolvedLoad {
+                forces,
+                target_mm,
+                drawn_target_mm: None,
+                load_factor: 1.0,
+                solution: Err((Rejection::Failed, e.into())),
+            };
         }
         if config.forces.calibration == LoadCalibration::EnergyScale {
             let solution = solver.solve(&bc, SolveMethod::Newton, &Progress::none(), cancel).map_err(classify);
@@ -137,7 +151,13 @@ impl DatasetContext {
                 let _ = loads::scale_forces(&mut forces, 1.0, lambda);
                 SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: lambda, solution: Ok(solution) }
             }
-            Err(e) => SolvedLoad { forces, target_mm, drawn_target_mm: None, load_factor: first_lambda, solution: Err(classify(e)) },
+            Err(e) => SolvedLoad {
+                forces,
+                target_mm,
+                drawn_target_mm: None,
+                load_factor: first_lambda,
+                solution: Err(classify(e)),
+            },
         }
     }
 
@@ -175,8 +195,12 @@ impl DatasetContext {
             .map(|k| {
                 let mut solver = FeSolver::new(&self.grid, config.material, &self.fixed, settings.clone())?;
                 let r = self.solve_sample(&mut solver, &reference, REFERENCE_INDEX + k, 1.0, FIRST_LOAD_FACTOR, cancel);
-                let mean = |sol: &crate::fem::solver::Solution| config.forces.mean_over.mean_mm(&sol.displacement_mm, &self.fixed);
-                Ok(r.solution.ok().map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, mean(&sol))))
+                let mean = |sol: &crate::fem::solver::Solution| {
+                    config.forces.mean_over.mean_mm(&sol.displacement_mm, &self.fixed)
+                };
+                Ok(r.solution
+                    .ok()
+                    .map(|sol| crate::fem::solver::softening_scale_mm(r.target_mm, r.load_factor, mean(&sol))))
             })
             .collect();
         cancel.check()?;
@@ -222,7 +246,8 @@ pub fn generate_sample(
     // random stream so that the loads do not depend on the view settings.
     let solution = r.solution.and_then(|sol| {
         let deformed = loads::deform_mesh(&ctx.grid, &ctx.surface, &sol.displacement_mm);
-        let mut rng = SplitMix64(config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x0B5E_4F1E_77E0_0001);
+        let mut rng =
+            SplitMix64(config.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x0B5E_4F1E_77E0_0001);
         match crate::observation::simulated_view(&deformed, &ctx.visible.camera, &config.view, &mut rng) {
             Ok(v) if v.len() >= 10 => Ok((sol, v)),
             Ok(v) => Err((Rejection::Failed, format!("the simulated camera view holds {} points", v.len()))),

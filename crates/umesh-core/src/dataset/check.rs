@@ -43,7 +43,8 @@ fn likely_cause(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
     let inverted = results.iter().filter(|r| matches!(r.rejection, Some((Rejection::Inverted, _)))).count();
     let failed = results.iter().filter(|r| matches!(r.rejection, Some((Rejection::Failed, _)))).count();
     if failed * 2 > results.len() {
-        let why = results.iter().find_map(|r| r.rejection.as_ref().filter(|x| x.0 == Rejection::Failed).map(|x| x.1.clone()));
+        let why =
+            results.iter().find_map(|r| r.rejection.as_ref().filter(|x| x.0 == Rejection::Failed).map(|x| x.1.clone()));
         return format!("the samples fail before solving ({})", why.unwrap_or_default());
     }
     if visible < 0.08 {
@@ -71,7 +72,8 @@ fn likely_cause(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleR
             config.forces.target_displacement_mm
         );
     }
-    let reached: Vec<f64> = results.iter().filter(|r| r.rejection.is_none()).map(|r| r.max_mean(ctx, config).1).collect();
+    let reached: Vec<f64> =
+        results.iter().filter(|r| r.rejection.is_none()).map(|r| r.max_mean(ctx, config).1).collect();
     let reached = if reached.is_empty() {
         "no sample converged".to_string()
     } else {
@@ -121,7 +123,8 @@ pub(super) fn preflight_with(
                         o.push(r);
                     }
                 };
-                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential()) {
+                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential())
+                {
                     Ok(s) => s,
                     Err(e) => return push(Err(invalid(&std::path::PathBuf::from("pre-flight"), e.to_string()))),
                 };
@@ -150,9 +153,11 @@ pub(super) fn preflight_with(
         .collect::<Result<_, _>>()?;
     results.sort_by_key(|r| r.index);
     let accepted: Vec<&SampleResult> = results.iter().filter(|r| r.rejection.is_none()).collect();
-    let ratios: Vec<f64> = accepted.iter().filter(|r| r.target_mm > 0.0).map(|r| r.max_mean(ctx, config).1 / r.target_mm).collect();
+    let ratios: Vec<f64> =
+        accepted.iter().filter(|r| r.target_mm > 0.0).map(|r| r.max_mean(ctx, config).1 / r.target_mm).collect();
     let below_target = ratios.iter().filter(|&&q| q < 1.0 - CALIBRATION_TOLERANCE).count();
-    let mut limited: Vec<f64> = results.iter().filter_map(|r| Some(r.target_mm / r.drawn_target_mm.filter(|d| *d > 0.0)?)).collect();
+    let mut limited: Vec<f64> =
+        results.iter().filter_map(|r| Some(r.target_mm / r.drawn_target_mm.filter(|d| *d > 0.0)?)).collect();
     limited.sort_by(f64::total_cmp);
     let mut rejected = BTreeMap::new();
     for r in &results {

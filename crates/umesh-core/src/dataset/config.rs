@@ -81,8 +81,10 @@ impl DatasetConfig {
         let s = self.shard_size.max(1);
         (shard * s)..((shard + 1) * s).min(self.samples)
     }
-    pub fn hash(&self) -> String {
-        fnv_hex(serde_json::to_string(self).unwrap_or_default().as_bytes())
+    /// The hash of the configuration's JSON (a failure to write it is an error, never the hash
+    /// of nothing).
+    pub fn hash(&self) -> Result<String, serde_json::Error> {
+        Ok(fnv_hex(serde_json::to_string(self)?.as_bytes()))
     }
 }
 
@@ -119,7 +121,8 @@ pub fn sample_material(config: &DatasetConfig, index: usize) -> MaterialParams {
     match &config.material_variation {
         None => config.material,
         Some(v) => {
-            let mut rng = SplitMix64(config.seed ^ 0x3A7E_41A1_0000_0001 ^ (index as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9));
+            let mut rng =
+                SplitMix64(config.seed ^ 0x3A7E_41A1_0000_0001 ^ (index as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9));
             let (a, b) = (rng.next_f64(), rng.next_f64());
             v.draw(config.material, a, b)
         }

@@ -56,7 +56,10 @@ pub fn observation_setup(
     let visible = visible_surface(surface, visibility).map_err(|r| invalid(&seg_path, r))?;
     let eye = nalgebra::Point3::from(Vector3::from(visible.camera.position_mm));
     if seg.organ_mask().world_sampler().inside(&eye) {
-        return Err(invalid(&seg_path, format!("the camera at {:?} mm is inside the organ", visible.camera.position_mm)));
+        return Err(invalid(
+            &seg_path,
+            format!("the camera at {:?} mm is inside the organ", visible.camera.position_mm),
+        ));
     }
     if visible.fraction() < MIN_VISIBLE_FRACTION {
         return Err(invalid(
@@ -120,7 +123,8 @@ impl DatasetContext {
         }
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
-        let surface = extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });
+        let surface =
+            extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });
         let ObservationSetup { visible, visible_nodes, fixed } =
             observation_setup(seg, &grid, &surface, &config.visibility, &config.fixed)?;
         let mut grid_arrays = grid.to_npz_arrays();
@@ -133,7 +137,10 @@ impl DatasetContext {
         for &n in &visible_nodes {
             vmask[grid.dense_index(n)] = 1;
         }
-        grid_arrays.push(("visible_nodes", Array::i64(vec![visible_nodes.len()], visible_nodes.iter().map(|&v| v as i64).collect())));
+        grid_arrays.push((
+            "visible_nodes",
+            Array::i64(vec![visible_nodes.len()], visible_nodes.iter().map(|&v| v as i64).collect()),
+        ));
         grid_arrays.push(("visible_mask", Array::new(vec![x, y, z], ArrayData::U8(vmask))));
         grid_arrays.push(("node_mask", Array::new(vec![x, y, z], ArrayData::U8(omask))));
         let fixed_list: Vec<i64> = (0..grid.node_count()).filter(|&n| fixed[n]).map(|n| n as i64).collect();
@@ -147,13 +154,20 @@ impl DatasetContext {
         ));
         grid_arrays.push((
             "surface_triangles",
-            Array::i64(vec![surface.triangles.len(), 3], surface.triangles.iter().flat_map(|t| t.map(|v| v as i64)).collect()),
+            Array::i64(
+                vec![surface.triangles.len(), 3],
+                surface.triangles.iter().flat_map(|t| t.map(|v| v as i64)).collect(),
+            ),
         ));
         grid_arrays.push((
             "surface_visible",
-            Array::new(vec![surface.triangles.len()], ArrayData::U8(visible.visible.iter().map(|&v| v as u8).collect())),
+            Array::new(
+                vec![surface.triangles.len()],
+                ArrayData::U8(visible.visible.iter().map(|&v| v as u8).collect()),
+            ),
         ));
-        let grid_npz = encode_npz_with(&grid_arrays, true).map_err(|e| DatasetError::Io { path: "grid.npz".into(), source: e })?;
+        let grid_npz =
+            encode_npz_with(&grid_arrays, true).map_err(|e| DatasetError::Io { path: "grid.npz".into(), source: e })?;
         let pressable = pressable_triangles(&grid, &surface, &visible.visible, &fixed);
         if !pressable.contains(&true) {
             return Err(invalid(
@@ -177,7 +191,12 @@ impl DatasetContext {
 
     /// The probes' forces on the grid, each spread over its contact patch on the surface
     /// (`ForceSettings::patch_radius_mm`): the one load model of samples and recordings.
-    pub fn apply_probes(&self, bc: &mut BoundaryConditions, config: &DatasetConfig, forces: &[PointForce]) -> Result<(), crate::Invalid> {
+    pub fn apply_probes(
+        &self,
+        bc: &mut BoundaryConditions,
+        config: &DatasetConfig,
+        forces: &[PointForce],
+    ) -> Result<(), crate::Invalid> {
         self.apply_load(bc, config, forces, LoadFamily::Pressing)
     }
 
@@ -210,8 +229,10 @@ impl DatasetContext {
         let mut bc = BoundaryConditions::new(self.grid.node_count());
         bc.fixed = self.fixed.clone();
         self.apply_load(&mut bc, config, forces, family)?;
-        let lin = solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
-        let scale = loads::scale_forces(forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target_mm)?;
+        let lin =
+            solver.solve(&bc, SolveMethod::Linear, &Progress::none(), &Cancel::new()).map_err(|e| e.to_string())?;
+        let scale =
+            loads::scale_forces(forces, config.forces.mean_over.mean_mm(&lin.displacement_mm, &self.fixed), target_mm)?;
         let at = |q| scale * crate::fem::element::compression_quantile(&self.grid, &lin.displacement_mm, q);
         Ok(LinearStrain { p95: at(STRAIN_QUANTILE), max: at(1.0) })
     }
@@ -285,10 +306,10 @@ fn pressable_triangles(grid: &ImmersedGrid, surface: &TriMesh, visible: &[bool],
         .map(|(tri, &seen)| {
             seen && {
                 let c = tri.iter().map(|&i| surface.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
-                tri.iter()
-                    .map(|&i| surface.positions[i as usize])
-                    .chain([c])
-                    .all(|p| grid.embed(&p).is_none_or(|e| e.nodes.iter().zip(e.weights).any(|(n, w)| w > 1e-9 && !fixed[*n as usize])))
+                tri.iter().map(|&i| surface.positions[i as usize]).chain([c]).all(|p| {
+                    grid.embed(&p)
+                        .is_none_or(|e| e.nodes.iter().zip(e.weights).any(|(n, w)| w > 1e-9 && !fixed[*n as usize]))
+                })
             }
         })
         .collect()

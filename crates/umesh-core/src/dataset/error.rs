@@ -13,6 +13,9 @@ pub enum DatasetError {
     Io { path: PathBuf, source: std::io::Error },
     #[error(transparent)]
     Npz(#[from] NpzError),
+    /// The configuration could not be written as JSON (for its hash or the manifest).
+    #[error("the dataset configuration as JSON")]
+    Json(#[from] serde_json::Error),
     #[error(transparent)]
     Grid(#[from] GridError),
     /// The pre-flight check projects too low an acceptance (the message names the likely cause).

@@ -53,13 +53,17 @@ pub struct GenerateReport {
     pub preflight: Option<Preflight>,
 }
 
-pub(super) fn base_manifest(seg: &Segmentation, config: &DatasetConfig, ctx: &DatasetContext) -> Manifest {
-    Manifest {
+pub(super) fn base_manifest(
+    seg: &Segmentation,
+    config: &DatasetConfig,
+    ctx: &DatasetContext,
+) -> Result<Manifest, DatasetError> {
+    Ok(Manifest {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,
         program_version: env!("CARGO_PKG_VERSION").into(),
         config: config.clone(),
-        config_hash: config.hash(),
+        config_hash: config.hash()?,
         grid_hash: ctx.grid_hash(),
         segmentation: seg.source.display().to_string(),
         segmentation_hash: ctx.segmentation_hash.clone(),
@@ -69,7 +73,7 @@ pub(super) fn base_manifest(seg: &Segmentation, config: &DatasetConfig, ctx: &Da
         shards: Vec::new(),
         samples: Vec::new(),
         complete: false,
-    }
+    })
 }
 
 pub(super) fn finalize(m: &mut Manifest) {
@@ -104,7 +108,12 @@ fn check_new_dataset_folder(out: &Path) -> Result<(), DatasetError> {
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
         // The app's job record is written beside its output before the job runs.
-        .filter(|n| !(n.starts_with("shard_") || n == "grid.npz" || n == crate::JOB_FILE || (n.starts_with('.') && n.ends_with(".tmp"))))
+        .filter(|n| {
+            !(n.starts_with("shard_")
+                || n == "grid.npz"
+                || n == crate::JOB_FILE
+                || (n.starts_with('.') && n.ends_with(".tmp")))
+        })
         .collect();
     if foreign.is_empty() {
         return Ok(());
@@ -168,7 +177,7 @@ pub fn run_generate_checked(
             }
         }
     }
-    let mut manifest = base_manifest(seg, config, &ctx);
+    let mut manifest = base_manifest(seg, config, &ctx)?;
     // Shard file -> content hash, as the manifest on disk recorded them when they were written.
     let mut recorded: BTreeMap<String, String> = BTreeMap::new();
     if out.join("manifest.json").exists() {
@@ -177,13 +186,18 @@ pub fn run_generate_checked(
             || old.grid_hash != manifest.grid_hash
             || old.segmentation_hash != manifest.segmentation_hash
         {
-            return Err(invalid(out, "holds a dataset made with another configuration or segmentation; choose an empty folder"));
+            return Err(invalid(
+                out,
+                "holds a dataset made with another configuration or segmentation; choose an empty folder",
+            ));
         }
         // Keep what the old manifest knows (timings, reasons) for shards still on disk.
         manifest.samples = old.samples;
         recorded = old.shards.into_iter().map(|s| (s.file, s.hash)).collect();
     } else if (0..config.shard_count()).any(|s| out.join(shard_file_name(s)).exists())
-        || std::fs::read_dir(out).map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_"))).unwrap_or(false)
+        || std::fs::read_dir(out)
+            .map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_")))
+            .unwrap_or(false)
     {
         // The manifest is written before the first shard: shards without one are left over from
         // another run (or its manifest was deleted), and their settings cannot be checked.
@@ -193,7 +207,8 @@ pub fn run_generate_checked(
         ));
     }
     let grid_path = out.join("grid.npz");
-    crate::write_atomic(&grid_path, &ctx.grid_npz).map_err(|source| DatasetError::Io { path: grid_path.clone(), source })?;
+    crate::write_atomic(&grid_path, &ctx.grid_npz)
+        .map_err(|source| DatasetError::Io { path: grid_path.clone(), source })?;
 
     // Shards already on disk and sound are adopted; the rest are computed.
     let padded = ctx.grid.padded_shape();
@@ -252,7 +267,8 @@ pub fn run_generate_checked(
     std::thread::scope(|scope| {
         for _ in 0..threads {
             scope.spawn(|| {
-                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential()) {
+                let mut solver = match FeSolver::new(&ctx.grid, config.material, &ctx.fixed, config.solver.sequential())
+                {
                     Ok(s) => s,
                     Err(e) => {
                         record_error(&first_error, invalid(out, e.to_string()));

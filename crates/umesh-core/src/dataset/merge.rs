@@ -19,7 +19,9 @@ pub struct MergeReport {
 pub fn run_merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, DatasetError> {
     let first = inputs.first().ok_or_else(|| invalid(out, "no input dataset"))?;
     let m0 = Manifest::read(first)?;
-    let same = |m: &Manifest| m.config_hash == m0.config_hash && m.grid_hash == m0.grid_hash && m.segmentation_hash == m0.segmentation_hash;
+    let same = |m: &Manifest| {
+        m.config_hash == m0.config_hash && m.grid_hash == m0.grid_hash && m.segmentation_hash == m0.segmentation_hash
+    };
     // The target: absent, empty, or the same dataset (its shards then join the merge).
     let mut sources: Vec<PathBuf> = inputs.to_vec();
     let non_empty = std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
@@ -74,7 +76,8 @@ pub(super) fn merge_into(
     same: impl Fn(&Manifest) -> bool,
 ) -> Result<Manifest, DatasetError> {
     std::fs::create_dir_all(stage).map_err(|source| DatasetError::Io { path: stage.into(), source })?;
-    let grid = std::fs::read(first.join("grid.npz")).map_err(|source| DatasetError::Io { path: first.join("grid.npz"), source })?;
+    let grid = std::fs::read(first.join("grid.npz"))
+        .map_err(|source| DatasetError::Io { path: first.join("grid.npz"), source })?;
     let mut merged = Manifest { shards: Vec::new(), samples: Vec::new(), ..m0.clone() };
     let mut have = std::collections::BTreeSet::new();
     for dir in sources {
@@ -97,7 +100,8 @@ pub(super) fn merge_into(
             merged.samples.extend(m.samples.iter().filter(|r| r.shard == s.file).cloned());
         }
     }
-    crate::write_atomic(&stage.join("grid.npz"), &grid).map_err(|source| DatasetError::Io { path: stage.join("grid.npz"), source })?;
+    crate::write_atomic(&stage.join("grid.npz"), &grid)
+        .map_err(|source| DatasetError::Io { path: stage.join("grid.npz"), source })?;
     finalize(&mut merged);
     merged.write(stage)?;
     Ok(merged)

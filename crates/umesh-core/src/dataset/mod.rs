@@ -24,10 +24,12 @@ mod store;
 pub use calibrate::{Rejection, SampleResult, SolvedLoad, first_load_factor, generate_sample};
 pub use check::{PreflightCheck, run_preflight};
 pub use config::{
-    CALIBRATION_TOLERANCE, DatasetConfig, FORMAT, FORMAT_VERSION, MAX_SAMPLES, MIN_VISIBLE_FRACTION, fnv_hex, sample_material,
-    segmentation_hash,
+    CALIBRATION_TOLERANCE, DatasetConfig, FORMAT, FORMAT_VERSION, MAX_SAMPLES, MIN_VISIBLE_FRACTION, fnv_hex,
+    sample_material, segmentation_hash,
 };
-pub use context::{DatasetContext, LOCAL_STRAIN_FACTOR, LinearStrain, ObservationSetup, STRAIN_QUANTILE, observation_setup};
+pub use context::{
+    DatasetContext, LOCAL_STRAIN_FACTOR, LinearStrain, ObservationSetup, STRAIN_QUANTILE, observation_setup,
+};
 pub use error::DatasetError;
 pub use generate::{GenerateReport, ShardSelection, run_generate, run_generate_checked};
 pub use merge::{MergeReport, run_merge};

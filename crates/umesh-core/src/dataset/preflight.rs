@@ -44,7 +44,10 @@ impl PreflightSettings {
             return Err(crate::Invalid(format!("pre-flight acceptance {}: must lie in [0, 1]", self.min_acceptance)));
         }
         if !(0.0..=1.0).contains(&self.min_achieved) {
-            return Err(crate::Invalid(format!("pre-flight achieved / target {}: must lie in [0, 1]", self.min_achieved)));
+            return Err(crate::Invalid(format!(
+                "pre-flight achieved / target {}: must lie in [0, 1]",
+                self.min_achieved
+            )));
         }
         Ok(())
     }
@@ -87,11 +90,17 @@ impl Preflight {
         let rejected = if self.rejected.is_empty() {
             String::new()
         } else {
-            format!(" (rejected: {})", self.rejected.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "))
+            format!(
+                " (rejected: {})",
+                self.rejected.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", ")
+            )
         };
         let limited = match self.strain_limited_factor {
             Some(f) if self.strain_limited > 0 => {
-                format!(" ({} targets lowered by the strain limit, to {:.2} of the drawn one in the median)", self.strain_limited, f)
+                format!(
+                    " ({} targets lowered by the strain limit, to {:.2} of the drawn one in the median)",
+                    self.strain_limited, f
+                )
             }
             _ => String::new(),
         };
@@ -118,7 +127,8 @@ impl Preflight {
     /// `min_acceptance` (16 samples: 12 accepted or fewer), or the accepted samples reach less
     /// than `min_achieved` of their targets on average.
     pub fn is_doomed(&self, settings: &PreflightSettings) -> bool {
-        self.acceptance_upper_bound() < settings.min_acceptance || self.achieved_over_target.is_some_and(|r| r < settings.min_achieved)
+        self.acceptance_upper_bound() < settings.min_acceptance
+            || self.achieved_over_target.is_some_and(|r| r < settings.min_achieved)
     }
 
     /// The refusal message, when the job is doomed (`is_doomed`).

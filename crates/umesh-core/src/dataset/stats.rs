@@ -93,7 +93,10 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
     if let (Some(d), Some(i)) = (&max_d, &its) {
         for s in &acc {
             if s.max_displacement_mm > d.median + 4.0 * (d.p95 - d.median).max(1e-9) {
-                outliers.push((s.index, format!("max displacement {:.1} mm (median {:.1})", s.max_displacement_mm, d.median)));
+                outliers.push((
+                    s.index,
+                    format!("max displacement {:.1} mm (median {:.1})", s.max_displacement_mm, d.median),
+                ));
             }
             if s.newton_iterations as f64 > i.median + 4.0 * (i.p95 - i.median).max(1.0) {
                 outliers.push((s.index, format!("{} Newton iterations (median {:.0})", s.newton_iterations, i.median)));
@@ -139,20 +142,30 @@ pub fn run_stats(dir: &Path) -> Result<DatasetStats, DatasetError> {
         target_displacement_mm: m.config.forces.target_displacement_mm,
         calibration: m.config.forces.calibration,
         achieved_over_target: Distribution::of(
-            acc.iter().filter_map(|s| s.target_displacement_mm.filter(|t| *t > 0.0).map(|t| s.mean_displacement_mm / t)).collect(),
+            acc.iter()
+                .filter_map(|s| s.target_displacement_mm.filter(|t| *t > 0.0).map(|t| s.mean_displacement_mm / t))
+                .collect(),
         ),
         newton_iterations: its,
         solve_ms: Distribution::of(acc.iter().filter_map(|s| s.solve_ms).collect()),
-        rejected_solve_ms: Distribution::of(m.samples.iter().filter(|s| !s.accepted).filter_map(|s| s.solve_ms).collect()),
+        rejected_solve_ms: Distribution::of(
+            m.samples.iter().filter(|s| !s.accepted).filter_map(|s| s.solve_ms).collect(),
+        ),
         mean_over: m.config.forces.mean_over,
         below_target: acc
             .iter()
-            .filter(|s| s.target_displacement_mm.is_some_and(|t| s.mean_displacement_mm < (1.0 - CALIBRATION_TOLERANCE) * t * (1.0 - 1e-9)))
+            .filter(|s| {
+                s.target_displacement_mm
+                    .is_some_and(|t| s.mean_displacement_mm < (1.0 - CALIBRATION_TOLERANCE) * t * (1.0 - 1e-9))
+            })
             .count(),
         max_strain: m.config.forces.max_strain,
         strain_limited: m.samples.iter().filter(|s| s.drawn_target_mm.is_some()).count(),
         strain_limited_factor: Distribution::of(
-            m.samples.iter().filter_map(|s| Some(s.target_displacement_mm? / s.drawn_target_mm.filter(|d| *d > 0.0)?)).collect(),
+            m.samples
+                .iter()
+                .filter_map(|s| Some(s.target_displacement_mm? / s.drawn_target_mm.filter(|d| *d > 0.0)?))
+                .collect(),
         ),
         outliers,
     })

@@ -73,7 +73,8 @@ impl Manifest {
     pub fn read(dir: &Path) -> Result<Self, DatasetError> {
         let path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&path).map_err(|source| DatasetError::Io { path: path.clone(), source })?;
-        let m: Manifest = serde_json::from_str(&text).map_err(|e| invalid(&path, format!("not a umesh dataset manifest: {e}")))?;
+        let m: Manifest =
+            serde_json::from_str(&text).map_err(|e| invalid(&path, format!("not a umesh dataset manifest: {e}")))?;
         if m.format != FORMAT {
             return Err(invalid(&path, format!("format {} is not {FORMAT}", m.format)));
         }
@@ -103,7 +104,10 @@ impl Manifest {
                 return Err(format!("sample {} is listed twice", s.index));
             }
             let Some(shard) = self.shards.iter().find(|r| r.file == s.shard) else {
-                return Err(format!("sample {} names the shard {}, which the manifest does not list", s.index, s.shard));
+                return Err(format!(
+                    "sample {} names the shard {}, which the manifest does not list",
+                    s.index, s.shard
+                ));
             };
             if !(shard.first..shard.first + shard.count).contains(&s.index) {
                 return Err(format!(
@@ -150,7 +154,11 @@ pub fn shard_file_name(shard: usize) -> String {
 }
 
 /// Encode one shard: deterministic arrays only (no timings).
-pub(super) fn encode_shard(ctx: &DatasetContext, config: &DatasetConfig, results: &[SampleResult]) -> std::io::Result<Vec<u8>> {
+pub(super) fn encode_shard(
+    ctx: &DatasetContext,
+    config: &DatasetConfig,
+    results: &[SampleResult],
+) -> std::io::Result<Vec<u8>> {
     let [x, y, z] = ctx.grid.padded_shape();
     let cells = x * y * z;
     let p = config.forces.probes;
@@ -188,12 +196,18 @@ pub(super) fn encode_shard(ctx: &DatasetContext, config: &DatasetConfig, results
         ("accepted", Array::new(vec![n], ArrayData::U8(results.iter().map(|r| r.rejection.is_none() as u8).collect()))),
         (
             "rejection",
-            Array::new(vec![n], ArrayData::U8(results.iter().map(|r| r.rejection.as_ref().map(|x| x.0 as u8).unwrap_or(0)).collect())),
+            Array::new(
+                vec![n],
+                ArrayData::U8(results.iter().map(|r| r.rejection.as_ref().map(|x| x.0 as u8).unwrap_or(0)).collect()),
+            ),
         ),
         ("max_displacement_mm", Array::f32(vec![n], stats.iter().map(|s| s.0 as f32).collect())),
         ("mean_displacement_mm", Array::f32(vec![n], stats.iter().map(|s| s.1 as f32).collect())),
         ("target_displacement_mm", Array::f32(vec![n], results.iter().map(|r| r.target_mm as f32).collect())),
-        ("newton_iterations", Array::new(vec![n], ArrayData::I32(results.iter().map(|r| r.newton_iterations as i32).collect()))),
+        (
+            "newton_iterations",
+            Array::new(vec![n], ArrayData::I32(results.iter().map(|r| r.newton_iterations as i32).collect())),
+        ),
         ("index", Array::i64(vec![a], accepted.iter().map(|r| r.index as i64).collect())),
         ("u_s", Array::f32(vec![a, 3, x, y, z], u_s)),
         ("u_v", Array::f32(vec![a, 3, x, y, z], u_v)),
@@ -339,7 +353,12 @@ impl Dataset {
         let mut out = Vec::with_capacity(counts.len());
         let mut at = 0;
         for c in counts {
-            out.push(pts[3 * at..3 * (at + c)].chunks_exact(3).map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)).collect());
+            out.push(
+                pts[3 * at..3 * (at + c)]
+                    .chunks_exact(3)
+                    .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                    .collect(),
+            );
             at += c;
         }
         Ok(out)

@@ -107,7 +107,12 @@ impl<'g> Assembler<'g> {
     /// cells, as in the finite cell method; it removes spurious zero-energy modes of cells
     /// with few inside sub-cells.
     /// Panics with more than `MAX_CELLS` cells (`FeSolver::new` refuses such grids first).
-    pub fn new(grid: &'g ImmersedGrid, constrained_dofs: &[bool], linear_material: Material, stabilization: f64) -> Self {
+    pub fn new(
+        grid: &'g ImmersedGrid,
+        constrained_dofs: &[bool],
+        linear_material: Material,
+        stabilization: f64,
+    ) -> Self {
         assert!(grid.cells.len() <= MAX_CELLS, "{} cells: more than the assembler's {MAX_CELLS}", grid.cells.len());
         let quad = ElementQuadrature::new(grid);
         let dofs = DofMap::new(constrained_dofs);
@@ -410,7 +415,15 @@ fn add_tangent(ke: &mut Ke, a: &super::material::Tangent, g: &super::element::Gr
 /// (the contraction of its dP/dF with the shape gradients, about a third of the generic
 /// path's work), only for b >= a: the tangent is symmetric, `mirror_upper_blocks` fills the rest.
 #[inline]
-fn add_svk_tangent_upper(ke: &mut Ke, f: &Matrix3<f64>, s: &Matrix3<f64>, g: &super::element::Gradients, w: f64, lambda: f64, mu: f64) {
+fn add_svk_tangent_upper(
+    ke: &mut Ke,
+    f: &Matrix3<f64>,
+    s: &Matrix3<f64>,
+    g: &super::element::Gradients,
+    w: f64,
+    lambda: f64,
+    mu: f64,
+) {
     let v: [Vector3<f64>; 8] = std::array::from_fn(|a| f * g[a]);
     let sg: [Vector3<f64>; 8] = std::array::from_fn(|a| s * g[a]);
     let ff = f * f.transpose() * (w * mu);
@@ -512,7 +525,8 @@ pub fn rotation_of(f: &Matrix3<f64>) -> Matrix3<f64> {
     if r.determinant() < 0.0 {
         let mut u2 = u;
         // Flip the axis of the smallest singular value.
-        let (imin, _) = svd.singular_values.iter().enumerate().fold((0, f64::MAX), |b, (i, &s)| if s < b.1 { (i, s) } else { b });
+        let (imin, _) =
+            svd.singular_values.iter().enumerate().fold((0, f64::MAX), |b, (i, &s)| if s < b.1 { (i, s) } else { b });
         u2.column_mut(imin).neg_mut();
         r = u2 * vt;
     }

@@ -42,7 +42,12 @@ impl BoundaryConditions {
     }
 
     /// Fix the nodes of a region; returns how many nodes it fixed.
-    pub fn fix_region(&mut self, grid: &ImmersedGrid, region: &FixedRegion, label_mask: Option<&Mask>) -> Result<usize, crate::Invalid> {
+    pub fn fix_region(
+        &mut self,
+        grid: &ImmersedGrid,
+        region: &FixedRegion,
+        label_mask: Option<&Mask>,
+    ) -> Result<usize, crate::Invalid> {
         let before = self.fixed_count();
         match region {
             FixedRegion::Label { label, distance_mm } => {
@@ -97,7 +102,10 @@ impl BoundaryConditions {
             FixedRegion::Nodes { nodes } => {
                 for &n in nodes {
                     if n >= grid.node_count() {
-                        return Err(crate::Invalid(format!("node {n} does not exist (the grid has {})", grid.node_count())));
+                        return Err(crate::Invalid(format!(
+                            "node {n} does not exist (the grid has {})",
+                            grid.node_count()
+                        )));
                     }
                     self.fixed[n] = true;
                 }
@@ -108,9 +116,16 @@ impl BoundaryConditions {
 
     /// Apply a point force at a world point, spread over the enclosing cell's nodes with the
     /// trilinear weights (this conserves the total force).
-    pub fn add_point_force(&mut self, grid: &ImmersedGrid, point_mm: &Vector3<f64>, force_n: &Vector3<f64>) -> Result<(), crate::Invalid> {
+    pub fn add_point_force(
+        &mut self,
+        grid: &ImmersedGrid,
+        point_mm: &Vector3<f64>,
+        force_n: &Vector3<f64>,
+    ) -> Result<(), crate::Invalid> {
         if !(point_mm.iter().chain(force_n.iter()).all(|v| v.is_finite())) {
-            return Err(crate::Invalid(format!("a force of {force_n:?} N at {point_mm:?} mm: every number must be finite")));
+            return Err(crate::Invalid(format!(
+                "a force of {force_n:?} N at {point_mm:?} mm: every number must be finite"
+            )));
         }
         let e = grid.embed(point_mm).ok_or_else(|| format!("the point {point_mm:?} is not near the grid"))?;
         // `embed` clamps a point outside the grid into the nearest cell: beyond one cell the

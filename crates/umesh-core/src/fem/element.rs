@@ -42,7 +42,12 @@ impl ElementQuadrature {
             });
             qp_table.push(id);
         }
-        Self { table, qp_table, qp_weight_mm3: grid.quadrature.iter().map(|q| q.weight_mm3).collect(), qp_offsets: grid.qp_offsets.clone() }
+        Self {
+            table,
+            qp_table,
+            qp_weight_mm3: grid.quadrature.iter().map(|q| q.weight_mm3).collect(),
+            qp_offsets: grid.qp_offsets.clone(),
+        }
     }
 }
 

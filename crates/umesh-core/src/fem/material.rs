@@ -120,7 +120,10 @@ impl MaterialVariation {
             )));
         }
         if !(self.neo_hookean_fraction.is_finite() && (0.0..=1.0).contains(&self.neo_hookean_fraction)) {
-            return Err(crate::Invalid(format!("the Neo-Hookean fraction {} must lie in [0, 1]", self.neo_hookean_fraction)));
+            return Err(crate::Invalid(format!(
+                "the Neo-Hookean fraction {} must lie in [0, 1]",
+                self.neo_hookean_fraction
+            )));
         }
         Ok(())
     }

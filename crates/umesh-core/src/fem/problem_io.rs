@@ -30,11 +30,17 @@ pub fn problem_arrays(
     bc: &BoundaryConditions,
     stabilization: f64,
 ) -> Vec<(&'static str, Array)> {
-    let mut arrays: Vec<(&'static str, Array)> =
-        grid.to_npz_arrays().into_iter().filter(|(n, _)| matches!(*n, "nodes" | "hexes" | "qp_cell" | "qp_xi" | "qp_w")).collect();
+    let mut arrays: Vec<(&'static str, Array)> = grid
+        .to_npz_arrays()
+        .into_iter()
+        .filter(|(n, _)| matches!(*n, "nodes" | "hexes" | "qp_cell" | "qp_xi" | "qp_w"))
+        .collect();
     let fixed: Vec<i64> = bc.fixed.iter().enumerate().filter(|(_, f)| **f).map(|(i, _)| i as i64).collect();
     arrays.push(("fixed", Array::i64(vec![fixed.len()], fixed)));
-    arrays.push(("forces", Array::f64(vec![bc.forces_n.len(), 3], bc.forces_n.iter().flat_map(|f| [f.x, f.y, f.z]).collect())));
+    arrays.push((
+        "forces",
+        Array::f64(vec![bc.forces_n.len(), 3], bc.forces_n.iter().flat_map(|f| [f.x, f.y, f.z]).collect()),
+    ));
     arrays.push(("young_pa", Array::scalar_f64(material.young_pa)));
     arrays.push(("poisson", Array::scalar_f64(material.poisson)));
     let name = material.kind.name().as_bytes().to_vec();
@@ -53,7 +59,10 @@ pub fn problem_arrays(
     if !bc.prescribed_mm.is_empty() {
         let p = &bc.prescribed_mm;
         arrays.push(("prescribed_nodes", Array::i64(vec![p.len()], p.iter().map(|(n, _)| *n as i64).collect())));
-        arrays.push(("prescribed_mm", Array::f64(vec![p.len(), 3], p.iter().flat_map(|(_, d)| [d.x, d.y, d.z]).collect())));
+        arrays.push((
+            "prescribed_mm",
+            Array::f64(vec![p.len(), 3], p.iter().flat_map(|(_, d)| [d.x, d.y, d.z]).collect()),
+        ));
     }
     arrays
 }

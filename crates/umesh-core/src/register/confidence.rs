@@ -52,9 +52,18 @@ impl ConfidenceReference {
         }
         let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
         let r: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-        let finite = [r.residual_p95_mm, r.residual_mean_mm, r.coverage_min, r.displacement_max_mm, r.correct_tre_mm.unwrap_or(0.0)];
+        let finite = [
+            r.residual_p95_mm,
+            r.residual_mean_mm,
+            r.coverage_min,
+            r.displacement_max_mm,
+            r.correct_tre_mm.unwrap_or(0.0),
+        ];
         if !finite.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(crate::Invalid(format!("{}: the confidence range holds negative or non-finite values", path.display())));
+            return Err(crate::Invalid(format!(
+                "{}: the confidence range holds negative or non-finite values",
+                path.display()
+            )));
         }
         // Limits a frame cannot reach would silence every warning (1e308, then 1000 mm, were
         // accepted): a residual is measured up to RESIDUAL_CAP_MM; no organ moves 300 mm. A
@@ -148,7 +157,8 @@ pub fn frame_confidence(
     reference: Option<&ConfidenceReference>,
 ) -> Confidence {
     let (residual_mean_mm, residual_p95_mm) = surface_residual_with(points, predicted, rings);
-    let displacement_max_mm = predicted.positions.iter().zip(&rest.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+    let displacement_max_mm =
+        predicted.positions.iter().zip(&rest.positions).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
     let mut c = Confidence {
         residual_mean_mm,
         residual_p95_mm,
@@ -187,7 +197,8 @@ pub fn frame_confidence(
                 r.displacement_max_mm
             ));
         }
-        c.prediction_doubted = residual_p95_mm > p95_limit || residual_mean_mm > mean_limit || displacement_max_mm > d_limit;
+        c.prediction_doubted =
+            residual_p95_mm > p95_limit || residual_mean_mm > mean_limit || displacement_max_mm > d_limit;
     }
     c
 }
@@ -211,7 +222,10 @@ pub fn coverage_radius_mm(points: &[Vector3<f64>]) -> f64 {
     let step = points.len().div_ceil(500);
     let mut d: Vec<f64> = (0..points.len())
         .step_by(step)
-        .map(|i| grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i).map_or(COVERAGE_RADIUS_MAX_MM, |(_, q)| (q - points[i]).norm()))
+        .map(|i| {
+            grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i)
+                .map_or(COVERAGE_RADIUS_MAX_MM, |(_, q)| (q - points[i]).norm())
+        })
         .collect();
     d.sort_by(f64::total_cmp);
     (1.5 * d[d.len() / 2]).clamp(COVERAGE_RADIUS_MM, COVERAGE_RADIUS_MAX_MM)
@@ -399,7 +413,12 @@ mod tests {
     #[test]
     fn closest_point_on_a_triangle_matches_a_dense_search_within_0_01_mm() {
         let (a, b, c) = (Vector3::new(0.0, 0.0, 0.0), Vector3::new(10.0, 0.0, 1.0), Vector3::new(2.0, 8.0, -1.0));
-        for p in [Vector3::new(-3.0, -2.0, 4.0), Vector3::new(12.0, 1.0, 0.0), Vector3::new(4.0, 3.0, 5.0), Vector3::new(7.0, 7.0, 0.0)] {
+        for p in [
+            Vector3::new(-3.0, -2.0, 4.0),
+            Vector3::new(12.0, 1.0, 0.0),
+            Vector3::new(4.0, 3.0, 5.0),
+            Vector3::new(7.0, 7.0, 0.0),
+        ] {
             let q = closest_on_triangle(&p, &a, &b, &c);
             let mut best = f64::INFINITY;
             for i in 0..=400 {
@@ -435,7 +454,8 @@ mod tests {
     #[test]
     fn a_reference_from_right_views_warns_half_a_millimetre_above_it_and_an_old_one_at_one_and_a_half_times() {
         let m = square();
-        let at = |h: f64| -> Vec<Vector3<f64>> { (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, h)).collect() };
+        let at =
+            |h: f64| -> Vec<Vector3<f64>> { (0..50).map(|k| Vector3::new(1.0 + 0.5 * k as f64, 10.0, h)).collect() };
         let right = ConfidenceReference {
             residual_p95_mm: 2.0,
             residual_mean_mm: 2.0,

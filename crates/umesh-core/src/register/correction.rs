@@ -94,7 +94,11 @@ impl CorrectionSettings {
     pub fn validate(&self) -> Result<(), crate::Invalid> {
         for (what, updates, cg) in [
             ("--correction-updates / --correction-cg: the correction", self.updates, self.cg_iterations),
-            ("--doubted-updates / --doubted-cg: the correction of a doubted frame", self.doubted_updates, self.doubted_cg_iterations),
+            (
+                "--doubted-updates / --doubted-cg: the correction of a doubted frame",
+                self.doubted_updates,
+                self.doubted_cg_iterations,
+            ),
         ] {
             // What a frame can afford: about 3 ms a CG iteration on the phantom (20 updates of
             // 200 took 12.7 s a frame), three times that on a 9000-node liver.
@@ -179,7 +183,11 @@ pub struct SurfaceFit<'c> {
 impl<'c> SurfaceFit<'c> {
     /// Samples every ~4.5 mm on the rest surface where all three corners of a triangle are
     /// seen by the training camera, each with its triangle's normal.
-    pub fn new(ctx: &'c RegistrationContext, material: MaterialParams, settings: PointFitSettings) -> Result<Self, crate::Invalid> {
+    pub fn new(
+        ctx: &'c RegistrationContext,
+        material: MaterialParams,
+        settings: PointFitSettings,
+    ) -> Result<Self, crate::Invalid> {
         let mut seen = vec![false; ctx.surface.positions.len()];
         for &v in &ctx.visible_vertices {
             seen[v] = true;
@@ -227,8 +235,13 @@ impl<'c> SurfaceFit<'c> {
     /// body or held by the springs (`CorrectionSettings::basis`); built once per context.
     pub fn use_subspace(&mut self, basis: (usize, bool)) -> Result<(), crate::Invalid> {
         let ctx = self.ctx;
-        let cached =
-            ctx.correction_basis.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|(k, _)| *k == basis).map(|(_, s)| s.clone());
+        let cached = ctx
+            .correction_basis
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .find(|(k, _)| *k == basis)
+            .map(|(_, s)| s.clone());
         if let Some(sub) = cached {
             return Ok(self.fit.set_subspace(sub).map_err(|e| e.to_string())?);
         }
@@ -266,7 +279,8 @@ impl<'c> SurfaceFit<'c> {
         let fit = self.fit(points_world_mm, settings.work())?;
         // Moved: from the prediction, the carried part included.
         let moved: Vec<Vector3<f64>> = self.u.iter().zip(&predicted).map(|(a, b)| a - b).collect();
-        let (sq, max) = moved.iter().fold((0.0f64, 0.0f64), |(s, m), d| (s + d.norm_squared(), m.max(d.norm_squared())));
+        let (sq, max) =
+            moved.iter().fold((0.0f64, 0.0f64), |(s, m), d| (s + d.norm_squared(), m.max(d.norm_squared())));
         if let Some(c) = carried {
             *c = moved;
         }
@@ -420,8 +434,8 @@ impl CorrectionChoice {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(crate::Invalid(format!("{}: {e}", path.display()))),
         };
-        let c: Self =
-            serde_json::from_str(&text).map_err(|e| crate::Invalid(format!("{}: not a correction choice: {e}", path.display())))?;
+        let c: Self = serde_json::from_str(&text)
+            .map_err(|e| crate::Invalid(format!("{}: not a correction choice: {e}", path.display())))?;
         if c.format != Self::FORMAT || c.format_version != 1 {
             return Err(crate::Invalid(format!(
                 "{}: format {} version {} (expected {} 1)",

@@ -48,8 +48,11 @@ impl IcpSettings {
         {
             return Err(crate::Invalid(format!("pose bound {b} mm: between 0 and 1000 mm")));
         }
-        if !(self.max_correspondence_mm.is_finite() && self.max_correspondence_mm > 0.0) || self.max_iterations > 10_000 {
-            return Err(crate::Invalid::from("ICP: the correspondence distance must be finite and positive, at most 10000 iterations"));
+        if !(self.max_correspondence_mm.is_finite() && self.max_correspondence_mm > 0.0) || self.max_iterations > 10_000
+        {
+            return Err(crate::Invalid::from(
+                "ICP: the correspondence distance must be finite and positive, at most 10000 iterations",
+            ));
         }
         Ok(())
     }
@@ -86,10 +89,22 @@ impl IcpTarget {
 }
 
 /// Find `target_from_source` that puts `source` on the target surface, starting from `initial`.
-pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: &Matrix4<f64>, s: &IcpSettings) -> IcpReport {
+pub fn icp_point_to_plane(
+    source: &[Vector3<f64>],
+    target: &IcpTarget,
+    initial: &Matrix4<f64>,
+    s: &IcpSettings,
+) -> IcpReport {
     let mut t = *initial;
-    let mut report =
-        IcpReport { transform: t, fitness: 0.0, rms_mm: f64::INFINITY, iterations: 0, converged: false, moved_mm: 0.0, bounded: false };
+    let mut report = IcpReport {
+        transform: t,
+        fitness: 0.0,
+        rms_mm: f64::INFINITY,
+        iterations: 0,
+        converged: false,
+        moved_mm: 0.0,
+        bounded: false,
+    };
     if source.is_empty() {
         return report;
     }
@@ -106,21 +121,9 @@ pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: 
     let mut source = source;
     let mut matched_share = None;
     if s.trim < 1.0 {
-        let mut fit: Vec<(f64, usize)> = source
-            .iter()
-            .enumerate()
-            .filter_map(|(i, p)| {
-                let q = transform_point(&t, p);
-                let (j, p) = target.grid.nearest(&q, s.max_correspondence_mm)?;
-                Some((target.normals[j].dot(&(q - p)).abs(), i))
-            })
-            .collect();
-        matched_share = Some(fit.len() as f64 / source.len() as f64);
-        let keep = ((fit.len() as f64 * s.trim).ceil() as usize).min(fit.len());
-        if keep > 0 {
-            fit.select_nth_unstable_by(keep - 1, |a, b| a.0.total_cmp(&b.0));
-        }
-        subset = fit[..keep].iter().map(|&(_, i)| source[i]).collect();
+        let (best, share) = best_fitting(source, target, &t, s);
+        matched_share = Some(share);
+        subset = best;
         source = &subset;
         if source.is_empty() {
             report.fitness = 0.0;
@@ -194,4 +197,30 @@ pub fn icp_point_to_plane(source: &[Vector3<f64>], target: &IcpTarget, initial: 
     report.transform = t;
     report.moved_mm = moved(&t);
     report
+}
+
+/// The trimmed fit's points: the share `s.trim` of those within reach of the target that lie
+/// nearest its surface (along its normal) at pose `t`, and the share of all that were within
+/// reach.
+fn best_fitting(
+    source: &[Vector3<f64>],
+    target: &IcpTarget,
+    t: &Matrix4<f64>,
+    s: &IcpSettings,
+) -> (Vec<Vector3<f64>>, f64) {
+    let mut fit: Vec<(f64, usize)> = source
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| {
+            let q = transform_point(t, p);
+            let (j, p) = target.grid.nearest(&q, s.max_correspondence_mm)?;
+            Some((target.normals[j].dot(&(q - p)).abs(), i))
+        })
+        .collect();
+    let share = fit.len() as f64 / source.len() as f64;
+    let keep = ((fit.len() as f64 * s.trim).ceil() as usize).min(fit.len());
+    if keep > 0 {
+        fit.select_nth_unstable_by(keep - 1, |a, b| a.0.total_cmp(&b.0));
+    }
+    (fit[..keep].iter().map(|&(_, i)| source[i]).collect(), share)
 }

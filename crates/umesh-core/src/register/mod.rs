@@ -90,7 +90,9 @@ pub struct RegistrationContext {
 }
 
 fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, crate::Invalid> {
-    pts.iter().map(|p| grid.embed(p).ok_or_else(|| crate::Invalid(format!("point {p:?} lies outside the grid")))).collect()
+    pts.iter()
+        .map(|p| grid.embed(p).ok_or_else(|| crate::Invalid(format!("point {p:?} lies outside the grid"))))
+        .collect()
 }
 
 /// The triangles of `mesh` whose three vertices lie in or near the grid, with their
@@ -249,7 +251,8 @@ pub fn displacement_at(grid: &ImmersedGrid, field: &[f32], e: &Embedding) -> Vec
 
 /// `count` uniformly random points in the grid's fully inside cells (all cells if none is).
 pub fn inside_markers(grid: &ImmersedGrid, count: usize, rng: &mut crate::rng::SplitMix64) -> Vec<Vector3<f64>> {
-    let inside: Vec<usize> = (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
+    let inside: Vec<usize> =
+        (0..grid.cells.len()).filter(|&c| grid.cells[c].kind == crate::grid::CellKind::Inside).collect();
     let cells = if inside.is_empty() { (0..grid.cells.len()).collect() } else { inside };
     (0..count)
         .map(|_| {

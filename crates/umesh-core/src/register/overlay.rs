@@ -33,7 +33,11 @@ pub fn rasterize_silhouette(mesh: &TriMesh, camera_from_world: &Matrix4<f64>, k:
 
 /// Camera-space positions and their projections (None behind the camera).
 #[allow(clippy::type_complexity)]
-fn to_camera(mesh: &TriMesh, camera_from_world: &Matrix4<f64>, k: &Intrinsics) -> (Vec<Vector3<f64>>, Vec<Option<(f64, f64, f64)>>) {
+fn to_camera(
+    mesh: &TriMesh,
+    camera_from_world: &Matrix4<f64>,
+    k: &Intrinsics,
+) -> (Vec<Vector3<f64>>, Vec<Option<(f64, f64, f64)>>) {
     let cam: Vec<Vector3<f64>> = mesh.positions.iter().map(|p| transform_point(camera_from_world, p)).collect();
     let proj = cam.iter().map(|p| k.project(p)).collect();
     (cam, proj)
@@ -59,7 +63,9 @@ fn scan(
         if (p1 - p0).cross(&(p2 - p0)).dot(&p0) > 0.0 {
             continue;
         }
-        let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else { continue };
+        let (Some(a), Some(b), Some(c)) = (proj[t[0] as usize], proj[t[1] as usize], proj[t[2] as usize]) else {
+            continue;
+        };
         let area = (b.0 - a.0) * (c.1 - a.1) - (c.0 - a.0) * (b.1 - a.1);
         if area.abs() < 1e-12 {
             continue;
@@ -145,7 +151,11 @@ pub fn draw_overlay(
 }
 
 /// Each pixel's nearest structure, its colour shaded by the surface normal (None: no structure).
-pub fn structure_layer(structures: &[(TriMesh, [u8; 3])], camera_from_world: &Matrix4<f64>, k: &Intrinsics) -> Vec<Option<[u8; 3]>> {
+pub fn structure_layer(
+    structures: &[(TriMesh, [u8; 3])],
+    camera_from_world: &Matrix4<f64>,
+    k: &Intrinsics,
+) -> Vec<Option<[u8; 3]>> {
     let n = k.width * k.height;
     let mut zbuf = vec![f32::INFINITY; n];
     let mut color = vec![None; n];

@@ -42,7 +42,11 @@ pub trait DisplacementModel {
     }
     /// Fit the frame's organ points (world, mm) directly, for models that do (the FE
     /// baseline): Some(surface samples matched) with the field in `out`.
-    fn fit_points(&mut self, _points_world_mm: &[Vector3<f64>], _out: &mut Vec<f32>) -> Option<Result<usize, crate::Invalid>> {
+    fn fit_points(
+        &mut self,
+        _points_world_mm: &[Vector3<f64>],
+        _out: &mut Vec<f32>,
+    ) -> Option<Result<usize, crate::Invalid>> {
         None
     }
     /// The range of the confidence figures on the model's validation views, if measured.
@@ -92,7 +96,11 @@ impl DisplacementModel for FeDisplacementModel<'_> {
     fn predict(&mut self, _u_s: &[f32], _out: &mut Vec<f32>) -> Result<(), crate::ModelError> {
         Err("the FE registration takes the observed points".into())
     }
-    fn fit_points(&mut self, points_world_mm: &[Vector3<f64>], out: &mut Vec<f32>) -> Option<Result<usize, crate::Invalid>> {
+    fn fit_points(
+        &mut self,
+        points_world_mm: &[Vector3<f64>],
+        out: &mut Vec<f32>,
+    ) -> Option<Result<usize, crate::Invalid>> {
         let r = match self.fit.fit(points_world_mm, self.work) {
             Ok(r) => r,
             Err(e) => return Some(Err(e)),
@@ -152,7 +160,10 @@ pub fn choose_pose(requested: Option<PosePolicy>, source_tracks_every_frame: boo
         None if source_tracks_every_frame => {
             (PosePolicy::Tracked, "tracked: the source carries a tracked camera pose for every frame".into())
         }
-        None => (PosePolicy::IcpFirst, "icp-first: the source carries no tracked pose for every frame (an initial pose at most)".into()),
+        None => (
+            PosePolicy::IcpFirst,
+            "icp-first: the source carries no tracked pose for every frame (an initial pose at most)".into(),
+        ),
     }
 }
 
@@ -285,7 +296,8 @@ pub const MAX_COORDINATE_MM: f64 = 1e4;
 impl GroundTruth {
     pub fn read(path: &Path) -> Result<Self, crate::Invalid> {
         let t = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let g: Self = serde_json::from_str(&t).map_err(|e| format!("{}: not a ground-truth file: {e}", path.display()))?;
+        let g: Self =
+            serde_json::from_str(&t).map_err(|e| format!("{}: not a ground-truth file: {e}", path.display()))?;
         if !g.world_from_camera_frames.is_empty() && g.world_from_camera_frames.len() != g.markers_mm.len() {
             return Err(crate::Invalid(format!(
                 "{}: {} camera poses for {} frames",
@@ -340,7 +352,11 @@ impl GroundTruth {
         let Some((lo, hi)) = ctx.surface.bounds() else { return Ok(()) };
         let margin = Vector3::repeat(10.0);
         let (lo, hi) = (lo - margin, hi + margin);
-        let inside = self.markers_rest_mm.iter().filter(|p| (0..3).all(|a| p[a].is_finite() && p[a] >= lo[a] && p[a] <= hi[a])).count();
+        let inside = self
+            .markers_rest_mm
+            .iter()
+            .filter(|p| (0..3).all(|a| p[a].is_finite() && p[a] >= lo[a] && p[a] <= hi[a]))
+            .count();
         if m > 0 && (inside as f64) < 0.8 * m as f64 {
             return Err(crate::Invalid(format!(
                 "the ground truth is not of this organ: {} of its {m} markers lie outside the organ's bounds (a recording made on another organ?)",
@@ -436,7 +452,11 @@ pub struct Registrar<'c> {
 }
 
 impl<'c> Registrar<'c> {
-    pub fn new(ctx: &'c RegistrationContext, settings: RegisterSettings, initial_world_from_camera: Matrix4<f64>) -> Self {
+    pub fn new(
+        ctx: &'c RegistrationContext,
+        settings: RegisterSettings,
+        initial_world_from_camera: Matrix4<f64>,
+    ) -> Self {
         let [x, y, z] = ctx.padded_shape();
         Self {
             ctx,
@@ -530,7 +550,12 @@ impl<'c> Registrar<'c> {
         }
         let policy = self.settings.pose;
         if !self.posed || policy == PosePolicy::IcpEveryFrame {
-            let mut r = icp_point_to_plane(&points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp_settings());
+            let mut r = icp_point_to_plane(
+                &points,
+                &self.ctx.icp_target,
+                &self.world_from_camera,
+                &self.settings.icp_settings(),
+            );
             if r.fitness < 0.3 {
                 if policy != PosePolicy::Tracked {
                     return Err(FrameError::Invalid(crate::Invalid(format!(
@@ -645,7 +670,14 @@ impl<'c> Registrar<'c> {
                     let t = Instant::now();
                     let predicted_organ = ctx.deformed_surface(&predicted);
                     let coverage = super::confidence::frame_coverage(&predicted_organ, world_ref);
-                    let c = frame_confidence(world_ref, &predicted_organ, &ctx.surface, rings, coverage, reference.as_ref());
+                    let c = frame_confidence(
+                        world_ref,
+                        &predicted_organ,
+                        &ctx.surface,
+                        rings,
+                        coverage,
+                        reference.as_ref(),
+                    );
                     (c, ms(t))
                 },
                 || corrector.correct(world_ref, field, &settings, carried),
@@ -655,13 +687,15 @@ impl<'c> Registrar<'c> {
                 Some(d) if c.prediction_doubted => {
                     // Carried over consecutive doubted frames (in the tracking form, over all).
                     *field = predicted;
-                    corrected =
-                        corrector.correct(world_ref, field, &d, Some(&mut self.carried)).map(|r| CorrectionReport { doubted: true, ..r });
+                    corrected = corrector
+                        .correct(world_ref, field, &d, Some(&mut self.carried))
+                        .map(|r| CorrectionReport { doubted: true, ..r });
                 }
                 _ if !settings.carry => self.carried.clear(),
                 _ => {}
             }
-            correction = Some(corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?);
+            correction =
+                Some(corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?);
             correction_ms = ms(t);
             judged_confidence = Some((c, conf_ms));
         }
@@ -690,7 +724,14 @@ impl<'c> Registrar<'c> {
                             judged.unwrap_or_else(|| {
                                 let t = Instant::now();
                                 let coverage = super::confidence::frame_coverage(&organ, &world);
-                                let c = frame_confidence(&world, &organ, &ctx.surface, &self.rings, coverage, reference.as_ref());
+                                let c = frame_confidence(
+                                    &world,
+                                    &organ,
+                                    &ctx.surface,
+                                    &self.rings,
+                                    coverage,
+                                    reference.as_ref(),
+                                );
                                 (c, ms(t) + organ_ms)
                             })
                         },
@@ -699,7 +740,8 @@ impl<'c> Registrar<'c> {
             },
             || {
                 draw.then(|| {
-                    let structures: Vec<_> = ctx.structures.iter().map(|s| (ctx.deformed_structure(s, field), s.color)).collect();
+                    let structures: Vec<_> =
+                        ctx.structures.iter().map(|s| (ctx.deformed_structure(s, field), s.color)).collect();
                     structure_layer(&structures, &camera_from_world, &k)
                 })
             },
@@ -736,7 +778,16 @@ impl<'c> Registrar<'c> {
                 disp = Some(mean(&d));
             }
         }
-        let latency = Latency { points_ms, icp_ms, surface_ms, predict_ms, overlay_ms, confidence_ms, correction_ms, total_ms: ms(t0) };
+        let latency = Latency {
+            points_ms,
+            icp_ms,
+            surface_ms,
+            predict_ms,
+            overlay_ms,
+            confidence_ms,
+            correction_ms,
+            total_ms: ms(t0),
+        };
         Ok(FrameOutput {
             report: FrameReport {
                 frame: frame.index,
@@ -770,7 +821,13 @@ impl<'c> Registrar<'c> {
     /// displacement estimate, is pushed along its normal onto the observed surface; the grid's
     /// visible nodes take the embedding-weighted mean of their vertices; nodes that no vertex
     /// informs take the mean of their neighbours. Returns how many vertices were measured.
-    fn surface_input(&mut self, depth: &DepthImage, k: &Intrinsics, camera_from_world: &Matrix4<f64>, current: &[f32]) -> usize {
+    fn surface_input(
+        &mut self,
+        depth: &DepthImage,
+        k: &Intrinsics,
+        camera_from_world: &Matrix4<f64>,
+        current: &[f32],
+    ) -> usize {
         let ctx = self.ctx;
         let g = &ctx.grid;
         let [x, y, z] = ctx.padded_shape();

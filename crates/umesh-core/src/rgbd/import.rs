@@ -47,7 +47,12 @@ fn fps_of(times: &[f64]) -> Option<f64> {
 
 /// Read the RealSense recording `file` whole and write it as a recording folder into `out`
 /// (an empty folder the caller swaps in when this returns Ok).
-pub fn run_rgbd_import(file: &Path, out: &Path, progress: &crate::Progress, cancel: &crate::Cancel) -> Result<ImportReport, RgbdError> {
+pub fn run_rgbd_import(
+    file: &Path,
+    out: &Path,
+    progress: &crate::Progress,
+    cancel: &crate::Cancel,
+) -> Result<ImportReport, RgbdError> {
     let mut src = RealSenseSource::open(&RealSenseRequest::recording(file))?;
     let io = |p: PathBuf| move |e: std::io::Error| RgbdError::Io { path: p, source: e };
     let mut frames: Vec<ImportedFrame> = Vec::new();

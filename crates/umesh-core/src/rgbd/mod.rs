@@ -20,6 +20,9 @@ pub enum RgbdError {
     Invalid { path: PathBuf, reason: String },
     #[error("stream: {0}")]
     Stream(String),
+    /// The system refused what a stream needs (a connection, a thread, a process), its error kept.
+    #[error("stream: {what}")]
+    StreamIo { what: String, source: std::io::Error },
     /// Inputs that do not belong together (a ground truth of another organ, say).
     #[error(transparent)]
     Mismatch(#[from] crate::Invalid),
@@ -56,7 +59,10 @@ pub const MAX_PIXELS: usize = 1 << 24;
 impl Intrinsics {
     pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.width == 0 || self.height == 0 || self.width.saturating_mul(self.height) > MAX_PIXELS {
-            return Err(crate::Invalid(format!("image size {}x{} is zero or larger than {MAX_PIXELS} pixels", self.width, self.height)));
+            return Err(crate::Invalid(format!(
+                "image size {}x{} is zero or larger than {MAX_PIXELS} pixels",
+                self.width, self.height
+            )));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {
@@ -70,8 +76,9 @@ impl Intrinsics {
     }
 
     pub fn from_open3d_json(text: &str, path: &Path) -> Result<Self, RgbdError> {
-        let j: Open3dIntrinsic = serde_json::from_str(text)
-            .map_err(|e| invalid(path, format!("not an Open3D PinholeCameraIntrinsic JSON (width, height, intrinsic_matrix): {e}")))?;
+        let j: Open3dIntrinsic = serde_json::from_str(text).map_err(|e| {
+            invalid(path, format!("not an Open3D PinholeCameraIntrinsic JSON (width, height, intrinsic_matrix): {e}"))
+        })?;
         if j.intrinsic_matrix.len() != 9 {
             return Err(invalid(path, format!("intrinsic_matrix has {} values, 9 expected", j.intrinsic_matrix.len())));
         }
@@ -137,7 +144,9 @@ impl DepthImage {
         let mut acc = 0.0;
         let mut wsum = 0.0;
         let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
-        for (du, dv, w) in [(0, 0, (1.0 - fu) * (1.0 - fv)), (1, 0, fu * (1.0 - fv)), (0, 1, (1.0 - fu) * fv), (1, 1, fu * fv)] {
+        for (du, dv, w) in
+            [(0, 0, (1.0 - fu) * (1.0 - fv)), (1, 0, fu * (1.0 - fv)), (0, 1, (1.0 - fu) * fv), (1, 1, fu * fv)]
+        {
             let d = self.at(u0 + du, v0 + dv);
             if d > 0.0 && w > 0.0 {
                 acc += w * d;
@@ -164,7 +173,8 @@ impl ColorImage {
     }
 
     pub fn read(path: &Path) -> Result<Self, RgbdError> {
-        let img = image::open(path).map_err(|e| invalid(path, format!("cannot decode the colour image: {e}")))?.to_rgb8();
+        let img =
+            image::open(path).map_err(|e| invalid(path, format!("cannot decode the colour image: {e}")))?.to_rgb8();
         let (w, h) = img.dimensions();
         Ok(Self { width: w as usize, height: h as usize, rgb: img.into_raw() })
     }
@@ -205,17 +215,24 @@ pub fn read_depth_png(path: &Path, depth_scale: f64) -> Result<DepthImage, RgbdE
                  a visualisation rather than the camera's depth)",
             ));
         }
-        other => return Err(invalid(path, format!("depth must be a single-channel 16-bit PNG, found {:?}", other.color()))),
+        other => {
+            return Err(invalid(path, format!("depth must be a single-channel 16-bit PNG, found {:?}", other.color())));
+        }
     };
     let (w, h) = gray.dimensions();
     let to_mm = (1000.0 / depth_scale) as f32;
-    Ok(DepthImage { width: w as usize, height: h as usize, depth_mm: gray.into_raw().into_iter().map(|d| d as f32 * to_mm).collect() })
+    Ok(DepthImage {
+        width: w as usize,
+        height: h as usize,
+        depth_mm: gray.into_raw().into_iter().map(|d| d as f32 * to_mm).collect(),
+    })
 }
 
 /// Encode depth (mm) as a 16-bit PNG with `depth_scale` units per metre.
 pub fn encode_depth_png(depth: &DepthImage, depth_scale: f64) -> Result<Vec<u8>, crate::Invalid> {
     let k = (depth_scale / 1000.0) as f32;
-    let raw: Vec<u8> = depth.depth_mm.iter().flat_map(|&d| ((d * k).round().clamp(0.0, 65535.0) as u16).to_ne_bytes()).collect();
+    let raw: Vec<u8> =
+        depth.depth_mm.iter().flat_map(|&d| ((d * k).round().clamp(0.0, 65535.0) as u16).to_ne_bytes()).collect();
     let mut out = Vec::new();
     image::codecs::png::PngEncoder::new(&mut out)
         .write_image(&raw, depth.width as u32, depth.height as u32, image::ExtendedColorType::L16)
@@ -255,7 +272,10 @@ impl Frame {
         self.intrinsics.validate()?;
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         if (self.depth.width, self.depth.height) != (w, h) || self.depth.depth_mm.len() != w * h {
-            return Err(crate::Invalid(format!("depth is {}x{}, the intrinsics say {w}x{h}", self.depth.width, self.depth.height)));
+            return Err(crate::Invalid(format!(
+                "depth is {}x{}, the intrinsics say {w}x{h}",
+                self.depth.width, self.depth.height
+            )));
         }
         if let Some(c) = &self.color
             && ((c.width, c.height) != (w, h) || c.rgb.len() != 3 * w * h)

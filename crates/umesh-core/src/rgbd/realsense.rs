@@ -63,7 +63,9 @@ impl RealSenseRequest {
 
     pub fn validate(&self) -> Result<(), crate::Invalid> {
         if self.file.is_some() && self.record.is_some() {
-            return Err(crate::Invalid::from("recording to a file is for a connected camera, not a recording played back"));
+            return Err(crate::Invalid::from(
+                "recording to a file is for a connected camera, not a recording played back",
+            ));
         }
         if let Some(r) = &self.record
             && r.extension().is_none_or(|e| e != "db3")
@@ -72,11 +74,17 @@ impl RealSenseRequest {
         }
         if let Some(f) = &self.file {
             if !f.is_file() {
-                return Err(crate::Invalid(format!("{}: no such file (a RealSense recording, .bag or .db3)", f.display())));
+                return Err(crate::Invalid(format!(
+                    "{}: no such file (a RealSense recording, .bag or .db3)",
+                    f.display()
+                )));
             }
         } else {
             if !(1..=4096).contains(&self.width) || !(1..=4096).contains(&self.height) {
-                return Err(crate::Invalid(format!("camera size {}x{}: each side 1 to 4096 pixels", self.width, self.height)));
+                return Err(crate::Invalid(format!(
+                    "camera size {}x{}: each side 1 to 4096 pixels",
+                    self.width, self.height
+                )));
             }
             if !(1..=300).contains(&self.fps) {
                 return Err(crate::Invalid(format!("camera rate {} fps: 1 to 300", self.fps)));
@@ -145,7 +153,9 @@ impl Messages {
         match serde_json::from_str::<serde_json::Value>(line) {
             Ok(v) if v.get("error").is_some() => self.error = v["error"].as_str().map(str::to_string),
             Ok(v) if v.get("summary").is_some() => self.summary = Some(v["summary"].clone()),
-            Ok(v) if v.get("warning").is_some() => self.log.push(format!("warning: {}", v["warning"].as_str().unwrap_or_default())),
+            Ok(v) if v.get("warning").is_some() => {
+                self.log.push(format!("warning: {}", v["warning"].as_str().unwrap_or_default()))
+            }
             Ok(v) if v.get("info").is_some() => self.log.push(v["info"].as_str().unwrap_or_default().to_string()),
             // librealsense's own log lines.
             _ if !line.trim().is_empty() => self.log.push(line.trim().to_string()),
@@ -168,15 +178,20 @@ fn spawn(args: &[String]) -> Result<Child, RgbdError> {
 
 /// The connected RealSense cameras (empty when none is plugged in).
 pub fn list_devices() -> Result<Vec<DeviceInfo>, RgbdError> {
-    let out = spawn(&["list".into()])?.wait_with_output().map_err(|e| RgbdError::Stream(format!("RealSense bridge: {e}")))?;
+    let out = spawn(&["list".into()])?
+        .wait_with_output()
+        .map_err(|source| RgbdError::StreamIo { what: "the RealSense bridge".into(), source })?;
     let mut m = Messages::default();
     for l in String::from_utf8_lossy(&out.stderr).lines() {
         m.take(l);
     }
     if !out.status.success() {
-        return Err(RgbdError::Stream(m.error.unwrap_or_else(|| format!("the RealSense bridge exited with {}", out.status))));
+        return Err(RgbdError::Stream(
+            m.error.unwrap_or_else(|| format!("the RealSense bridge exited with {}", out.status)),
+        ));
     }
-    serde_json::from_slice(&out.stdout).map_err(|e| RgbdError::Stream(format!("the RealSense bridge's device list: {e}")))
+    serde_json::from_slice(&out.stdout)
+        .map_err(|e| RgbdError::Stream(format!("the RealSense bridge's device list: {e}")))
 }
 
 /// A RealSense camera or recording as a frame source. Live, the newest frame is kept (frames
@@ -215,7 +230,7 @@ impl RealSenseSource {
                     }
                 }
             })
-            .map_err(|e| RgbdError::Stream(format!("cannot start the bridge's log reader: {e}")))?;
+            .map_err(|source| RgbdError::StreamIo { what: "cannot start the bridge's log reader".into(), source })?;
         let child = Arc::new(Mutex::new(child));
         let (c, m) = (child.clone(), messages.clone());
         let keep_all = request.file.is_some() && !request.realtime;
@@ -248,7 +263,8 @@ impl RealSenseSource {
                 (None, None, None) => Some("the RealSense bridge could not be waited for".into()),
             }
         };
-        let reader = FrameReader::spawn(BufReader::with_capacity(1 << 20, stdout), "umesh-realsense", keep_all, on_end)?;
+        let reader =
+            FrameReader::spawn(BufReader::with_capacity(1 << 20, stdout), "umesh-realsense", keep_all, on_end)?;
         Ok(Self { request: request.clone(), reader, child, messages })
     }
 

@@ -59,7 +59,9 @@ fn list(dir: &Path, exts: &[&str]) -> Result<Vec<(String, PathBuf)>, RgbdError> 
     let mut out: Vec<(String, PathBuf)> = rd
         .filter_map(|e| e.ok())
         .map(|e| e.path())
-        .filter(|p| p.is_file() && p.extension().is_some_and(|e| exts.contains(&e.to_string_lossy().to_lowercase().as_str())))
+        .filter(|p| {
+            p.is_file() && p.extension().is_some_and(|e| exts.contains(&e.to_string_lossy().to_lowercase().as_str()))
+        })
         .filter_map(|p| Some((p.file_stem()?.to_string_lossy().into_owned(), p)))
         .collect();
     out.sort();
@@ -135,9 +137,10 @@ impl Recording {
         }
         let meta_path = dir.join("recording.json");
         let meta = if meta_path.is_file() {
-            let t = std::fs::read_to_string(&meta_path).map_err(|e| RgbdError::Io { path: meta_path.clone(), source: e })?;
-            let m: RecordingMeta =
-                serde_json::from_str(&t).map_err(|e| invalid(&meta_path, format!("not a recording description: {e}")))?;
+            let t = std::fs::read_to_string(&meta_path)
+                .map_err(|e| RgbdError::Io { path: meta_path.clone(), source: e })?;
+            let m: RecordingMeta = serde_json::from_str(&t)
+                .map_err(|e| invalid(&meta_path, format!("not a recording description: {e}")))?;
             if !(m.depth_scale.is_finite() && m.depth_scale > 0.0 && m.fps.is_finite() && m.fps > 0.0) {
                 return Err(invalid(&meta_path, "depth_scale and fps must be finite and positive"));
             }
@@ -158,7 +161,9 @@ impl Recording {
         let mask = list(&dir.join("mask"), &["png"])?;
         let mut warnings = Vec::new();
         // Sorted by stem (`list`): a binary search per frame.
-        let find = |v: &[(String, PathBuf)], stem: &str| v.binary_search_by(|(s, _)| s.as_str().cmp(stem)).ok().map(|k| v[k].1.clone());
+        let find = |v: &[(String, PathBuf)], stem: &str| {
+            v.binary_search_by(|(s, _)| s.as_str().cmp(stem)).ok().map(|k| v[k].1.clone())
+        };
         if depth.is_empty() && points.is_empty() {
             return Err(invalid(dir, "no frames: depth/*.png or points/*.ply expected"));
         }
@@ -169,7 +174,8 @@ impl Recording {
         let mut stems: std::collections::BTreeSet<String> =
             depth.iter().chain(&points).chain(&color).chain(&mask).map(|(s, _)| s.clone()).collect();
         let width = stems.first().map(|s| s.len()).unwrap_or(0);
-        let numbered: Option<Vec<u64>> = stems.iter().map(|s| if s.len() == width { s.parse::<u64>().ok() } else { None }).collect();
+        let numbered: Option<Vec<u64>> =
+            stems.iter().map(|s| if s.len() == width { s.parse::<u64>().ok() } else { None }).collect();
         if let Some(n) = numbered
             && let (Some(&lo), Some(&hi)) = (n.iter().min(), n.iter().max())
             && hi - lo < 1_000_000
@@ -200,7 +206,11 @@ impl Recording {
         let trajectory = if traj_path.is_file() {
             let t = read_trajectory_log(&traj_path)?;
             if t.len() < frames.len() {
-                warnings.push(format!("trajectory.log has {} poses for {} frames; the last pose is repeated", t.len(), frames.len()));
+                warnings.push(format!(
+                    "trajectory.log has {} poses for {} frames; the last pose is repeated",
+                    t.len(),
+                    frames.len()
+                ));
             }
             Some(t)
         } else {
@@ -229,14 +239,20 @@ impl Recording {
 
     /// Read frame `i`; a bad file gives an error naming it (callers skip the frame).
     pub fn read_frame(&self, i: usize) -> Result<Frame, RgbdError> {
-        let f = self.frames.get(i).ok_or_else(|| invalid(&self.dir, format!("frame {i} out of range (0..{})", self.frames.len())))?;
+        let f = self
+            .frames
+            .get(i)
+            .ok_or_else(|| invalid(&self.dir, format!("frame {i} out of range (0..{})", self.frames.len())))?;
         let k = self.intrinsics;
         let mut cloud = None;
         let depth = match (&f.depth, &f.points) {
             (Some(p), _) => {
                 let d = read_depth_png(p, self.meta.depth_scale)?;
                 if (d.width, d.height) != (k.width, k.height) {
-                    return Err(invalid(p, format!("depth is {}x{}, the intrinsics say {}x{}", d.width, d.height, k.width, k.height)));
+                    return Err(invalid(
+                        p,
+                        format!("depth is {}x{}, the intrinsics say {}x{}", d.width, d.height, k.width, k.height),
+                    ));
                 }
                 d
             }
@@ -251,14 +267,20 @@ impl Recording {
                 d
             }
             (None, None) => {
-                return Err(invalid(&self.dir, format!("frame {}: its depth image (or point cloud) is missing", f.stem)));
+                return Err(invalid(
+                    &self.dir,
+                    format!("frame {}: its depth image (or point cloud) is missing", f.stem),
+                ));
             }
         };
         let color = match &f.color {
             Some(p) => {
                 let c = ColorImage::read(p)?;
                 if (c.width, c.height) != (k.width, k.height) {
-                    return Err(invalid(p, format!("colour is {}x{}, depth is {}x{}", c.width, c.height, k.width, k.height)));
+                    return Err(invalid(
+                        p,
+                        format!("colour is {}x{}, depth is {}x{}", c.width, c.height, k.width, k.height),
+                    ));
                 }
                 Some(c)
             }
@@ -268,7 +290,10 @@ impl Recording {
             Some(p) => {
                 let m = image::open(p).map_err(|e| invalid(p, format!("cannot decode the mask: {e}")))?.to_luma8();
                 if (m.width() as usize, m.height() as usize) != (k.width, k.height) {
-                    return Err(invalid(p, format!("mask is {}x{}, depth is {}x{}", m.width(), m.height(), k.width, k.height)));
+                    return Err(invalid(
+                        p,
+                        format!("mask is {}x{}, depth is {}x{}", m.width(), m.height(), k.width, k.height),
+                    ));
                 }
                 let m: Vec<bool> = m.into_raw().into_iter().map(|v| v > 0).collect();
                 if !m.iter().any(|&v| v) {
@@ -336,7 +361,8 @@ pub fn write_frame(dir: &Path, stem: &str, frame: &Frame, depth_scale: f64) -> R
         )
         .ok_or_else(|| invalid(&p, "mask size does not match"))?;
         let mut bytes = Vec::new();
-        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).map_err(|e| invalid(&p, e.to_string()))?;
+        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .map_err(|e| invalid(&p, e.to_string()))?;
         crate::write_atomic(&p, &bytes).map_err(io(p.clone()))?;
     }
     Ok(())

@@ -29,7 +29,14 @@ const TISSUE_MIN_RED: u8 = 35;
 
 impl Default for SegmentSettings {
     fn default() -> Self {
-        Self { use_mask: true, depth_min_mm: 100.0, depth_max_mm: 3000.0, color_rgb: None, color_tolerance: 60.0, tissue_color: true }
+        Self {
+            use_mask: true,
+            depth_min_mm: 100.0,
+            depth_max_mm: 3000.0,
+            color_rgb: None,
+            color_tolerance: 60.0,
+            tissue_color: true,
+        }
     }
 }
 

@@ -259,7 +259,9 @@ pub fn read_frame_scaled<R: Read>(r: &mut R, index: usize) -> Result<Option<(Fra
     }
     let world_from_camera = match h.world_from_camera {
         Some(m) if m.iter().all(|v| v.is_finite()) => Some(nalgebra::Matrix4::from_row_slice(&m)),
-        Some(_) => return Err(crate::Invalid::from("frame header: world_from_camera holds a value that is not finite")),
+        Some(_) => {
+            return Err(crate::Invalid::from("frame header: world_from_camera holds a value that is not finite"));
+        }
         None => None,
     };
     let n = k.width * k.height;
@@ -397,7 +399,7 @@ impl FrameReader {
                     cv.notify_all();
                 }
             })
-            .map_err(|e| RgbdError::Stream(format!("cannot start the reader thread: {e}")))?;
+            .map_err(|source| RgbdError::StreamIo { what: "cannot start the reader thread".into(), source })?;
         Ok(Self { shared, ended_reported: false })
     }
 
@@ -464,13 +466,17 @@ impl TcpSource {
     pub fn connect(addr: &str, stall_timeout: Duration) -> Result<Self, RgbdError> {
         let sock = addr
             .to_socket_addrs()
-            .map_err(|e| RgbdError::Stream(format!("{addr}: {e}")))?
+            .map_err(|source| RgbdError::StreamIo { what: addr.into(), source })?
             .next()
             .ok_or_else(|| RgbdError::Stream(format!("{addr}: no address")))?;
         let stream = TcpStream::connect_timeout(&sock, Duration::from_secs(5))
-            .map_err(|e| RgbdError::Stream(format!("{addr}: cannot connect: {e}")))?;
-        stream.set_read_timeout(Some(stall_timeout)).map_err(|e| RgbdError::Stream(e.to_string()))?;
-        let reader = std::io::BufReader::with_capacity(1 << 20, stream.try_clone().map_err(|e| RgbdError::Stream(e.to_string()))?);
+            .map_err(|source| RgbdError::StreamIo { what: format!("{addr}: cannot connect"), source })?;
+        let io = |what: &str| {
+            let what = format!("{addr}: {what}");
+            move |source| RgbdError::StreamIo { what, source }
+        };
+        stream.set_read_timeout(Some(stall_timeout)).map_err(io("the read timeout"))?;
+        let reader = std::io::BufReader::with_capacity(1 << 20, stream.try_clone().map_err(io("a second handle"))?);
         let reader = FrameReader::spawn(reader, "umesh-tcp-source", false, |reason| reason)?;
         Ok(Self { addr: addr.to_string(), reader, stream })
     }

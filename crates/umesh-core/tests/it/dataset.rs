@@ -36,7 +36,10 @@ fn visible_area_is_capped_and_front_facing() {
         for (t, tri) in mesh.triangles.iter().enumerate() {
             if vis.visible[t] {
                 let c = tri.iter().map(|&i| mesh.positions[i as usize]).sum::<Vector3<f64>>() / 3.0;
-                assert!(mesh.triangle_normal_area(t).0.dot(&(eye - c)) > 0.0, "back-facing triangle {t} marked visible");
+                assert!(
+                    mesh.triangle_normal_area(t).0.dot(&(eye - c)) > 0.0,
+                    "back-facing triangle {t} marked visible"
+                );
             }
         }
     }
@@ -47,7 +50,9 @@ fn visible_area_is_capped_and_front_facing() {
     let (lo, hi) = mesh.bounds().unwrap();
     let c = (lo + hi) / 2.0;
     let back = Camera { position_mm: [c.x, c.y - 500.0, c.z], direction: [0.0, 1.0, 0.0], fov_deg: 50.0 };
-    let vb = visible_surface(&mesh, &VisibilitySettings { camera: Some(back), max_fraction: 1.0, ..Default::default() }).unwrap();
+    let vb =
+        visible_surface(&mesh, &VisibilitySettings { camera: Some(back), max_fraction: 1.0, ..Default::default() })
+            .unwrap();
     let both = (0..mesh.triangles.len()).filter(|&t| vb.visible[t] && vis.visible[t]).count();
     assert!(both * 50 < vb.visible.iter().filter(|&&v| v).count(), "front and back views overlap too much");
 }
@@ -83,7 +88,8 @@ fn probe_sampling_is_uniform_by_area() {
 #[test]
 fn barycentric_force_distribution_conserves_force_and_moment() {
     let seg = phantom();
-    let grid = umesh_core::grid::run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new()).unwrap().grid;
+    let grid =
+        umesh_core::grid::run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new()).unwrap().grid;
     let mut rng = SplitMix64(9);
     let mut bc = BoundaryConditions::new(grid.node_count());
     let (mut total, mut moment) = (Vector3::zeros(), Vector3::zeros());
@@ -127,8 +133,10 @@ fn shards_merge_into_exactly_the_single_run_dataset_and_resume_completes_it() {
     assert!(r.accepted >= 4, "{r:?}");
     let a = tmp("a");
     let b = tmp("b");
-    let ra = run_generate(&seg, &a, &config, ShardSelection::parse("0/2").unwrap(), &Progress::none(), &Cancel::new()).unwrap();
-    let rb = run_generate(&seg, &b, &config, ShardSelection::parse("1/2").unwrap(), &Progress::none(), &Cancel::new()).unwrap();
+    let ra = run_generate(&seg, &a, &config, ShardSelection::parse("0/2").unwrap(), &Progress::none(), &Cancel::new())
+        .unwrap();
+    let rb = run_generate(&seg, &b, &config, ShardSelection::parse("1/2").unwrap(), &Progress::none(), &Cancel::new())
+        .unwrap();
     assert!(!ra.complete && !rb.complete);
     let merged = tmp("merged");
     let m = run_merge(&[a.clone(), b.clone()], &merged).unwrap();
@@ -167,7 +175,9 @@ fn shards_merge_into_exactly_the_single_run_dataset_and_resume_completes_it() {
     // A different configuration in the same folder is refused.
     let mut other = config.clone();
     other.seed = 99;
-    let e = run_generate(&seg, &resumed, &other, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    let e = run_generate(&seg, &resumed, &other, ShardSelection::all(), &Progress::none(), &Cancel::new())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("another configuration"), "{e}");
 }
 
@@ -261,7 +271,12 @@ fn calibrated_loads_land_within_a_quarter_of_each_samples_target() {
         let f = s.family.map_or(1.0, |f| f.target_factor());
         assert!((4.0 * f..=12.0 * f).contains(&t), "sample {}: target {t} ({:?})", s.index, s.family);
         let ratio = s.mean_displacement_mm / t;
-        assert!((0.75..=1.25).contains(&ratio), "sample {}: {:.2} mm for a {t:.2} mm target", s.index, s.mean_displacement_mm);
+        assert!(
+            (0.75..=1.25).contains(&ratio),
+            "sample {}: {:.2} mm for a {t:.2} mm target",
+            s.index,
+            s.mean_displacement_mm
+        );
     }
     let st = umesh_core::dataset::run_stats(&dir).unwrap();
     let a = st.achieved_over_target.unwrap();
@@ -322,12 +337,16 @@ fn a_camera_inside_the_organ_or_seeing_nothing_and_an_empty_fixed_region_are_ref
         .map(|i| ((i % nx) as i64, ((i / nx) % ny) as i64, (i / (nx * ny)) as i64))
         .find(|&(i, j, k)| (-3..=3).all(|d| mask.get(i + d, j, k) && mask.get(i, j + d, k) && mask.get(i, j, k + d)))
         .unwrap();
-    let eye = mask.world_from_voxel.transform_point(&nalgebra::Point3::new(deep.0 as f64, deep.1 as f64, deep.2 as f64)).coords;
+    let eye = mask
+        .world_from_voxel
+        .transform_point(&nalgebra::Point3::new(deep.0 as f64, deep.1 as f64, deep.2 as f64))
+        .coords;
     config.visibility.camera = Some(Camera::look_at(&eye, &(eye + Vector3::y()), 50.0));
     let e = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap_err().to_string();
     assert!(e.contains("inside the organ"), "{e}");
     // Looking away from the organ.
-    config.visibility.camera = Some(Camera::look_at(&(c + Vector3::new(0.0, 500.0, 0.0)), &(c + Vector3::new(0.0, 1000.0, 0.0)), 50.0));
+    config.visibility.camera =
+        Some(Camera::look_at(&(c + Vector3::new(0.0, 500.0, 0.0)), &(c + Vector3::new(0.0, 1000.0, 0.0)), 50.0));
     let e = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap_err().to_string();
     assert!(e.contains("sees 0.0 %") || e.contains("sees none"), "{e}");
     let mut config = small_config(2);
@@ -363,7 +382,10 @@ fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file
     let settings = GridSettings::default();
     let g1 = umesh_core::grid::run_grid(&seg, &settings, &Progress::none(), &Cancel::new()).unwrap();
     let g2 = umesh_core::grid::run_grid(&folder, &settings, &Progress::none(), &Cancel::new()).unwrap();
-    assert_eq!((g1.stats.cells, g1.stats.nodes, g1.stats.padded_shape), (g2.stats.cells, g2.stats.nodes, g2.stats.padded_shape));
+    assert_eq!(
+        (g1.stats.cells, g1.stats.nodes, g1.stats.padded_shape),
+        (g2.stats.cells, g2.stats.nodes, g2.stats.padded_shape)
+    );
     assert!((g1.stats.grid_volume_mm3 - g2.stats.grid_volume_mm3).abs() < 1e-6 * g1.stats.grid_volume_mm3);
     let names = |s: &Segmentation| {
         let mut v: Vec<String> = s.structure_labels.iter().map(|&l| s.label_name(l)).collect();
@@ -377,7 +399,9 @@ fn per_structure_masks_give_the_same_grid_and_structures_as_the_multi_label_file
     for s in &folder.structure_labels {
         assert_eq!(
             folder.volume.mask(&[*s]).count(),
-            seg.volume.mask(&[*seg.volume.label_names.iter().find(|(_, n)| **n == folder.label_name(*s)).unwrap().0]).count()
+            seg.volume
+                .mask(&[*seg.volume.label_names.iter().find(|(_, n)| **n == folder.label_name(*s)).unwrap().0])
+                .count()
         );
     }
 }
@@ -406,7 +430,9 @@ fn a_vena_cava_drawn_inside_the_liver_mask_still_holds_the_organ() {
     let ivc_voxels = ivc.data.iter().filter(|v| **v != 0.0).count();
     write_volume(&dir.join("inferior_vena_cava.nii.gz"), &ivc, WriteType::U8).unwrap();
     let f = |name: &str, role| MaskFile { name: name.into(), path: dir.join(format!("{name}.nii.gz")), role };
-    let (s, notes) = assemble_masks(&[f("liver", Role::Organ), f("inferior_vena_cava", Role::Anchor)], &ReadOptions::default()).unwrap();
+    let (s, notes) =
+        assemble_masks(&[f("liver", Role::Organ), f("inferior_vena_cava", Role::Anchor)], &ReadOptions::default())
+            .unwrap();
     // Was: the vein kept no voxel and the organ fell back to the posterior fifth, silently.
     let a = umesh_core::loads::default_fixed(&s, None, 6.0);
     assert!(a.description.contains("inferior_vena_cava"), "{}", a.description);
@@ -444,12 +470,15 @@ fn masks_on_other_lattices_are_resampled_and_disjoint_ones_refused() {
     far.world_from_voxel[(2, 3)] += 1e4;
     write_volume(&dir.join("far.nii.gz"), &far, WriteType::U8).unwrap();
     let f = |name: &str, role| MaskFile { name: name.into(), path: dir.join(format!("{name}.nii.gz")), role };
-    let (s, notes) = assemble_masks(&[f("liver", Role::Organ), f("pv", Role::Structure)], &ReadOptions::default()).unwrap();
+    let (s, notes) =
+        assemble_masks(&[f("liver", Role::Organ), f("pv", Role::Structure)], &ReadOptions::default()).unwrap();
     assert_eq!(notes.resampled.len(), 1, "{notes:?}");
     let n = s.volume.mask(&s.structure_labels).count() as f64;
     let n0 = pv.data.iter().filter(|v| **v != 0.0).count() as f64;
     assert!((n - n0).abs() < 0.5 * n0, "{n} vs {n0}");
-    let e = assemble_masks(&[f("liver", Role::Organ), f("far", Role::Structure)], &ReadOptions::default()).unwrap_err().to_string();
+    let e = assemble_masks(&[f("liver", Role::Organ), f("far", Role::Structure)], &ReadOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("far.nii.gz") && e.contains("do not overlap"), "{e}");
 }
 
@@ -460,8 +489,10 @@ fn samples_carry_a_simulated_camera_view_of_their_deformed_organ() {
     let dir = tmp("views");
     run_generate(&seg, &dir, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
     let ds = Dataset::open(&dir).unwrap();
-    let grid = umesh_core::grid::ImmersedGrid::from_npz(&umesh_core::npz::Npz::read(&dir.join("grid.npz")).unwrap()).unwrap();
-    let surface = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: config.surface_step, ..Default::default() });
+    let grid =
+        umesh_core::grid::ImmersedGrid::from_npz(&umesh_core::npz::Npz::read(&dir.join("grid.npz")).unwrap()).unwrap();
+    let surface =
+        extract_surface(&seg.organ_mask(), &SurfaceSettings { step: config.surface_step, ..Default::default() });
     let [_, py, pz] = grid.padded_shape();
     let cells = grid.padded_shape().iter().product::<usize>();
     let mut counts = Vec::new();
@@ -482,15 +513,26 @@ fn samples_carry_a_simulated_camera_view_of_their_deformed_organ() {
                 })
                 .collect();
             let deformed = umesh_core::loads::deform_mesh(&grid, &surface, &u);
-            let mut dist: Vec<f64> =
-                view.iter().step_by(10).map(|p| deformed.positions.iter().map(|v| (v - p).norm()).fold(f64::INFINITY, f64::min)).collect();
+            let mut dist: Vec<f64> = view
+                .iter()
+                .step_by(10)
+                .map(|p| deformed.positions.iter().map(|v| (v - p).norm()).fold(f64::INFINITY, f64::min))
+                .collect();
             dist.sort_by(f64::total_cmp);
             // 1 mm depth noise and points inside 3-voxel triangles: the nearest vertex is near.
             let (median, p95) = (dist[dist.len() / 2], dist[dist.len() * 95 / 100]);
-            assert!(median < 2.5 && p95 < 5.0, "sample {}: distance to the deformed surface median {median:.2}, p95 {p95:.2} mm", idx[k]);
+            assert!(
+                median < 2.5 && p95 < 5.0,
+                "sample {}: distance to the deformed surface median {median:.2}, p95 {p95:.2} mm",
+                idx[k]
+            );
         }
     }
-    assert!(counts.iter().any(|&c| c != counts[0]), "every view holds {} points: dropout and holes do not vary", counts[0]);
+    assert!(
+        counts.iter().any(|&c| c != counts[0]),
+        "every view holds {} points: dropout and holes do not vary",
+        counts[0]
+    );
 }
 
 #[test]
@@ -527,7 +569,9 @@ fn shards_without_their_manifest_are_refused_not_adopted() {
     let before = folder_bytes(&dir);
     let mut other = small_config(2);
     other.seed = 99;
-    let err = run_generate(&seg, &dir, &other, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    let err = run_generate(&seg, &dir, &other, ShardSelection::all(), &Progress::none(), &Cancel::new())
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("no manifest.json") && err.contains(&dir.display().to_string()), "{err}");
     assert_eq!(before, folder_bytes(&dir), "the folder was changed");
 }
@@ -563,7 +607,9 @@ fn merge_refuses_another_dataset_in_the_target_and_a_failed_merge_leaves_it_inta
     let leftovers: Vec<_> = std::fs::read_dir(t.parent().unwrap())
         .unwrap()
         .flatten()
-        .filter(|e| e.file_name().to_string_lossy().starts_with(&format!(".{}", t.file_name().unwrap().to_string_lossy())))
+        .filter(|e| {
+            e.file_name().to_string_lossy().starts_with(&format!(".{}", t.file_name().unwrap().to_string_lossy()))
+        })
         .collect();
     assert!(leftovers.is_empty(), "staging folders left behind: {leftovers:?}");
 }
@@ -623,8 +669,10 @@ fn a_probes_force_spread_over_its_contact_keeps_the_resultant_and_lands_within_t
     }
     // The moment about the probe point: the patch's weighted centre lies near it (tolerance:
     // a quarter of the radius, the offset on a curved surface).
-    let centre: Vector3<f64> =
-        spread.iter().map(|s| Vector3::from(s.point_mm) * (Vector3::from(s.force_n).dot(&total) / total.norm_squared())).sum();
+    let centre: Vector3<f64> = spread
+        .iter()
+        .map(|s| Vector3::from(s.point_mm) * (Vector3::from(s.force_n).dot(&total) / total.norm_squared()))
+        .sum();
     assert!((centre - p).norm() < 2.0, "patch centre {:.2} mm from the probe", (centre - p).norm());
     // Radius 0: the point load as given.
     assert_eq!(spread_forces(&mesh, std::slice::from_ref(&f), 0.0), vec![f]);
@@ -637,7 +685,8 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     // Held by a tube through the organ's middle (the portal vein), every pressing pattern
     // squeezes the tissue against it: SVK collapses long before a 10 mm mean displacement
     // when nothing limits the strain (the default limit makes this set-up work: the next test).
-    let mut config = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
+    let mut config =
+        DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
     config.forces.max_strain = 0.0;
     config.samples = 1000;
     let dir = tmp("doomed");
@@ -653,12 +702,16 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     let check = PreflightCheck { settings: settings.clone(), force: false, report: &report };
     // Bounded work: the grid, eight reference solves and six samples (the time on 2 cores is
     // a README figure, measured by `umesh dataset generate`, not asserted here).
-    let e = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&check), &Progress::none(), &cancel).unwrap_err();
+    let e = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&check), &Progress::none(), &cancel)
+        .unwrap_err();
     let DatasetError::Refused { message, preflight } = e else { panic!("not refused: {e}") };
     // Refused on either rule: few accepted, or the accepted far short of their targets (with
     // the floor at a tenth of the target, an organ that collapses keeps its early states).
     assert!(preflight.is_doomed(&settings) && preflight.samples == 6, "{preflight:?}");
-    assert!(message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"), "{message}");
+    assert!(
+        message.contains("Likely cause") && message.contains("--force") && message.contains("--target-displacement-mm"),
+        "{message}"
+    );
     assert!(message.contains("--max-strain 0.12"), "the limit that makes this set-up work is not named: {message}");
     assert!(!dir.exists(), "a refused job wrote {}", dir.display());
     assert_eq!(seen.lock().unwrap().len(), 1);
@@ -667,7 +720,16 @@ fn a_doomed_set_up_is_refused_by_the_preflight_before_anything_is_written_and_fo
     config.shard_size = 7;
     let report = |p: &umesh_core::dataset::Preflight| seen.lock().unwrap().push(p.clone());
     let forced = PreflightCheck { force: true, report: &report, ..check };
-    let r = run_generate_checked(&seg, &dir, &config, ShardSelection::all(), Some(&forced), &Progress::none(), &Cancel::new()).unwrap();
+    let r = run_generate_checked(
+        &seg,
+        &dir,
+        &config,
+        ShardSelection::all(),
+        Some(&forced),
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap();
     assert!(r.complete && r.samples_computed == 7 && r.preflight.is_some(), "{r:?}");
 }
 
@@ -713,7 +775,10 @@ fn a_preflight_whose_samples_stop_far_short_of_their_targets_is_refused_even_whe
     assert!(p(16, Some(0.87)).refusal(&settings).is_none());
     // 16 of 16 accepted, each at under half its target: refused, and the message says which rule.
     let m = p(16, Some(0.43)).refusal(&settings).expect("not refused");
-    assert!(m.contains("43 % of their target displacement") && m.contains("Likely cause: a cause") && m.contains("--force"), "{m}");
+    assert!(
+        m.contains("43 % of their target displacement") && m.contains("Likely cause: a cause") && m.contains("--force"),
+        "{m}"
+    );
     // No sample accepted: the acceptance rule (no ratio to judge).
     let m = p(0, None).refusal(&settings).expect("not refused");
     assert!(m.contains("store 0 % of its samples"), "{m}");
@@ -725,7 +790,8 @@ fn an_organ_held_at_its_core_has_its_targets_lowered_to_the_strain_limit_and_its
     use umesh_core::dataset::{DatasetContext, LOCAL_STRAIN_FACTOR, run_stats};
     use umesh_core::fem::solver::FeSolver;
     let seg = phantom();
-    let mut config = DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
+    let mut config =
+        DatasetConfig::paper(FixedRegion::Label { label: umesh_core::phantom::PORTAL_VEIN, distance_mm: 6.0 });
     assert_eq!(config.forces.max_strain, umesh_core::loads::DEFAULT_MAX_STRAIN);
     config.samples = 6;
     config.shard_size = 6;
@@ -775,13 +841,19 @@ fn probes_land_only_where_the_fixed_region_lets_the_surface_move() {
     // The right 30 % of the organ held (the sweep's box-30%): part of what the camera sees is held.
     let (lo, hi) = seg.organ_mask().world_bounds().unwrap();
     let e = hi - lo;
-    let region = FixedRegion::Box { min_mm: [hi.x - 0.3 * e.x, lo.y - 1.0, lo.z - 1.0], max_mm: [hi.x + 1.0, hi.y + 1.0, hi.z + 1.0] };
+    let region = FixedRegion::Box {
+        min_mm: [hi.x - 0.3 * e.x, lo.y - 1.0, lo.z - 1.0],
+        max_mm: [hi.x + 1.0, hi.y + 1.0, hi.z + 1.0],
+    };
     let mut config = DatasetConfig::paper(region);
     config.samples = 40;
     let ctx = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
     let seen = ctx.visible.visible.iter().filter(|&&v| v).count();
     let pressable = ctx.pressable.iter().filter(|&&v| v).count();
-    assert!(ctx.pressable.iter().zip(&ctx.visible.visible).all(|(p, v)| !p || *v), "a pressable triangle the camera does not see");
+    assert!(
+        ctx.pressable.iter().zip(&ctx.visible.visible).all(|(p, v)| !p || *v),
+        "a pressable triangle the camera does not see"
+    );
     assert!(pressable < seen && pressable > seen / 4, "{pressable} of {seen} visible triangles pressable");
     // Every probe of every family moves some free node (within 1e-9 of a weight).
     for i in 0..config.samples {
@@ -827,7 +899,8 @@ fn a_mixture_dataset_records_each_samples_family_and_pressing_only_configs_keep_
     for s in &m.samples {
         assert_eq!(s.family, Some(config.forces.family_of(config.seed, s.index)), "sample {}", s.index);
     }
-    let kinds: std::collections::BTreeSet<String> = m.samples.iter().map(|s| s.family.unwrap().name().to_string()).collect();
+    let kinds: std::collections::BTreeSet<String> =
+        m.samples.iter().map(|s| s.family.unwrap().name().to_string()).collect();
     assert!(kinds.len() >= 3, "12 samples drew only {kinds:?}");
     let st = umesh_core::dataset::run_stats(&d).unwrap();
     assert_eq!(st.families.iter().map(|f| f.1).sum::<usize>(), 12);
@@ -852,7 +925,8 @@ fn a_sample_is_solved_with_the_material_drawn_for_it_and_the_manifest_records_it
     let svk = small_config(4);
     // Every sample drawn Neo-Hookean at Poisson 0.45: the same physics as a dataset of that material.
     let mut varied = small_config(4);
-    varied.material_variation = Some(MaterialVariation { poisson_min: 0.45, poisson_max: 0.45, neo_hookean_fraction: 1.0 });
+    varied.material_variation =
+        Some(MaterialVariation { poisson_min: 0.45, poisson_max: 0.45, neo_hookean_fraction: 1.0 });
     let mut nh = small_config(4);
     nh.material = MaterialParams { kind: MaterialKind::NeoHookean, poisson: 0.45, ..Default::default() };
     // A configuration without variation serialises as before (its hash unchanged).
@@ -867,7 +941,11 @@ fn a_sample_is_solved_with_the_material_drawn_for_it_and_the_manifest_records_it
         r.solution.expect("converged").displacement_mm
     };
     for (c, k) in [(&varied, 0usize), (&svk, 1), (&varied, 1), (&svk, 0)] {
-        let reference = if c.material_variation.is_some() { solve(&mut solver_for(&nh), &nh, k) } else { solve(&mut solver_for(c), c, k) };
+        let reference = if c.material_variation.is_some() {
+            solve(&mut solver_for(&nh), &nh, k)
+        } else {
+            solve(&mut solver_for(c), c, k)
+        };
         let u = solve(&mut reused, c, k);
         let scale = reference.iter().map(|v| v.norm()).fold(0.0, f64::max);
         let diff = u.iter().zip(&reference).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);

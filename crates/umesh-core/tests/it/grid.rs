@@ -13,7 +13,15 @@ fn ellipsoid_grid(r: Vector3<f64>, h: f64, levels: u32) -> ImmersedGrid {
     let s = GridSettings { cell_size_mm: h, subdivisions: levels, samples_per_leaf_axis: 2, pooling_steps: 3 };
     let inside = move |p: &Point3<f64>| (p.coords.component_div(&r)).norm_squared() <= 1.0;
     // An off-centre box so the lattice is not symmetric about the shape.
-    grid::build(-r - Vector3::new(0.3, 0.1, 0.7), r + Vector3::new(0.2, 0.5, 0.1), inside, &s, &Progress::none(), &Cancel::new()).unwrap()
+    grid::build(
+        -r - Vector3::new(0.3, 0.1, 0.7),
+        r + Vector3::new(0.2, 0.5, 0.1),
+        inside,
+        &s,
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap()
 }
 
 fn rel_err(g: &ImmersedGrid, r: Vector3<f64>) -> f64 {
@@ -65,8 +73,8 @@ fn embedding_weights_sum_to_one_and_reproduce_positions() {
     let mut rng = umesh_core::rng::SplitMix64(5);
     let mut checked = 0;
     for _ in 0..2000 {
-        let p =
-            Vector3::new(rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5).component_mul(&Vector3::new(80.0, 60.0, 40.0));
+        let p = Vector3::new(rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5)
+            .component_mul(&Vector3::new(80.0, 60.0, 40.0));
         if (p.component_div(&Vector3::new(40.0, 30.0, 20.0))).norm() > 1.0 {
             continue;
         }
@@ -92,8 +100,15 @@ fn padded_shape_is_a_multiple_of_two_to_the_pooling_steps() {
     for k in 0..5 {
         let s = GridSettings { cell_size_mm: 7.0, pooling_steps: k, ..Default::default() };
         let r = Vector3::new(70.0, 50.0, 40.0);
-        let g = grid::build(-r, r, move |p: &Point3<f64>| p.coords.component_div(&r).norm() <= 1.0, &s, &Progress::none(), &Cancel::new())
-            .unwrap();
+        let g = grid::build(
+            -r,
+            r,
+            move |p: &Point3<f64>| p.coords.component_div(&r).norm() <= 1.0,
+            &s,
+            &Progress::none(),
+            &Cancel::new(),
+        )
+        .unwrap();
         let p = g.padded_shape();
         for a in 0..3 {
             assert_eq!(p[a] % (1 << k), 0);
@@ -179,16 +194,27 @@ fn phantom_generation_is_deterministic_and_matches_the_bundled_asset() {
     assert_ne!(a.data, c.data);
     // The committed asset is exactly what `umesh phantom` writes.
     let asset = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/phantom.nii.gz")).unwrap();
-    let bundled = umesh_core::nifti_io::read_volume_bytes(std::path::Path::new("phantom"), &asset, &Default::default()).unwrap();
+    let bundled =
+        umesh_core::nifti_io::read_volume_bytes(std::path::Path::new("phantom"), &asset, &Default::default()).unwrap();
     let fresh = phantom::generate(&PhantomSettings::default());
     assert_eq!(bundled.dims, fresh.dims);
     assert_eq!(bundled.data, fresh.data);
     // Liver-like size: about 20 x 14 x 12 cm.
     let (lo, hi) = fresh.mask(&phantom::ORGAN_LABELS).world_bounds().unwrap();
     let ext = hi - lo;
-    assert!(ext.x > 180.0 && ext.x < 240.0 && ext.y > 110.0 && ext.y < 170.0 && ext.z > 90.0 && ext.z < 150.0, "{ext:?}");
+    assert!(
+        ext.x > 180.0 && ext.x < 240.0 && ext.y > 110.0 && ext.y < 170.0 && ext.z > 90.0 && ext.z < 150.0,
+        "{ext:?}"
+    );
     let counts = fresh.label_counts();
-    for l in [phantom::LIVER, phantom::VENA_CAVA, phantom::PORTAL_VEIN, phantom::TUMOURS[0], phantom::TUMOURS[1], phantom::TUMOURS[2]] {
+    for l in [
+        phantom::LIVER,
+        phantom::VENA_CAVA,
+        phantom::PORTAL_VEIN,
+        phantom::TUMOURS[0],
+        phantom::TUMOURS[1],
+        phantom::TUMOURS[2],
+    ] {
         assert!(counts.get(&l).copied().unwrap_or(0) > 100, "label {l} missing");
     }
 }
@@ -199,16 +225,25 @@ fn grid_build_is_cancellable_and_rejects_bad_settings() {
     let inside = move |p: &Point3<f64>| p.coords.norm() <= 30.0;
     let cancel = Cancel::new();
     cancel.cancel();
-    assert!(matches!(grid::build(-r, r, inside, &GridSettings::default(), &Progress::none(), &cancel), Err(grid::GridError::Cancelled(_))));
+    assert!(matches!(
+        grid::build(-r, r, inside, &GridSettings::default(), &Progress::none(), &cancel),
+        Err(grid::GridError::Cancelled(_))
+    ));
     for bad in [
         GridSettings { cell_size_mm: 0.0, ..Default::default() },
         GridSettings { cell_size_mm: f64::NAN, ..Default::default() },
         GridSettings { subdivisions: 9, ..Default::default() },
     ] {
-        assert!(matches!(grid::build(-r, r, inside, &bad, &Progress::none(), &Cancel::new()), Err(grid::GridError::Settings(_))));
+        assert!(matches!(
+            grid::build(-r, r, inside, &bad, &Progress::none(), &Cancel::new()),
+            Err(grid::GridError::Settings(_))
+        ));
     }
     let tiny = GridSettings { cell_size_mm: 0.001, ..Default::default() };
-    assert!(matches!(grid::build(-r, r, inside, &tiny, &Progress::none(), &Cancel::new()), Err(grid::GridError::TooLarge { .. })));
+    assert!(matches!(
+        grid::build(-r, r, inside, &tiny, &Progress::none(), &Cancel::new()),
+        Err(grid::GridError::TooLarge { .. })
+    ));
     // 0.5 mm cells: 1.7 M box cells pass the box limit, and with 4 subdivisions (32^3 inside
     // tests each) would classify for hours: refused before any work, naming the options.
     let fine = GridSettings { cell_size_mm: 0.5, subdivisions: 4, ..Default::default() };

@@ -187,7 +187,11 @@ fn affines_follow_the_standard_sform_then_qform_then_fallback() {
     s.sform_code = 0;
     let v = read(&s.bytes()).unwrap();
     // pixdim 2, 3, 4; R = diag(-1, -1, 1); offset (7, 8, 9).
-    assert!((map(&v, [1.0, 1.0, 1.0]) - Vector3::new(7.0 - 2.0, 8.0 - 3.0, 9.0 + 4.0)).norm() < 1e-5, "{:?}", map(&v, [1.0, 1.0, 1.0]));
+    assert!(
+        (map(&v, [1.0, 1.0, 1.0]) - Vector3::new(7.0 - 2.0, 8.0 - 3.0, 9.0 + 4.0)).norm() < 1e-5,
+        "{:?}",
+        map(&v, [1.0, 1.0, 1.0])
+    );
     // qfac = -1 flips the third axis.
     s.pixdim[0] = -1.0;
     let v = read(&s.bytes()).unwrap();
@@ -405,7 +409,9 @@ fn meshes_round_trip_in_every_format_and_open_meshes_are_refused() {
     let p = tmp("open.obj");
     write_mesh(&p, &open).unwrap();
     match read_closed_mesh(&p) {
-        Err(e @ MeshIoError::Open { .. }) => assert!(e.to_string().contains("open.obj") && e.to_string().contains("not closed")),
+        Err(e @ MeshIoError::Open { .. }) => {
+            assert!(e.to_string().contains("open.obj") && e.to_string().contains("not closed"))
+        }
         other => panic!("{other:?}"),
     }
     // Inside-out meshes are flipped; voxelising gives the right volume.
@@ -492,7 +498,13 @@ fn a_segmentation_voxelised_from_a_mesh_reads_back_from_nifti_on_the_same_lattic
     let settings = umesh_core::grid::GridSettings { cell_size_mm: 3.0, ..Default::default() };
     let grid = |v: &Volume| {
         let mask = v.mask(&[1]);
-        umesh_core::grid::ImmersedGrid::from_mask(&mask, &settings, &umesh_core::Progress::none(), &umesh_core::Cancel::new()).unwrap()
+        umesh_core::grid::ImmersedGrid::from_mask(
+            &mask,
+            &settings,
+            &umesh_core::Progress::none(),
+            &umesh_core::Cancel::new(),
+        )
+        .unwrap()
     };
     assert_eq!(grid(&back).to_npz_arrays(), grid(&seg.volume).to_npz_arrays());
 }

@@ -109,7 +109,10 @@ fn an_unmoved_surface_encodes_to_nearly_zero_and_a_resampled_one_nearly_the_same
             .sum::<f64>()
             / n as f64;
         eprintln!("{encoding:?}: rest {mean_abs:.3} mm over {n} nodes");
-        assert!(mean_abs < rest_tol, "{encoding:?}: the rest surface encodes to {mean_abs:.2} mm on average (mean vector {m:?})");
+        assert!(
+            mean_abs < rest_tol,
+            "{encoding:?}: the rest surface encodes to {mean_abs:.2} mm on average (mean vector {m:?})"
+        );
         // Another random sample of the same surface, half as dense.
         let mut b = Vec::new();
         obs.encode(&points(&c, 2000, 3, Vector3::zeros()), &mut b);
@@ -142,7 +145,8 @@ fn points_outside_the_grid_or_not_finite_are_ignored() {
     let c = case();
     let mut obs = observer(&c, Encoding::Nearest);
     let mut out = Vec::new();
-    let far = vec![Vector3::new(1e6, 0.0, 0.0), Vector3::new(f64::NAN, 0.0, 0.0), Vector3::new(0.0, f64::INFINITY, 0.0)];
+    let far =
+        vec![Vector3::new(1e6, 0.0, 0.0), Vector3::new(f64::NAN, 0.0, 0.0), Vector3::new(0.0, f64::INFINITY, 0.0)];
     let s = obs.encode(&far, &mut out);
     assert_eq!((s.points_used, s.nodes_observed), (0, 0));
     assert!(out.iter().all(|v| *v == 0.0));

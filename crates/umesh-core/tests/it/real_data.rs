@@ -27,7 +27,9 @@ fn totalsegmentator_liver_grid_volume_matches_the_voxel_volume() {
     assert_eq!(seg.label_name(63), "inferior_vena_cava");
     let voxel_volume = seg.organ_mask().volume_mm3();
     for h in [7.0, 5.0] {
-        let out = run_grid(&seg, &GridSettings { cell_size_mm: h, ..Default::default() }, &Progress::none(), &Cancel::new()).unwrap();
+        let out =
+            run_grid(&seg, &GridSettings { cell_size_mm: h, ..Default::default() }, &Progress::none(), &Cancel::new())
+                .unwrap();
         let err = (out.stats.grid_volume_mm3 - voxel_volume) / voxel_volume;
         eprintln!(
             "real liver, h = {h} mm: grid {:.0} mm^3 vs voxels {voxel_volume:.0} mm^3 ({:+.2} %), {} cells, {} nodes, padded {:?}",
@@ -49,7 +51,8 @@ fn totalsegmentator_liver_grid_volume_matches_the_voxel_volume() {
 #[test]
 fn mr_segmentation_with_lps_affine_loads_in_ras() {
     let Some(d) = data_dir() else { return };
-    let seg = load_nifti(&d.join("totalsegmentator/example_seg_mr.nii.gz"), &[5], &[], &ReadOptions::default()).unwrap();
+    let seg =
+        load_nifti(&d.join("totalsegmentator/example_seg_mr.nii.gz"), &[5], &[], &ReadOptions::default()).unwrap();
     let m = seg.volume.world_from_voxel;
     // LPS storage: the affine's x and y columns point to -x and -y of RAS or are diagonal-free;
     // either way the volume is positive and finite.
@@ -72,7 +75,13 @@ fn sofa_liver_meshes_are_closed_and_voxelise() {
         let vol = seg.organ_mask().volume_mm3();
         eprintln!("{name}: mesh volume {mesh_volume:.0} mm^3, voxelised {vol:.0} mm^3");
         assert!((vol - mesh_volume).abs() / mesh_volume < 0.05, "{name}: {vol} vs {mesh_volume}");
-        let out = run_grid(&seg, &GridSettings { cell_size_mm: 3.0, ..Default::default() }, &Progress::none(), &Cancel::new()).unwrap();
+        let out = run_grid(
+            &seg,
+            &GridSettings { cell_size_mm: 3.0, ..Default::default() },
+            &Progress::none(),
+            &Cancel::new(),
+        )
+        .unwrap();
         assert!(out.stats.cells > 100);
     }
 }

@@ -62,7 +62,11 @@ fn depth_to_points_and_projection_round_trip_to_the_pixel() {
 fn intrinsics_json_is_read_column_major_and_bad_values_are_refused() {
     let d = tmp("intr");
     let p = d.join("k.json");
-    std::fs::write(&p, r#"{"width": 640, "height": 480, "intrinsic_matrix": [525.0, 0, 0, 0, 520.0, 0, 319.5, 239.5, 1]}"#).unwrap();
+    std::fs::write(
+        &p,
+        r#"{"width": 640, "height": 480, "intrinsic_matrix": [525.0, 0, 0, 0, 520.0, 0, 319.5, 239.5, 1]}"#,
+    )
+    .unwrap();
     let k = Intrinsics::read(&p).unwrap();
     assert_eq!((k.fx, k.fy, k.cx, k.cy), (525.0, 520.0, 319.5, 239.5));
     for (bad, why) in [
@@ -84,8 +88,10 @@ fn intrinsics_json_is_read_column_major_and_bad_values_are_refused() {
 fn icp_recovers_a_known_rigid_transform() {
     // An ellipsoid-like closed surface: the phantom's organ surface.
     let seg = phantom();
-    let surf =
-        umesh_core::surface::extract_surface(&seg.organ_mask(), &umesh_core::surface::SurfaceSettings { step: 2, ..Default::default() });
+    let surf = umesh_core::surface::extract_surface(
+        &seg.organ_mask(),
+        &umesh_core::surface::SurfaceSettings { step: 2, ..Default::default() },
+    );
     let normals = surf.vertex_normals();
     let target = IcpTarget::new(surf.positions.clone(), normals, 3.0);
     // Observed: the anterior half of the surface, moved by a known transform.
@@ -95,15 +101,27 @@ fn icp_recovers_a_known_rigid_transform() {
     let mut source_from_target = Matrix4::identity();
     source_from_target.fixed_view_mut::<3, 3>(0, 0).copy_from(truth_rot.matrix());
     source_from_target.fixed_view_mut::<3, 1>(0, 3).copy_from(&(truth_t + c - truth_rot * c));
-    let source: Vec<Vector3<f64>> =
-        surf.positions.iter().filter(|p| p.y > c.y).step_by(2).map(|p| transform_point(&source_from_target, p)).collect();
+    let source: Vec<Vector3<f64>> = surf
+        .positions
+        .iter()
+        .filter(|p| p.y > c.y)
+        .step_by(2)
+        .map(|p| transform_point(&source_from_target, p))
+        .collect();
     let r = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::default());
     let err = (r.transform * source_from_target - Matrix4::identity()).abs().max();
     let moved = source
         .iter()
-        .map(|p| (transform_point(&r.transform, p) - transform_point(&umesh_core::rgbd::rigid_inverse(&source_from_target), p)).norm())
+        .map(|p| {
+            (transform_point(&r.transform, p)
+                - transform_point(&umesh_core::rgbd::rigid_inverse(&source_from_target), p))
+            .norm()
+        })
         .fold(0.0, f64::max);
-    eprintln!("ICP: {} iterations, fitness {:.3}, RMS {:.4} mm, max point error {moved:.4} mm", r.iterations, r.fitness, r.rms_mm);
+    eprintln!(
+        "ICP: {} iterations, fitness {:.3}, RMS {:.4} mm, max point error {moved:.4} mm",
+        r.iterations, r.fitness, r.rms_mm
+    );
     assert!(r.fitness > 0.99, "{r:?}");
     assert!(moved < 0.05, "max point error {moved} mm (matrix error {err})");
 }
@@ -111,8 +129,10 @@ fn icp_recovers_a_known_rigid_transform() {
 #[test]
 fn a_tracked_refinement_trims_the_deformed_part_and_never_moves_past_its_bound() {
     let seg = phantom();
-    let surf =
-        umesh_core::surface::extract_surface(&seg.organ_mask(), &umesh_core::surface::SurfaceSettings { step: 2, ..Default::default() });
+    let surf = umesh_core::surface::extract_surface(
+        &seg.organ_mask(),
+        &umesh_core::surface::SurfaceSettings { step: 2, ..Default::default() },
+    );
     let normals = surf.vertex_normals();
     let target = IcpTarget::new(surf.positions.clone(), normals.clone(), 3.0);
     let c = surf.positions.iter().sum::<Vector3<f64>>() / surf.positions.len() as f64;
@@ -135,7 +155,8 @@ fn a_tracked_refinement_trims_the_deformed_part_and_never_moves_past_its_bound()
     let source: Vec<Vector3<f64>> = observed.iter().map(|o| o.0).collect();
     // Residual offset after the fit: the mean of the undeformed points' error.
     let error = |t: &Matrix4<f64>| {
-        let v: Vec<f64> = observed.iter().filter(|o| !o.1).map(|o| (transform_point(t, &o.0) - (o.0 - offset)).norm()).collect();
+        let v: Vec<f64> =
+            observed.iter().filter(|o| !o.1).map(|o| (transform_point(t, &o.0) - (o.0 - offset)).norm()).collect();
         v.iter().sum::<f64>() / v.len() as f64
     };
     let tracked = icp_point_to_plane(&source, &target, &Matrix4::identity(), &IcpSettings::tracked(3.0));
@@ -190,8 +211,11 @@ fn a_streamed_frame_carries_its_cloud_and_tracked_pose_and_the_cloud_is_used_who
 }
 
 fn frame(k: Intrinsics, index: usize) -> Frame {
-    let depth =
-        DepthImage { width: k.width, height: k.height, depth_mm: (0..k.width * k.height).map(|i| 500.0 + (i % 50) as f32).collect() };
+    let depth = DepthImage {
+        width: k.width,
+        height: k.height,
+        depth_mm: (0..k.width * k.height).map(|i| 500.0 + (i % 50) as f32).collect(),
+    };
     Frame {
         index,
         timestamp_s: index as f64 * 0.05,
@@ -335,7 +359,15 @@ fn recordings_with_bad_files_give_clear_errors() {
     // A depth file missing (its colour still there), or a whole frame's number skipped: the
     // frame keeps its place (the truth is indexed by position) and is read as an error.
     let gap = tmp("gap");
-    run_rgbd_synth(&seg, &small_config(&seg), &SynthSettings { frames: 4, ..s.clone() }, &gap, &Progress::none(), &Cancel::new()).unwrap();
+    run_rgbd_synth(
+        &seg,
+        &small_config(&seg),
+        &SynthSettings { frames: 4, ..s.clone() },
+        &gap,
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap();
     std::fs::remove_file(gap.join("depth/00001.png")).unwrap();
     for dir in ["depth", "color", "mask"] {
         std::fs::remove_file(gap.join(dir).join("00002.png")).unwrap();
@@ -362,7 +394,15 @@ fn synthetic_recording_registered_with_the_corotational_fe_has_a_small_tre() {
     let seg = phantom();
     let d = tmp("fe");
     let config = small_config(&seg);
-    let s = SynthSettings { frames: 3, width: 320, height: 240, focal_px: 262.5, noise_mm: 1.0, load_scale: 1.8, ..Default::default() };
+    let s = SynthSettings {
+        frames: 3,
+        width: 320,
+        height: 240,
+        focal_px: 262.5,
+        noise_mm: 1.0,
+        load_scale: 1.8,
+        ..Default::default()
+    };
     let synth = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     let rec = Recording::open(&d, None).unwrap();
     let truth = GroundTruth::read(&d.join("ground_truth.json")).unwrap();
@@ -488,14 +528,28 @@ fn moving_camera_with_instruments_registers_every_frame_through_the_tracked_pose
     // The instruments hide organ pixels: the mask is smaller than the still recording's.
     let organ = |r: &Recording, i: usize| r.read_frame(i).unwrap().mask.unwrap().iter().filter(|&&m| m).count();
     let still_rec = Recording::open(&still, None).unwrap();
-    assert!(organ(&rec, 0) < organ(&still_rec, 0), "instruments occlude nothing: {} vs {}", organ(&rec, 0), organ(&still_rec, 0));
+    assert!(
+        organ(&rec, 0) < organ(&still_rec, 0),
+        "instruments occlude nothing: {} vs {}",
+        organ(&rec, 0),
+        organ(&still_rec, 0)
+    );
     let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
     let mut fe = FeDisplacementModel::new(&ctx, config.material).unwrap();
     let mut src = RecordingSource::new(rec);
     let settings = RegisterSettings { overlay: false, ..Default::default() };
-    let report =
-        run_register(&mut src, &ctx, &mut fe, traj[0], Some(&truth), &settings, &mut |_| Ok(()), &Progress::none(), &Cancel::new())
-            .unwrap();
+    let report = run_register(
+        &mut src,
+        &ctx,
+        &mut fe,
+        traj[0],
+        Some(&truth),
+        &settings,
+        &mut |_| Ok(()),
+        &Progress::none(),
+        &Cancel::new(),
+    )
+    .unwrap();
     assert_eq!(report.frames.len(), 3, "{:?}", report.log);
     let last = report.frames.last().unwrap();
     eprintln!("{last:?}");
@@ -554,8 +608,11 @@ fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on()
     let organ = good.organ_points(&keep, 1);
     let mut rng = umesh_core::rng::SplitMix64(3);
     let mut dense = good.clone();
-    dense.points =
-        Some((0..200_000).map(|i| organ[i % organ.len()] + Vector3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 0.1).collect());
+    dense.points = Some(
+        (0..200_000)
+            .map(|i| organ[i % organ.len()] + Vector3::new(rng.next_f64(), rng.next_f64(), rng.next_f64()) * 0.1)
+            .collect(),
+    );
     let thinned = reg.process(&dense, &mut fe, None, None, None).unwrap();
     assert_eq!(thinned.report.observed_points, umesh_core::register::pipeline::MAX_FRAME_POINTS);
     assert_eq!(thinned.report.points_thinned_from, Some(200_000));
@@ -581,19 +638,31 @@ fn a_fixed_work_corotational_frame_stays_close_to_the_converged_fit() {
     let grid = run_grid(&seg, &GridSettings::default(), &Progress::none(), &Cancel::new()).unwrap().grid;
     let material = MaterialParams::default();
     let organ = extract_surface(&seg.organ_mask(), &SurfaceSettings { step: 2, ..Default::default() });
-    let forces =
-        loads::visible_random_forces(&organ, &grid, &material, &ForceSettings::energy_scale(100, 3.0), &Default::default(), 1).unwrap();
+    let forces = loads::visible_random_forces(
+        &organ,
+        &grid,
+        &material,
+        &ForceSettings::energy_scale(100, 3.0),
+        &Default::default(),
+        1,
+    )
+    .unwrap();
     let fixed = vec![loads::default_fixed_region(&grid, Some(VENA_CAVA), 6.0)];
-    let settings = SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
+    let settings =
+        SimulationSettings { material, solver: SolverSettings::default(), method: SolveMethod::Newton, fixed, forces };
     let bc = boundary_conditions(&grid, Some(&seg.volume), &settings).unwrap();
-    let truth = solve(&grid, &material, &bc, SolveMethod::Newton, &settings.solver, &Progress::none(), &Cancel::new()).unwrap();
+    let truth =
+        solve(&grid, &material, &bc, SolveMethod::Newton, &settings.solver, &Progress::none(), &Cancel::new()).unwrap();
     let samples: Vec<Vector3<f64>> = organ.positions.iter().step_by(4).copied().collect();
     let moved = |scale: f64| -> Vec<Vector3<f64>> {
         samples
             .iter()
             .filter_map(|p| {
                 let e = grid.embed(p)?;
-                Some(p + (0..8).map(|a| truth.displacement_mm[e.nodes[a] as usize] * e.weights[a]).sum::<Vector3<f64>>() * scale)
+                Some(
+                    p + (0..8).map(|a| truth.displacement_mm[e.nodes[a] as usize] * e.weights[a]).sum::<Vector3<f64>>()
+                        * scale,
+                )
             })
             .collect()
     };
@@ -667,7 +736,10 @@ fn the_overlay_is_the_nearest_structure_blended_and_the_organ_outlined_pixel_for
         }
     }
     let covered = color.iter().filter(|c| c.is_some()).count();
-    assert!(covered > 2000 && outline > 300, "the scene shows too little: {covered} structure pixels, {outline} outline pixels");
+    assert!(
+        covered > 2000 && outline > 300,
+        "the scene shows too little: {covered} structure pixels, {outline} outline pixels"
+    );
     let mut got = base.clone();
     draw_overlay(&mut got, &organ, &structures, &cam, &k, alpha);
     let differ = got.rgb.iter().zip(&expect.rgb).filter(|(a, b)| a != b).count();
@@ -696,7 +768,15 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     let mut config = small_config(&seg);
     // Calibrated loads (10 mm mean), as the datasets draw them.
     config.forces = umesh_core::loads::ForceSettings::default();
-    let s = SynthSettings { frames: 4, width: 320, height: 240, focal_px: 262.5, noise_mm: 1.0, seed: 3, ..Default::default() };
+    let s = SynthSettings {
+        frames: 4,
+        width: 320,
+        height: 240,
+        focal_px: 262.5,
+        noise_mm: 1.0,
+        seed: 3,
+        ..Default::default()
+    };
     run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     let truth = GroundTruth::read(&d.join("ground_truth.json")).unwrap();
     let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
@@ -738,12 +818,17 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     // (measured: 1.66 of 9.12 mm, 18 %; point-to-point springs left most of it undone).
     let mut fe = FeDisplacementModel::new(&ctx, config.material).unwrap().converged(0.01, 60);
     let fe_last = run(&mut fe, CorrectionSettings::off());
-    assert!(fe_last.tre_mean_mm.unwrap() < 0.4 * rigid_tre, "FE fit {:?} against rigid {rigid_tre:.2}", fe_last.tre_mean_mm);
+    assert!(
+        fe_last.tre_mean_mm.unwrap() < 0.4 * rigid_tre,
+        "FE fit {:?} against rigid {rigid_tre:.2}",
+        fe_last.tre_mean_mm
+    );
     // The correction after a prediction of no deformation, each frame from rest: the default
     // work recovers part of the motion, and reports what it moved (measured on the last frame:
     // 7.39 of 11.97 mm in the subspace, 7.12 by CG; a network's prediction starts it much nearer).
     // Both ways of solving its update: in the surface-load subspace (the default) and by CG.
-    for correction in [CorrectionSettings::default(), CorrectionSettings { subspace_patches: 0, ..Default::default() }] {
+    for correction in [CorrectionSettings::default(), CorrectionSettings { subspace_patches: 0, ..Default::default() }]
+    {
         let corrected = run(&mut RigidModel, correction);
         let c = corrected.correction.expect("the correction ran");
         assert!(c.moved_rms_mm > 0.5 && c.fit.updates == correction.updates, "{c:?}");
@@ -752,8 +837,14 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
         // figures as without the correction (same points: the pose is fixed after frame 0),
         // though the corrected surface lies nearer the points (tolerance: 1e-9 mm).
         let (judged, uncorrected) = (&corrected.confidence, &rigid.confidence);
-        assert!((judged.residual_p95_mm - uncorrected.residual_p95_mm).abs() < 1e-9, "{judged:?} against {uncorrected:?}");
-        assert!((judged.residual_mean_mm - uncorrected.residual_mean_mm).abs() < 1e-9, "{judged:?} against {uncorrected:?}");
+        assert!(
+            (judged.residual_p95_mm - uncorrected.residual_p95_mm).abs() < 1e-9,
+            "{judged:?} against {uncorrected:?}"
+        );
+        assert!(
+            (judged.residual_mean_mm - uncorrected.residual_mean_mm).abs() < 1e-9,
+            "{judged:?} against {uncorrected:?}"
+        );
         assert!(
             c.fit.rms_mm < uncorrected.residual_p95_mm,
             "corrected RMS {:.2} against the prediction's p95 {:.2}",
@@ -796,8 +887,12 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     let doubted = run(&mut doubting, CorrectionSettings::default());
     let c = doubted.correction.expect("the correction ran");
     assert!(doubted.confidence.prediction_doubted && c.doubted && c.fit.updates == 4, "{c:?} {:?}", doubted.confidence);
-    let (d_tre, p_tre, fe_tre) = (doubted.tre_mean_mm.unwrap(), plain.tre_mean_mm.unwrap(), fe_last.tre_mean_mm.unwrap());
-    assert!(d_tre < p_tre - 0.5 * (p_tre - fe_tre), "doubted {d_tre:.2} mm, default correction {p_tre:.2}, converged FE fit {fe_tre:.2}");
+    let (d_tre, p_tre, fe_tre) =
+        (doubted.tre_mean_mm.unwrap(), plain.tre_mean_mm.unwrap(), fe_last.tre_mean_mm.unwrap());
+    assert!(
+        d_tre < p_tre - 0.5 * (p_tre - fe_tre),
+        "doubted {d_tre:.2} mm, default correction {p_tre:.2}, converged FE fit {fe_tre:.2}"
+    );
     // Asked not to: the doubted frame is corrected as any other.
     let as_any = run(&mut doubting, CorrectionSettings { doubted_updates: 0, ..Default::default() });
     assert!(!as_any.correction.unwrap().doubted && (as_any.tre_mean_mm.unwrap() - p_tre).abs() < 1e-9);
@@ -874,7 +969,12 @@ fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_
     let ctx = DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap();
     for family in LoadFamily::ALL {
         let mut rng = SplitMix64(5);
-        let pts = umesh_core::visible::sample_points(&ctx.surface, &ctx.visible.visible, family_points(family, &config.forces), &mut rng);
+        let pts = umesh_core::visible::sample_points(
+            &ctx.surface,
+            &ctx.visible.visible,
+            family_points(family, &config.forces),
+            &mut rng,
+        );
         let f = family_forces(family, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
         let normal_of = |p: &[f64; 3]| pts.iter().find(|(q, _)| (q - Vector3::from(*p)).norm() < 1e-9).map(|(_, n)| *n);
         match family {
@@ -897,8 +997,10 @@ fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_
             LoadFamily::Gravity => {
                 // A force on every cell, all in one direction, in proportion to the cell's volume.
                 assert_eq!(f.len(), ctx.grid.cells.len());
-                let g =
-                    Vector3::from(f.iter().max_by(|a, b| a.force_n[0].abs().total_cmp(&b.force_n[0].abs())).unwrap().force_n).normalize();
+                let g = Vector3::from(
+                    f.iter().max_by(|a, b| a.force_n[0].abs().total_cmp(&b.force_n[0].abs())).unwrap().force_n,
+                )
+                .normalize();
                 for x in &f {
                     assert!(Vector3::from(x.force_n).cross(&g).norm() < 1e-9);
                 }
@@ -907,7 +1009,14 @@ fn each_load_family_draws_its_own_forces_and_makes_a_recording_that_deforms_the_
     }
     // A grasp recording: calibrated to the dataset's target, the markers move by several mm.
     let d = tmp("grasp");
-    let s = SynthSettings { frames: 2, width: 160, height: 120, focal_px: 131.25, loads: LoadFamily::Grasp, ..Default::default() };
+    let s = SynthSettings {
+        frames: 2,
+        width: 160,
+        height: 120,
+        focal_px: 131.25,
+        loads: LoadFamily::Grasp,
+        ..Default::default()
+    };
     let r = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.mean_marker_displacement_mm > 3.0, "{r:?}");
 }
@@ -926,7 +1035,9 @@ fn a_truth_held_elsewhere_moves_its_attachment_on_the_lattice_and_a_shift_off_th
     assert_eq!(applied, [0.0, h, 0.0]);
     for n in (0..moved.len()).filter(|&n| moved[n]) {
         let p = ctx.grid.node_position(n) - nalgebra::Vector3::new(0.0, h, 0.0);
-        let m = (0..moved.len()).find(|&m| (ctx.grid.node_position(m) - p).norm() < 1e-6 * h).expect("a node one cell behind");
+        let m = (0..moved.len())
+            .find(|&m| (ctx.grid.node_position(m) - p).norm() < 1e-6 * h)
+            .expect("a node one cell behind");
         assert!(ctx.fixed[m]);
     }
     assert!(held(&moved) > 0 && held(&moved) <= held(&ctx.fixed));
@@ -950,7 +1061,9 @@ fn a_truth_held_elsewhere_moves_its_attachment_on_the_lattice_and_a_shift_off_th
     assert!(r.mean_marker_displacement_mm > 6.5 && r.mean_marker_displacement_mm < 26.0, "{r:?}");
     // Moved off the organ: refused, naming the shift.
     let far = SynthSettings { attachment_shift_mm: Some([0.0, 0.0, 400.0]), ..s.clone() };
-    let e = run_rgbd_synth(&seg, &config, &far, &tmp("far-shift"), &Progress::none(), &Cancel::new()).unwrap_err().to_string();
+    let e = run_rgbd_synth(&seg, &config, &far, &tmp("far-shift"), &Progress::none(), &Cancel::new())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("attachment shift") && e.contains("holds 0"), "{e}");
 }
 
@@ -963,7 +1076,14 @@ fn a_truth_too_soft_for_its_load_holds_the_largest_load_that_converges_and_says_
     // Loads calibrated on the dataset's material, the truth ten times softer: SVK collapses
     // before the last frame's load (refused before, after minutes: "frame 1: the solve did not converge").
     let soft = MaterialParams { kind: MaterialKind::StVenantKirchhoff, young_pa: 450.0, ..MaterialParams::default() };
-    let s = SynthSettings { frames: 2, width: 160, height: 120, focal_px: 131.25, material: Some(soft), ..Default::default() };
+    let s = SynthSettings {
+        frames: 2,
+        width: 160,
+        height: 120,
+        focal_px: 131.25,
+        material: Some(soft),
+        ..Default::default()
+    };
     let d = tmp("too-soft");
     let r = run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     assert!(r.load_reached > 0.0 && r.load_reached < 1.0, "{r:?}");
@@ -1005,7 +1125,8 @@ fn the_point_index_finds_the_same_nearest_point_as_a_brute_force_search() {
         }
         // A point's nearest other point.
         let i = qi % points.len();
-        let brute = (0..points.len()).filter(|&j| j != i).map(|j| (points[j] - points[i]).norm()).fold(f64::INFINITY, f64::min);
+        let brute =
+            (0..points.len()).filter(|&j| j != i).map(|j| (points[j] - points[i]).norm()).fold(f64::INFINITY, f64::min);
         let (_, p) = grid.nearest_except(&points[i], 50.0, i).unwrap();
         let d = (p - points[i]).norm();
         assert!((brute - d).abs() < 1e-12, "point {i}: {d} against {brute}");

@@ -65,7 +65,8 @@ pub enum Stage {
 }
 
 impl Stage {
-    pub const ALL: [Stage; 6] = [Stage::Dataset, Stage::Train, Stage::Eval, Stage::Recording, Stage::Register, Stage::Report];
+    pub const ALL: [Stage; 6] =
+        [Stage::Dataset, Stage::Train, Stage::Eval, Stage::Recording, Stage::Register, Stage::Report];
     pub fn name(self) -> &'static str {
         match self {
             Stage::Dataset => "dataset",
@@ -110,8 +111,8 @@ impl Patient {
     pub fn read(dir: &Path) -> Result<Self, NetError> {
         let p = dir.join("patient.json");
         let text = std::fs::read_to_string(&p).map_err(|e| NetError::Io { path: p.to_path_buf(), source: e })?;
-        let v: Patient =
-            serde_json::from_str(&text).map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
+        let v: Patient = serde_json::from_str(&text)
+            .map_err(|e| NetError::Invalid(format!("{}: not a umesh patient folder: {e}", p.display())))?;
         if v.format != FORMAT || v.format_version != FORMAT_VERSION {
             return Err(NetError::Invalid(format!(
                 "{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}",
@@ -149,11 +150,16 @@ impl Patient {
     /// `segmentation.nii.gz` with the labels named in `patient.json`, unchecked against its hash.
     pub(super) fn read_segmentation(&self, dir: &Path) -> Result<Segmentation, NetError> {
         let path = dir.join("segmentation.nii.gz");
-        let volume = umesh_core::nifti_io::read_volume(&path, &Default::default()).map_err(|e| NetError::Invalid(e.to_string()))?;
+        let volume = umesh_core::nifti_io::read_volume(&path, &Default::default())
+            .map_err(|e| NetError::Invalid(e.to_string()))?;
         // A name the segmentation does not have (renamed in patient.json or in the file) would
         // drop that structure from every overlay without a word.
-        let missing: Vec<&String> =
-            self.organ_labels.iter().chain(&self.structures).filter(|n| !volume.label_names.iter().any(|(_, v)| v == *n)).collect();
+        let missing: Vec<&String> = self
+            .organ_labels
+            .iter()
+            .chain(&self.structures)
+            .filter(|n| !volume.label_names.iter().any(|(_, v)| v == *n))
+            .collect();
         if !missing.is_empty() {
             return Err(NetError::Invalid(format!(
                 "{}: names {missing:?} in patient.json are not labels of {} (renamed?); prepare the patient again",

@@ -13,9 +13,9 @@ mod prepare;
 mod verdict;
 
 pub use folder::{
-    CheckReport, FORMAT, FORMAT_VERSION, InputFile, Patient, PatientFigures, PrepareReport, PrepareSettings, Stage, StageRecord,
-    SummaryRecord, Verdict, check_model_out, ct_path, hash_inputs, model_dir, read_figures, read_metrics, same_as_stored,
-    settings_differences,
+    CheckReport, FORMAT, FORMAT_VERSION, InputFile, Patient, PatientFigures, PrepareReport, PrepareSettings, Stage,
+    StageRecord, SummaryRecord, Verdict, check_model_out, ct_path, hash_inputs, model_dir, read_figures, read_metrics,
+    same_as_stored, settings_differences,
 };
 pub use prepare::{register_recording, registration_check, run_prepare};
 pub use verdict::{CHECK_MOTION_MIN_MM, CHECK_RIGID_SHARE_READY, CHECK_TRE_READY_MM, VAL_SHARE_READY, judge};

@@ -54,7 +54,9 @@ pub fn patient_html(
     let body = training_section(body, metrics);
     let body = tre_section(body, eval);
     let body = check_section(body, synth, check);
-    let body = body.child(el("h2").text("Settings")).child(el("pre").text(serde_json::to_string_pretty(s).unwrap_or_default()));
+    let body = body
+        .child(el("h2").text("Settings"))
+        .child(el("pre").text(serde_json::to_string_pretty(s).unwrap_or_default()));
     let mut page = String::from("<!DOCTYPE html>");
     el("html").attr("lang", "en").child(head).child(body).write(&mut page);
     page
@@ -87,9 +89,12 @@ fn stages_section(body: El, patient: &Patient) -> El {
         let r = patient.stages.get(&st).cloned().unwrap_or_default();
         total += r.seconds;
         let done = el("td").attr("class", if r.done { "ok" } else { "bad" }).text(if r.done { "yes" } else { "no" });
-        stages = stages.child(el("tr").child(el("td").text(st.name())).child(done).child(el("td").text(format!("{:.1}", r.seconds))));
+        stages = stages.child(
+            el("tr").child(el("td").text(st.name())).child(done).child(el("td").text(format!("{:.1}", r.seconds))),
+        );
     }
-    stages = stages.child(el("tr").child(el("td").text("total")).child(el("td")).child(el("td").text(format!("{total:.1}"))));
+    stages = stages
+        .child(el("tr").child(el("td").text("total")).child(el("td")).child(el("td").text(format!("{total:.1}"))));
     body = body.child(el("h2").text("Stages")).child(stages);
     if let Some(note) = patient.stages.get(&Stage::Train).and_then(|r| r.note.as_ref()) {
         body = body.child(p(format!("Training {note}.")));
@@ -102,7 +107,9 @@ fn grid_section(body: El, patient: &Patient, grid_npz: &Path) -> El {
     let mut body = body;
     let s = &patient.settings;
     let camera = match &s.dataset.visibility.camera {
-        Some(c) => format!("at {:?} mm looking along {:?}, {}\u{b0} field of view", c.position_mm, c.direction, c.fov_deg),
+        Some(c) => {
+            format!("at {:?} mm looking along {:?}, {}\u{b0} field of view", c.position_mm, c.direction, c.fov_deg)
+        }
         None => "anterior (default: from 2.5 organ sizes, 50\u{b0})".into(),
     };
     body = body

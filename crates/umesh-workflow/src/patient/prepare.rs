@@ -8,8 +8,8 @@
 //! what is on disk; a folder made from other inputs or settings is refused.
 
 use super::folder::{
-    CheckReport, FORMAT, FORMAT_VERSION, Patient, PrepareReport, PrepareSettings, Stage, hash_inputs, model_dir, read_json, read_metrics,
-    same_as_stored, settings_differences, write_json,
+    CheckReport, FORMAT, FORMAT_VERSION, Patient, PrepareReport, PrepareSettings, Stage, hash_inputs, model_dir,
+    read_json, read_metrics, same_as_stored, settings_differences, write_json,
 };
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -30,7 +30,14 @@ use umesh_net::{NetError, eval};
 fn stage_weights(s: &PrepareSettings) -> [u64; 6] {
     let samples = s.dataset.samples as u64;
     let train = (samples * 4 / 5).max(1);
-    [samples * 75, s.train.epochs as u64 * train * 8, (samples / 5).max(1) * 3, s.check.frames as u64 * 100, s.check.frames as u64 * 10, 10]
+    [
+        samples * 75,
+        s.train.epochs as u64 * train * 8,
+        (samples / 5).max(1) * 3,
+        s.check.frames as u64 * 100,
+        s.check.frames as u64 * 10,
+        10,
+    ]
 }
 
 /// A progress callback for one stage, mapped into the job's total.
@@ -169,7 +176,10 @@ pub fn run_prepare(
     let offset = |s: Stage| weights[..Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)].iter().sum::<u64>();
     let width = |s: Stage| weights[Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)];
     let sp = |s: Stage| stage_progress(progress, offset(s), width(s), total, s);
-    let run_stage = |patient: &mut Patient, s: Stage, f: &mut dyn FnMut(&Progress) -> Result<(), NetError>| -> Result<(), NetError> {
+    let run_stage = |patient: &mut Patient,
+                     s: Stage,
+                     f: &mut dyn FnMut(&Progress) -> Result<(), NetError>|
+     -> Result<(), NetError> {
         if patient.done(s) {
             progress.report(offset(s) + width(s), total, &format!("{}: done before", s.name()));
             return Ok(());
@@ -187,10 +197,11 @@ pub fn run_prepare(
     let model = model_dir(out);
     let mut samples_per_minute = None;
     run_stage(&mut patient, Stage::Dataset, &mut |p| {
-        let r = run_generate(seg, &ds_dir, &settings.dataset, ShardSelection::all(), p, cancel).map_err(|e| match e {
-            umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
-            e => e.into(),
-        })?;
+        let r =
+            run_generate(seg, &ds_dir, &settings.dataset, ShardSelection::all(), p, cancel).map_err(|e| match e {
+                umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
+                e => e.into(),
+            })?;
         if r.samples_computed > 0 {
             samples_per_minute = Some(r.samples_per_minute);
         }
@@ -282,7 +293,8 @@ pub fn run_prepare(
         &check,
         &out.join("dataset").join("grid.npz"),
     );
-    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes()).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
+    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes())
+        .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
     let rec = patient.stages.entry(Stage::Report).or_default();
     rec.done = true;
     rec.seconds = t.elapsed().as_secs_f64();
@@ -290,7 +302,10 @@ pub fn run_prepare(
     progress.report(total, total, "done");
     Ok(PrepareReport {
         out: out.into(),
-        stages: Stage::ALL.iter().map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s))).collect(),
+        stages: Stage::ALL
+            .iter()
+            .map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s)))
+            .collect(),
         dataset: stats,
         dataset_samples_per_minute: samples_per_minute,
         final_epoch: metrics.last().cloned(),
@@ -320,15 +335,18 @@ pub fn register_recording(
     let invalid = |e: String| NetError::Invalid(e);
     let truth = GroundTruth::read(&dir.join("ground_truth.json")).map_err(|e| invalid(e.to_string()))?;
     let rec = Recording::open(dir, None).map_err(|e| invalid(e.to_string()))?;
-    let pose =
-        rec.trajectory.as_ref().and_then(|t| t.first().copied()).ok_or_else(|| invalid(format!("{}: no camera pose", dir.display())))?;
+    let pose = rec
+        .trajectory
+        .as_ref()
+        .and_then(|t| t.first().copied())
+        .ok_or_else(|| invalid(format!("{}: no camera pose", dir.display())))?;
     // The recording's length is known: frames done out of it (a live source reports none).
     let frames = rec.len() as u64;
     let p = progress.clone();
     let progress = Progress::new(move |done, _, msg| p.report(done, frames, msg));
     let mut source = RecordingSource::new(rec);
-    let r =
-        run_register(&mut source, ctx, model, pose, Some(&truth), settings, &mut |_| Ok(()), &progress, cancel).map_err(|e| match e {
+    let r = run_register(&mut source, ctx, model, pose, Some(&truth), settings, &mut |_| Ok(()), &progress, cancel)
+        .map_err(|e| match e {
             umesh_core::rgbd::RgbdError::Cancelled(c) => NetError::Cancelled(c),
             e => invalid(e.to_string()),
         })?;
@@ -359,7 +377,9 @@ pub fn registration_check(
         let settings = RegisterSettings { overlay: true, correction: form.settings(), ..Default::default() };
         let p = progress.clone();
         let (k, name) = (k as u64, form.name());
-        let inner = Progress::new(move |done, total, msg| p.report(k * total + done, n * total, &format!("{name} correction: {msg}")));
+        let inner = Progress::new(move |done, total, msg| {
+            p.report(k * total + done, n * total, &format!("{name} correction: {msg}"))
+        });
         runs.push(register_recording(recording, &ctx, &mut net, &settings, &inner, cancel)?);
     }
     let figures: Vec<Option<FormFigures>> = runs.iter().map(|r| r.form_figures()).collect();

@@ -89,7 +89,10 @@ pub fn judge(
         let budget = umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS;
         let (form, why) = c.choose(Some(budget));
         if [c.subspace, c.tracking].iter().all(|f| f.frame_ms_median > budget) {
-            v.notes.push(format!("No correction form met the default frame budget on this machine; {} is used. {why}", form.name()));
+            v.notes.push(format!(
+                "No correction form met the default frame budget on this machine; {} is used. {why}",
+                form.name()
+            ));
         }
     }
     v.ready = v.problems.is_empty();

@@ -100,7 +100,9 @@ pub fn p(text: impl Into<String>) -> El {
 /// A table: a header row, then rows of text cells.
 pub fn table<R: IntoIterator<Item = String>>(header: &[&str], rows: impl IntoIterator<Item = R>) -> El {
     let head = el("tr").children(header.iter().map(|h| el("th").text(*h)));
-    el("table").child(head).children(rows.into_iter().map(|r| el("tr").children(r.into_iter().map(|c| el("td").text(c)))))
+    el("table")
+        .child(head)
+        .children(rows.into_iter().map(|r| el("tr").children(r.into_iter().map(|c| el("td").text(c)))))
 }
 
 /// A figure: content and a caption.
@@ -114,8 +116,15 @@ mod tests {
 
     #[test]
     fn text_and_attributes_are_escaped_and_only_element_names_make_markup() {
-        let page = el("div").attr("title", "a \"quoted\" <b>").text("<script>alert(1)</script> & more").child(el("br")).render();
-        assert_eq!(page, "<div title=\"a &quot;quoted&quot; &lt;b&gt;\">&lt;script&gt;alert(1)&lt;/script&gt; &amp; more<br></div>");
+        let page = el("div")
+            .attr("title", "a \"quoted\" <b>")
+            .text("<script>alert(1)</script> & more")
+            .child(el("br"))
+            .render();
+        assert_eq!(
+            page,
+            "<div title=\"a &quot;quoted&quot; &lt;b&gt;\">&lt;script&gt;alert(1)&lt;/script&gt; &amp; more<br></div>"
+        );
         let svg = el("svg").child(el("line").attr("x1", 1.5)).render();
         assert_eq!(svg, "<svg><line x1=\"1.5\"/></svg>");
         let t = table(&["a", "b"], [vec!["1".to_string(), "<2>".to_string()]]).render();

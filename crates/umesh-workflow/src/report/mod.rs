@@ -37,7 +37,12 @@ fn svg(width: f64, height: f64) -> El {
 }
 
 fn svg_text(x: f64, y: f64, size: u32, anchor: &str, text: impl Into<String>) -> El {
-    el("text").attr("x", format!("{x:.1}")).attr("y", format!("{y:.1}")).attr("font-size", size).attr("text-anchor", anchor).text(text)
+    el("text")
+        .attr("x", format!("{x:.1}"))
+        .attr("y", format!("{y:.1}"))
+        .attr("font-size", size)
+        .attr("text-anchor", anchor)
+        .text(text)
 }
 
 fn line(x1: f64, y1: f64, x2: f64, y2: f64, stroke: &str) -> El {
@@ -127,7 +132,8 @@ pub fn histogram_svg(values: &[f64], bins: usize, xlabel: &str, mark: Option<(f6
 /// Lines over epochs; `log` plots log10 of the values.
 pub fn lines_svg(series: &[(&str, &str, Vec<(f64, f64)>)], xlabel: &str, ylabel: &str, log: bool) -> El {
     let tf = |y: f64| if log { y.max(1e-30).log10() } else { y };
-    let pts: Vec<(f64, f64)> = series.iter().flat_map(|s| s.2.iter().map(|&(x, y)| (x, tf(y)))).filter(|p| p.1.is_finite()).collect();
+    let pts: Vec<(f64, f64)> =
+        series.iter().flat_map(|s| s.2.iter().map(|&(x, y)| (x, tf(y)))).filter(|p| p.1.is_finite()).collect();
     if pts.is_empty() {
         return no_values();
     }
@@ -155,7 +161,13 @@ pub fn lines_svg(series: &[(&str, &str, Vec<(f64, f64)>)], xlabel: &str, ylabel:
             .map(|(x, y)| format!("{:.1},{:.1}", L + pw * (x - x0) / (x1 - x0), H - B - ph * (y - y0) / (y1 - y0)))
             .collect();
         out = out
-            .child(el("polyline").attr("fill", "none").attr("stroke", color).attr("stroke-width", 2).attr("points", path.join(" ")))
+            .child(
+                el("polyline")
+                    .attr("fill", "none")
+                    .attr("stroke", color)
+                    .attr("stroke-width", 2)
+                    .attr("points", path.join(" ")),
+            )
             .child(svg_text(W - 130.0, 20.0 + 14.0 * k as f64, 11, "start", *name).attr("fill", color));
     }
     out
@@ -168,8 +180,11 @@ pub fn grid_svg(grid_npz: &Path) -> Vec<El> {
         return vec![p("grid.npz could not be read")];
     };
     let nodes = npz.f64_with_shape("nodes", &[None, Some(3)]).map(|x| x.1).unwrap_or_default();
-    let list =
-        |name: &str| npz.f64_with_shape(name, &[None]).map(|x| x.1.iter().map(|&v| v as usize).collect::<Vec<_>>()).unwrap_or_default();
+    let list = |name: &str| {
+        npz.f64_with_shape(name, &[None])
+            .map(|x| x.1.iter().map(|&v| v as usize).collect::<Vec<_>>())
+            .unwrap_or_default()
+    };
     let n = nodes.len() / 3;
     let mut kind = vec![0u8; n];
     for i in list("visible_nodes") {
@@ -189,7 +204,10 @@ pub fn grid_svg(grid_npz: &Path) -> Vec<El> {
             hi[a] = hi[a].max(p[a]);
         }
     }
-    let views = [("anterior (x right, z up)", 0usize, 2usize, 1usize, false), ("right side (y anterior left, z up)", 1, 2, 0, true)];
+    let views = [
+        ("anterior (x right, z up)", 0usize, 2usize, 1usize, false),
+        ("right side (y anterior left, z up)", 1, 2, 0, true),
+    ];
     let mut out = Vec::new();
     for (title, ax, ay, depth, flip) in views {
         let sx = hi[ax] - lo[ax];
@@ -211,7 +229,9 @@ pub fn grid_svg(grid_npz: &Path) -> Vec<El> {
                 1 => ("#2ca02c", 1.8),
                 _ => ("#9aa3ad", 1.2),
             };
-            picture = picture.child(el("circle").attr("cx", format!("{x:.1}")).attr("cy", format!("{y:.1}")).attr("r", r).attr("fill", c));
+            picture = picture.child(
+                el("circle").attr("cx", format!("{x:.1}")).attr("cy", format!("{y:.1}")).attr("r", r).attr("fill", c),
+            );
         }
         out.push(figure(picture, title));
     }

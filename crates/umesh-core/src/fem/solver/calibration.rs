@@ -4,6 +4,30 @@
 use super::*;
 
 impl FeSolver<'_> {
+    /// A probe's start: the nearest converged state below `lambda`, scaled to it (the secant
+    /// through the origin); unscaled when the scaled guess would invert an element.
+    fn warm_start(
+        &mut self,
+        states: &[(f64, f64, Vec<Vector3<f64>>)],
+        lambda: f64,
+        model: ElementModel,
+    ) -> Vec<Vector3<f64>> {
+        let n = self.grid.node_count();
+        let (lam0, base) = states
+            .iter()
+            .rev()
+            .find(|x| x.0 < lambda)
+            .map(|x| (x.0, x.2.clone()))
+            .unwrap_or((0.0, vec![Vector3::zeros(); n]));
+        if lam0 > 0.0 {
+            let scaled: Vec<Vector3<f64>> = base.iter().map(|u| u * (lambda / lam0)).collect();
+            if self.asm.assemble(model, &scaled, false).min_det_f > 0.0 {
+                return scaled;
+            }
+        }
+        base
+    }
+
     /// Newton on the hyperelastic material with the load scaled to the factor `lambda` at
     /// which the mean nodal displacement is `target_mm` (within `rel_tol`), for forces scaled
     /// so that the *linear* mean displacement at lambda = 1 is the target. A continuation in
@@ -29,7 +53,9 @@ impl FeSolver<'_> {
             ));
         }
         if !(target_mm > 0.0 && target_mm.is_finite() && rel_tol > 0.0 && first_lambda > 0.0) {
-            return Err(FemError::InvalidInput(format!("target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}")));
+            return Err(FemError::InvalidInput(format!(
+                "target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}"
+            )));
         }
         let start = Instant::now();
         let s = self.settings.clone();
@@ -52,38 +78,52 @@ impl FeSolver<'_> {
             probes += 1;
             if probes > MAX_PROBES || s.max_total_iterations.is_some_and(|budget| history.len() >= budget) {
                 let budget = s.max_total_iterations.unwrap_or(history.len());
-                if let Some(kept) =
-                    self.keep_largest_below(&mut states, bc, model, target_mm, over, &mut history, &mut timings, start, cancel)?
-                {
+                if let Some(kept) = self.keep_largest_below(
+                    &mut states,
+                    bc,
+                    model,
+                    target_mm,
+                    over,
+                    &mut history,
+                    &mut timings,
+                    start,
+                    cancel,
+                )? {
                     return Ok(kept);
                 }
-                let closest = states.iter().skip(1).map(|x| x.1).min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
+                let closest = states
+                    .iter()
+                    .skip(1)
+                    .map(|x| x.1)
+                    .min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
                 return Err(FemError::NotConverged {
                     reason: format!(
                         "gave up after {budget} Newton iterations without reaching a mean displacement of {target_mm:.2} mm ({}; iteration budget)",
-                        closest.map(|c| format!("closest {c:.2} mm")).unwrap_or_else(|| "no load step converged".into())
+                        closest
+                            .map(|c| format!("closest {c:.2} mm"))
+                            .unwrap_or_else(|| "no load step converged".into())
                     ),
                     history,
                 });
             }
-            // Warm start: the nearest converged state below, scaled to the new factor (the secant
-            // through the origin); unscaled when the scaled guess would invert an element.
-            let (lam0, base) =
-                states.iter().rev().find(|x| x.0 < lambda).map(|x| (x.0, x.2.clone())).unwrap_or((0.0, vec![Vector3::zeros(); n]));
-            let mut trial = base.clone();
-            if lam0 > 0.0 {
-                let scaled: Vec<Vector3<f64>> = base.iter().map(|u| u * (lambda / lam0)).collect();
-                if self.asm.assemble(model, &scaled, false).min_det_f > 0.0 {
-                    trial = scaled;
-                }
-            }
+            let mut trial = self.warm_start(&states, lambda, model);
             // Probing solves stop at a loose residual (the mean displacement is then already
             // right to a fraction of a percent); the accepted one is refined to the settings'.
             let tight = self.settings.clone();
             self.settings.residual_tol = tight.residual_tol.max(1e-3);
             self.settings.correction_tol = tight.correction_tol.max(1e-2);
             self.overshoot_mm = Some((OVERSHOOT * target_mm, over));
-            let probe = self.newton(&mut trial, bc, model, lambda, increments + 1, &mut history, &mut timings, &Progress::none(), cancel);
+            let probe = self.newton(
+                &mut trial,
+                bc,
+                model,
+                lambda,
+                increments + 1,
+                &mut history,
+                &mut timings,
+                &Progress::none(),
+                cancel,
+            );
             self.settings = tight;
             self.overshoot_mm = None;
             match probe? {
@@ -91,8 +131,17 @@ impl FeSolver<'_> {
                     increments += 1;
                     let m = mean(&trial);
                     if (m - target_mm).abs() <= rel_tol * target_mm {
-                        let refined =
-                            self.newton(&mut trial, bc, model, lambda, increments, &mut history, &mut timings, &Progress::none(), cancel)?;
+                        let refined = self.newton(
+                            &mut trial,
+                            bc,
+                            model,
+                            lambda,
+                            increments,
+                            &mut history,
+                            &mut timings,
+                            &Progress::none(),
+                            cancel,
+                        )?;
                         let res = match refined {
                             Ok((_, res)) => res,
                             Err(reason) => return Err(FemError::NotConverged { reason: reason.into(), history }),
@@ -100,7 +149,14 @@ impl FeSolver<'_> {
                         let iterations = history.len();
                         timings.total_ms = ms(start);
                         let mean_mm = mean(&trial);
-                        let solution = Solution { displacement_mm: trial, history, increments, iterations, timings, final_residual: res };
+                        let solution = Solution {
+                            displacement_mm: trial,
+                            history,
+                            increments,
+                            iterations,
+                            timings,
+                            final_residual: res,
+                        };
                         return Ok(MeanSolve { solution, lambda, mean_mm, reached: true });
                     }
                     let k = states.partition_point(|x| x.0 < lambda);
@@ -110,9 +166,17 @@ impl FeSolver<'_> {
                     failures += 1;
                     failed_above = failed_above.min(lambda);
                     if failures > s.max_halvings {
-                        if let Some(kept) =
-                            self.keep_largest_below(&mut states, bc, model, target_mm, over, &mut history, &mut timings, start, cancel)?
-                        {
+                        if let Some(kept) = self.keep_largest_below(
+                            &mut states,
+                            bc,
+                            model,
+                            target_mm,
+                            over,
+                            &mut history,
+                            &mut timings,
+                            start,
+                            cancel,
+                        )? {
                             return Ok(kept);
                         }
                         let largest = states.iter().map(|x| x.1).fold(0.0, f64::max);
@@ -125,31 +189,7 @@ impl FeSolver<'_> {
                     }
                 }
             }
-            // The bracket: the converged states nearest the target from below and above.
-            let below = states.iter().filter(|x| x.1 < target_mm).max_by(|a, b| a.0.total_cmp(&b.0));
-            let above = states.iter().filter(|x| x.1 > target_mm).min_by(|a, b| a.0.total_cmp(&b.0));
-            let nearest = states.iter().filter(|x| x.0 > 0.0).min_by(|a, b| (a.1 - target_mm).abs().total_cmp(&(b.1 - target_mm).abs()));
-            let mut next = match nearest {
-                Some(&(l, m, _)) => softening_factor(target_mm, l, m),
-                None => lambda * 0.5,
-            };
-            if let (Some(a), Some(b)) = (below, above)
-                && !(next > a.0 && next < b.0)
-            {
-                next = a.0 + (target_mm - a.1) * (b.0 - a.0) / (b.1 - a.1);
-            }
-            if let (Some(a), None) = (below, above) {
-                next = next.min(2.0 * a.0.max(first_lambda));
-            }
-            // Stay below factors that failed: halfway between the last good one and the failure.
-            if next >= failed_above {
-                let lo = states.iter().filter(|x| x.0 < failed_above).map(|x| x.0).fold(0.0, f64::max);
-                next = 0.5 * (lo + failed_above);
-            }
-            if !(next > 0.0 && next.is_finite()) {
-                next = 0.5 * lambda;
-            }
-            lambda = next;
+            lambda = next_factor(&states, target_mm, lambda, first_lambda, failed_above);
         }
     }
 
@@ -173,7 +213,9 @@ impl FeSolver<'_> {
         let best = states
             .iter()
             .enumerate()
-            .filter(|(_, x)| x.0 > 0.0 && x.1 >= MIN_REACHED_FRACTION * target_mm && x.1 <= MAX_REACHED_FRACTION * target_mm)
+            .filter(|(_, x)| {
+                x.0 > 0.0 && x.1 >= MIN_REACHED_FRACTION * target_mm && x.1 <= MAX_REACHED_FRACTION * target_mm
+            })
             .min_by(|a, b| (a.1.1 - target_mm).abs().total_cmp(&(b.1.1 - target_mm).abs()))
             .map(|(k, _)| k);
         let Some(k) = best else { return Ok(None) };
@@ -202,7 +244,43 @@ impl FeSolver<'_> {
         // Every state within the tolerance was accepted when it converged: this one is not.
         Ok(Some(MeanSolve { solution, lambda, mean_mm, reached: false }))
     }
+}
 
+/// The next load factor to probe: the softening model fitted to the converged state nearest the
+/// target, kept inside the bracket of states below and above it (else the secant between them),
+/// at most twice the largest factor below when none is above, and halfway below a factor that
+/// failed.
+fn next_factor(
+    states: &[(f64, f64, Vec<Vector3<f64>>)],
+    target_mm: f64,
+    lambda: f64,
+    first_lambda: f64,
+    failed_above: f64,
+) -> f64 {
+    let below = states.iter().filter(|x| x.1 < target_mm).max_by(|a, b| a.0.total_cmp(&b.0));
+    let above = states.iter().filter(|x| x.1 > target_mm).min_by(|a, b| a.0.total_cmp(&b.0));
+    let nearest =
+        states.iter().filter(|x| x.0 > 0.0).min_by(|a, b| (a.1 - target_mm).abs().total_cmp(&(b.1 - target_mm).abs()));
+    let mut next = match nearest {
+        Some(&(l, m, _)) => softening_factor(target_mm, l, m),
+        None => lambda * 0.5,
+    };
+    if let (Some(a), Some(b)) = (below, above)
+        && !(next > a.0 && next < b.0)
+    {
+        next = a.0 + (target_mm - a.1) * (b.0 - a.0) / (b.1 - a.1);
+    }
+    if let (Some(a), None) = (below, above) {
+        next = next.min(2.0 * a.0.max(first_lambda));
+    }
+    if next >= failed_above {
+        let lo = states.iter().filter(|x| x.0 < failed_above).map(|x| x.0).fold(0.0, f64::max);
+        next = 0.5 * (lo + failed_above);
+    }
+    if !(next > 0.0 && next.is_finite()) {
+        next = 0.5 * lambda;
+    }
+    next
 }
 
 /// A probe whose iterate's mean displacement passes this multiple of the target is abandoned:

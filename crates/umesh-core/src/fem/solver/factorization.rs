@@ -2,7 +2,15 @@
 //! once per pattern, LU when the tangent is not positive definite, single precision for
 //! preconditioning.
 
-use super::*;
+use super::ordering::nested_dissection;
+use super::outcome::{FactorizationError, FemError};
+use crate::fem::assembly::{Assembler, NONE};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
+use faer::sparse::linalg::lu::{LuRef, NumericLu, SymbolicLu, factorize_symbolic_lu};
+use faer::{Mat, Par, Side};
 
 /// Cached factorisations for one sparsity pattern: Cholesky with a nested-dissection
 /// ordering of the grid (symbolic part computed once), LU when the tangent is not
@@ -48,8 +56,16 @@ fn numeric_llt<T: faer::traits::ComplexField>(
     mem: &mut MemBuffer,
     par: Par,
 ) -> Result<(), faer::linalg::solvers::LltError> {
-    sym.factorize_numeric_llt(values, mat, Side::Lower, LltRegularization::default(), par, MemStack::new(mem), Default::default())
-        .map(|_| ())
+    sym.factorize_numeric_llt(
+        values,
+        mat,
+        Side::Lower,
+        LltRegularization::default(),
+        par,
+        MemStack::new(mem),
+        Default::default(),
+    )
+    .map(|_| ())
 }
 
 fn factorization_error(stage: &'static str) -> impl Fn(FactorizationError) -> FemError {
@@ -96,8 +112,13 @@ impl Factorizer {
         let mat = asm.matrix();
         if self.llt_symbolic.is_none() {
             let perm = PermRef::new_checked(&self.perm_fwd, &self.perm_inv, self.perm_fwd.len());
-            let sym = factorize_symbolic_cholesky(mat.symbolic(), Side::Lower, SymmetricOrdering::Custom(perm), Default::default())
-                .map_err(|e| factorization_error("symbolic Cholesky")(e.into()))?;
+            let sym = factorize_symbolic_cholesky(
+                mat.symbolic(),
+                Side::Lower,
+                SymmetricOrdering::Custom(perm),
+                Default::default(),
+            )
+            .map_err(|e| factorization_error("symbolic Cholesky")(e.into()))?;
             let req = sym
                 .factorize_numeric_llt_scratch::<f64>(par, Default::default())
                 .or(sym.solve_in_place_scratch::<f64>(1, par))
@@ -120,9 +141,11 @@ impl Factorizer {
         }
         // Not positive definite: LU, its symbolic part also computed once.
         if self.lu_symbolic.is_none() {
-            let sym =
-                factorize_symbolic_lu(mat.symbolic(), Default::default()).map_err(|e| factorization_error("symbolic LU")(e.into()))?;
-            let req = sym.factorize_numeric_lu_scratch::<f64>(par, Default::default()).or(sym.solve_in_place_scratch::<f64>(1, par));
+            let sym = factorize_symbolic_lu(mat.symbolic(), Default::default())
+                .map_err(|e| factorization_error("symbolic LU")(e.into()))?;
+            let req = sym
+                .factorize_numeric_lu_scratch::<f64>(par, Default::default())
+                .or(sym.solve_in_place_scratch::<f64>(1, par));
             self.lu_mem = Some(MemBuffer::try_new(req).map_err(|e| factorization_error("LU workspace")(e.into()))?);
             self.lu_symbolic = Some(sym);
         }
@@ -155,11 +178,21 @@ impl Factorizer {
     pub(super) fn solve(&mut self, rhs: &mut Mat<f64>, par: Par) {
         match (&self.current, &self.llt_symbolic, &mut self.mem) {
             (Some(Factor::Llt), Some(sym), Some(mem)) => {
-                LltRef::new(sym, &self.l_values).solve_in_place_with_conj(faer::Conj::No, rhs.as_mut(), par, MemStack::new(mem));
+                LltRef::new(sym, &self.l_values).solve_in_place_with_conj(
+                    faer::Conj::No,
+                    rhs.as_mut(),
+                    par,
+                    MemStack::new(mem),
+                );
             }
             (Some(Factor::Llt32), Some(sym), Some(mem)) => {
                 let mut r32 = Mat::<f32>::from_fn(rhs.nrows(), 1, |i, _| rhs[(i, 0)] as f32);
-                LltRef::new(sym, &self.l32).solve_in_place_with_conj(faer::Conj::No, r32.as_mut(), par, MemStack::new(mem));
+                LltRef::new(sym, &self.l32).solve_in_place_with_conj(
+                    faer::Conj::No,
+                    r32.as_mut(),
+                    par,
+                    MemStack::new(mem),
+                );
                 for i in 0..rhs.nrows() {
                     rhs[(i, 0)] = r32[(i, 0)] as f64;
                 }

@@ -53,7 +53,13 @@ fn default_tangential_weight() -> f64 {
 
 impl Default for PointFitSettings {
     fn default() -> Self {
-        Self { iterations: 4, cg_iterations: 10, band_mm: 10.0, spring_scale: 500.0, tangential_weight: default_tangential_weight() }
+        Self {
+            iterations: 4,
+            cg_iterations: 10,
+            band_mm: 10.0,
+            spring_scale: 500.0,
+            tangential_weight: default_tangential_weight(),
+        }
     }
 }
 
@@ -116,7 +122,14 @@ impl FitWork {
     /// Tight inner solves until an update moves the nodes by at most `tol_mm` RMS (at most
     /// `max_updates`).
     pub fn converged(tol_mm: f64, max_updates: usize) -> Self {
-        Self { updates: max_updates, cg_iterations: 300, cg_tol: 1e-6, stop_mm: Some(tol_mm), from_start: false, rest_in_subspace: false }
+        Self {
+            updates: max_updates,
+            cg_iterations: 300,
+            cg_tol: 1e-6,
+            stop_mm: Some(tol_mm),
+            from_start: false,
+            rest_in_subspace: false,
+        }
     }
 }
 
@@ -171,11 +184,25 @@ impl<'g> PointFit<'g> {
         settings: PointFitSettings,
     ) -> Result<Self, FemError> {
         let bad = |r: String| FemError::InvalidInput(r);
-        if settings.iterations == 0 || settings.iterations > 100 || settings.cg_iterations == 0 || settings.cg_iterations > 1000 {
-            return Err(bad(format!("point fit: {} updates of {} CG iterations", settings.iterations, settings.cg_iterations)));
+        if settings.iterations == 0
+            || settings.iterations > 100
+            || settings.cg_iterations == 0
+            || settings.cg_iterations > 1000
+        {
+            return Err(bad(format!(
+                "point fit: {} updates of {} CG iterations",
+                settings.iterations, settings.cg_iterations
+            )));
         }
-        if !(settings.band_mm > 0.0 && settings.band_mm.is_finite() && settings.spring_scale > 0.0 && settings.spring_scale.is_finite()) {
-            return Err(bad(format!("point fit: band {} mm, spring scale {}", settings.band_mm, settings.spring_scale)));
+        if !(settings.band_mm > 0.0
+            && settings.band_mm.is_finite()
+            && settings.spring_scale > 0.0
+            && settings.spring_scale.is_finite())
+        {
+            return Err(bad(format!(
+                "point fit: band {} mm, spring scale {}",
+                settings.band_mm, settings.spring_scale
+            )));
         }
         if !(0.0..=1.0).contains(&settings.tangential_weight) {
             return Err(bad(format!("point fit: tangential weight {} (between 0 and 1)", settings.tangential_weight)));
@@ -296,13 +323,23 @@ impl<'g> PointFit<'g> {
     }
 
     /// As `fit` with the given work, the correspondences searched again at every update.
-    pub fn fit_with(&mut self, points_mm: &[Vector3<f64>], u: &mut [Vector3<f64>], work: FitWork) -> Result<PointFitReport, FemError> {
+    pub fn fit_with(
+        &mut self,
+        points_mm: &[Vector3<f64>],
+        u: &mut [Vector3<f64>],
+        work: FitWork,
+    ) -> Result<PointFitReport, FemError> {
         self.fit_updates(points_mm, u, work, false)
     }
 
     /// As `fit`, but the correspondences of `u`'s surface to `points_mm` found once and held:
     /// with `FitWork::converged`, the solve a frame's fixed work approximates.
-    pub fn fit_held(&mut self, points_mm: &[Vector3<f64>], u: &mut [Vector3<f64>], work: FitWork) -> Result<PointFitReport, FemError> {
+    pub fn fit_held(
+        &mut self,
+        points_mm: &[Vector3<f64>],
+        u: &mut [Vector3<f64>],
+        work: FitWork,
+    ) -> Result<PointFitReport, FemError> {
         self.fit_updates(points_mm, u, work, true)
     }
 
@@ -316,7 +353,11 @@ impl<'g> PointFit<'g> {
         let FitWork { updates: iterations, cg_iterations, cg_tol, stop_mm, from_start, rest_in_subspace } = work;
         let grid = self.solver.grid;
         if u.len() != grid.node_count() {
-            return Err(FemError::InvalidInput(format!("point fit: {} displacements for {} nodes", u.len(), grid.node_count())));
+            return Err(FemError::InvalidInput(format!(
+                "point fit: {} displacements for {} nodes",
+                u.len(),
+                grid.node_count()
+            )));
         }
         if (from_start || rest_in_subspace)
             && let Some(sub) = self.subspace.take()
@@ -384,7 +425,8 @@ impl<'g> PointFit<'g> {
                 (a.f_int, a.energy, None)
             };
             report.assembly_ms += ms(t);
-            let metrics: Vec<Option<Matrix3<f64>>> = (0..ns).map(|s| matched[s].then(|| self.spring_metric(s))).collect();
+            let metrics: Vec<Option<Matrix3<f64>>> =
+                (0..ns).map(|s| matched[s].then(|| self.spring_metric(s))).collect();
             for s in 0..ns {
                 if let Some(m) = metrics[s] {
                     let r = m * (pos[s] - acc[s] / count[s] as f64);
@@ -450,7 +492,9 @@ impl<'g> PointFit<'g> {
                 }
                 continue;
             }
-            let moved_mm = (trial.iter().zip(u.iter()).map(|(a, b)| (a - b).norm_squared()).sum::<f64>() / u.len().max(1) as f64).sqrt();
+            let moved_mm = (trial.iter().zip(u.iter()).map(|(a, b)| (a - b).norm_squared()).sum::<f64>()
+                / u.len().max(1) as f64)
+                .sqrt();
             u.copy_from_slice(&trial);
             report.updates += 1;
             if stop_mm.is_some_and(|tol| moved_mm <= tol) {
@@ -483,12 +527,14 @@ impl<'g> PointFit<'g> {
         // nearest their centroid (deterministic).
         let ns = self.samples.len();
         let centroid = self.rest_mm.iter().sum::<Vector3<f64>>() / ns as f64;
-        let first =
-            (0..ns).min_by(|&a, &b| (self.rest_mm[a] - centroid).norm().total_cmp(&(self.rest_mm[b] - centroid).norm())).unwrap_or(0);
+        let first = (0..ns)
+            .min_by(|&a, &b| (self.rest_mm[a] - centroid).norm().total_cmp(&(self.rest_mm[b] - centroid).norm()))
+            .unwrap_or(0);
         let mut centres = vec![first];
         let mut dist: Vec<f64> = self.rest_mm.iter().map(|x| (x - self.rest_mm[first]).norm()).collect();
         while centres.len() < patches.min(ns) {
-            let (far, d) = dist.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, d)| (i, *d)).unwrap_or((0, 0.0));
+            let (far, d) =
+                dist.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, d)| (i, *d)).unwrap_or((0, 0.0));
             if d <= 0.0 {
                 break;
             }
@@ -506,7 +552,12 @@ impl<'g> PointFit<'g> {
         // fit from rest could not move a lobe as a whole (CT check recording: 5.8 mm against
         // 1.2 with free-body responses).
         let mut free_body = if free_body {
-            let mut s = FeSolver::new(self.solver.grid, self.solver.material, &self.solver.constrained_nodes, SolverSettings::default())?;
+            let mut s = FeSolver::new(
+                self.solver.grid,
+                self.solver.material,
+                &self.solver.constrained_nodes,
+                SolverSettings::default(),
+            )?;
             s.asm.assemble(ElementModel::Corotational, &vec![Vector3::zeros(); self.solver.grid.node_count()], true);
             s.fact.factorize(&s.asm, false, par)?;
             Some(s)
@@ -553,7 +604,11 @@ impl<'g> PointFit<'g> {
             return Err(FemError::InvalidInput("point fit: the subspace has no vector".into()));
         }
         // The rest stiffness (the co-rotational operator at rest) projected on the basis.
-        self.solver.asm.assemble(ElementModel::Corotational, &vec![Vector3::zeros(); self.solver.grid.node_count()], false);
+        self.solver.asm.assemble(
+            ElementModel::Corotational,
+            &vec![Vector3::zeros(); self.solver.grid.node_count()],
+            false,
+        );
         let mut k_r = Mat::<f64>::zeros(m, m);
         let mut kphit = Mat::<f32>::zeros(m, nf);
         let mut kv = vec![0.0; nf];
@@ -577,9 +632,9 @@ impl<'g> PointFit<'g> {
     }
 
     fn set_basis(&mut self, subspace: Option<Subspace>) {
-        self.sample_basis = subspace
-            .as_ref()
-            .map(|sub| Mat::from_fn(sub.phit.nrows(), self.sample_dofs.len(), |i, k| sub.phit[(i, self.sample_dofs[k].2 as usize)]));
+        self.sample_basis = subspace.as_ref().map(|sub| {
+            Mat::from_fn(sub.phit.nrows(), self.sample_dofs.len(), |i, k| sub.phit[(i, self.sample_dofs[k].2 as usize)])
+        });
         self.subspace = subspace;
     }
 
@@ -671,7 +726,14 @@ impl<'g> PointFit<'g> {
             let q0 = llt.solve(k);
             let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q0[(i, 0)] as f32);
             let mut v = Mat::<f32>::zeros(nf, 1);
-            faer::linalg::matmul::matmul(v.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q32.as_ref(), 1.0, par);
+            faer::linalg::matmul::matmul(
+                v.as_mut(),
+                faer::Accum::Replace,
+                sub.phit.transpose(),
+                q32.as_ref(),
+                1.0,
+                par,
+            );
             for (nd, un) in u.iter_mut().enumerate() {
                 for c in 0..3 {
                     let f = free[3 * nd + c];
@@ -753,7 +815,17 @@ impl<'g> PointFit<'g> {
             {
                 use faer::linalg::matmul::triangular::{BlockStructure, matmul};
                 let rect = BlockStructure::Rectangular;
-                matmul(ggt.as_mut(), BlockStructure::TriangularLower, faer::Accum::Replace, g, rect, g.transpose(), rect, 1.0, par);
+                matmul(
+                    ggt.as_mut(),
+                    BlockStructure::TriangularLower,
+                    faer::Accum::Replace,
+                    g,
+                    rect,
+                    g.transpose(),
+                    rect,
+                    1.0,
+                    par,
+                );
             }
             let a_r = Mat::<f64>::from_fn(m, m, |i, j| if i >= j { sub.k_r[(i, j)] + ggt[(i, j)] as f64 } else { 0.0 });
             let mut grho = Mat::<f32>::zeros(m, 1);
@@ -770,7 +842,14 @@ impl<'g> PointFit<'g> {
             if it + 1 < updates {
                 let mut du = Mat::<f32>::zeros(self.sample_dofs.len(), 1);
                 let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q[(i, 0)] as f32);
-                faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, basis_s.transpose(), q32.as_ref(), 1.0, par);
+                faer::linalg::matmul::matmul(
+                    du.as_mut(),
+                    faer::Accum::Replace,
+                    basis_s.transpose(),
+                    q32.as_ref(),
+                    1.0,
+                    par,
+                );
                 for (k, &(n, c, _)) in self.sample_dofs.iter().enumerate() {
                     u[n as usize][c as usize] += du[(k, 0)] as f64;
                 }
@@ -781,7 +860,14 @@ impl<'g> PointFit<'g> {
         if report.updates > 0 {
             let mut du = Mat::<f32>::zeros(nf, 1);
             let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q_sum[(i, 0)] as f32);
-            faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q32.as_ref(), 1.0, par);
+            faer::linalg::matmul::matmul(
+                du.as_mut(),
+                faer::Accum::Replace,
+                sub.phit.transpose(),
+                q32.as_ref(),
+                1.0,
+                par,
+            );
             for (nd, (un, u0)) in u.iter_mut().zip(&u_start).enumerate() {
                 for c in 0..3 {
                     let f = free[3 * nd + c];
@@ -800,7 +886,13 @@ impl<'g> PointFit<'g> {
     /// The nearest sample within the band of each point after the samples moved from where the
     /// buckets hold them (`filled`) to `now`, searched from each point's previous nearest
     /// (`PointIndex::nearest_moved`): the same samples as a search of freshly filled buckets.
-    fn nearest_moved(&self, points_mm: &[Vector3<f64>], previous: &[u32], filled: &[Vector3<f64>], now: &[Vector3<f64>]) -> Vec<u32> {
+    fn nearest_moved(
+        &self,
+        points_mm: &[Vector3<f64>],
+        previous: &[u32],
+        filled: &[Vector3<f64>],
+        now: &[Vector3<f64>],
+    ) -> Vec<u32> {
         let band = self.settings.band_mm;
         let moved = filled.iter().zip(now).map(|(a, b)| (a - b).norm_squared()).fold(0.0, f64::max).sqrt();
         points_mm
@@ -820,7 +912,14 @@ impl<'g> PointFit<'g> {
     /// stiffness turned by their rotations at the last assembly (applied without forming it),
     /// preconditioned by stiffness warping: M^-1 = R_N (K_rest + k sum over all samples of
     /// W^T W)^-1 R_N^T, R_N the nodal rotations, the rest factor computed once.
-    fn pcg(&mut self, b: &[f64], metrics: &[Option<Matrix3<f64>>], free: &[u32], max_iter: usize, tol: f64) -> (Vec<f64>, usize) {
+    fn pcg(
+        &mut self,
+        b: &[f64],
+        metrics: &[Option<Matrix3<f64>>],
+        free: &[u32],
+        max_iter: usize,
+        tol: f64,
+    ) -> (Vec<f64>, usize) {
         let n = b.len();
         let bnorm = norm(b);
         let mut x = vec![0.0; n];
@@ -926,7 +1025,11 @@ pub struct FrameCheck {
 /// Fit `previous_mm` from rest (the previous frame, settled by 4 fixed-work frames), then
 /// from there: the registration frame on `points_mm`, timed; and the held-correspondence
 /// problem solved with the fixed work and to convergence.
-pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_mm: &[Vector3<f64>]) -> Result<FrameCheck, FemError> {
+pub fn check_frame(
+    fit: &mut PointFit<'_>,
+    previous_mm: &[Vector3<f64>],
+    points_mm: &[Vector3<f64>],
+) -> Result<FrameCheck, FemError> {
     let n = fit.solver.grid.node_count();
     let mut u_prev = vec![Vector3::zeros(); n];
     for _ in 0..4 {
@@ -940,8 +1043,9 @@ pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_
     fit.fit_held(points_mm, &mut u_fast, FitWork::fixed(&fit.settings))?;
     let mut u_conv = u_prev.clone();
     let conv = fit.fit_held(points_mm, &mut u_conv, FitWork::converged(1e-3, 50))?;
-    let rms =
-        |a: &[Vector3<f64>], b: &[Vector3<f64>]| (a.iter().zip(b).map(|(x, y)| (x - y).norm_squared()).sum::<f64>() / n as f64).sqrt();
+    let rms = |a: &[Vector3<f64>], b: &[Vector3<f64>]| {
+        (a.iter().zip(b).map(|(x, y)| (x - y).norm_squared()).sum::<f64>() / n as f64).sqrt()
+    };
     Ok(FrameCheck {
         frame_ms,
         frame,
@@ -954,7 +1058,13 @@ pub fn check_frame(fit: &mut PointFit<'_>, previous_mm: &[Vector3<f64>], points_
 
 /// For each observed point, the index of the sample nearest it within `band` (u32::MAX: none),
 /// searched among the deformed samples `pos`.
-fn nearest_samples(buckets: &mut PointIndex, grid: &ImmersedGrid, pos: &[Vector3<f64>], points_mm: &[Vector3<f64>], band: f64) -> Vec<u32> {
+fn nearest_samples(
+    buckets: &mut PointIndex,
+    grid: &ImmersedGrid,
+    pos: &[Vector3<f64>],
+    points_mm: &[Vector3<f64>],
+    band: f64,
+) -> Vec<u32> {
     buckets.fill(pos, grid.origin_mm, band, grid.padded_shape(), grid.cell_size_mm);
     let buckets = &*buckets;
     points_mm.par_iter().map(|p| buckets.nearest(p, band).map_or(u32::MAX, |(s, _)| s as u32)).collect()

@@ -13,12 +13,7 @@ use super::bc::BoundaryConditions;
 use super::material::{MaterialKind, MaterialParams};
 use crate::grid::ImmersedGrid;
 use crate::progress::{Cancel, Progress};
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::perm::PermRef;
-use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
-use faer::sparse::linalg::lu::{LuRef, NumericLu, SymbolicLu, factorize_symbolic_lu};
-use faer::{Mat, Par, Side};
+use faer::{Mat, Par};
 use nalgebra::Vector3;
 use std::time::Instant;
 
@@ -27,11 +22,13 @@ mod factorization;
 pub mod fit;
 mod newton;
 mod ordering;
+mod outcome;
 mod step;
 
 pub use calibration::{softening_factor, softening_scale_mm};
 use factorization::Factorizer;
 pub use ordering::nested_dissection;
+pub use outcome::{FactorizationError, FemError, IterationRecord, MeanSolve, Solution, Timings};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -122,50 +119,6 @@ impl SolverSettings {
     }
 }
 
-/// One Newton (or co-rotational) iteration.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct IterationRecord {
-    pub increment: usize,
-    pub load_factor: f64,
-    pub iteration: usize,
-    /// |r| / |reference force| before the step.
-    pub residual: f64,
-    /// |du| / |u| of the step taken.
-    pub correction: f64,
-    pub step_length: f64,
-    pub assembly_ms: f64,
-    pub factorization_ms: f64,
-    pub solve_ms: f64,
-    pub factorization: &'static str,
-}
-
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
-pub struct Timings {
-    pub assembly_ms: f64,
-    pub factorization_ms: f64,
-    pub solve_ms: f64,
-    pub total_ms: f64,
-}
-
-#[derive(Clone, Debug)]
-pub struct Solution {
-    pub displacement_mm: Vec<Vector3<f64>>,
-    pub history: Vec<IterationRecord>,
-    pub increments: usize,
-    pub iterations: usize,
-    pub timings: Timings,
-    pub final_residual: f64,
-}
-
-impl Solution {
-    pub fn max_displacement_mm(&self) -> f64 {
-        self.displacement_mm.iter().map(|u| u.norm()).fold(0.0, f64::max)
-    }
-    pub fn mean_displacement_mm(&self) -> f64 {
-        self.displacement_mm.iter().map(|u| u.norm()).sum::<f64>() / self.displacement_mm.len().max(1) as f64
-    }
-}
-
 /// Which nodes a calibrated mean displacement averages over.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -197,19 +150,6 @@ impl MeanOver {
     }
 }
 
-/// The outcome of `FeSolver::solve_to_mean_displacement`.
-#[derive(Clone, Debug)]
-pub struct MeanSolve {
-    pub solution: Solution,
-    /// The factor applied to the forces.
-    pub lambda: f64,
-    /// The mean displacement (mm, over the chosen nodes) of the solution.
-    pub mean_mm: f64,
-    /// False when the target could not be reached and the largest converged state below it
-    /// (at least `MIN_REACHED_FRACTION` of the target) was kept instead.
-    pub reached: bool,
-}
-
 /// A calibrated solve that cannot reach its target keeps its converged state nearest the target
 /// when that moves at least this fraction of it (and at most `MAX_REACHED_FRACTION`); otherwise
 /// the sample is rejected. A state short of its target is still an equilibrium of the forces
@@ -221,35 +161,6 @@ pub const MIN_REACHED_FRACTION: f64 = 0.1;
 /// The largest multiple of the target a kept state may move (probes past twice the target are
 /// abandoned as heading for a collapse).
 pub const MAX_REACHED_FRACTION: f64 = 1.5;
-
-#[derive(Debug, thiserror::Error)]
-pub enum FemError {
-    #[error("the solve did not converge: {reason} (after {} iterations)", history.len())]
-    NotConverged { reason: String, history: Vec<IterationRecord> },
-    #[error("invalid problem: {0}")]
-    InvalidInput(String),
-    #[error("the linear system could not be factorised ({stage})")]
-    Factorization {
-        stage: &'static str,
-        #[source]
-        source: FactorizationError,
-    },
-    #[error("the solution is not finite (singular stiffness)")]
-    Singular,
-    #[error(transparent)]
-    Cancelled(#[from] crate::Cancelled),
-}
-
-/// faer's error, kept as the source of `FemError::Factorization`.
-#[derive(Debug, thiserror::Error)]
-pub enum FactorizationError {
-    #[error(transparent)]
-    Faer(#[from] faer::sparse::FaerError),
-    #[error(transparent)]
-    Lu(#[from] faer::sparse::linalg::LuError),
-    #[error("out of memory for the factorisation's workspace")]
-    Memory(#[from] faer::dyn_stack::mem::AllocError),
-}
 
 /// A reusable solver for one grid, material and set of constrained nodes: the sparse
 /// pattern, scatter maps and symbolic factorisation are kept between solves.
@@ -271,10 +182,19 @@ fn ms(t: Instant) -> f64 {
 
 impl<'g> FeSolver<'g> {
     /// `constrained[n]`: node n is fixed or has a prescribed displacement.
-    pub fn new(grid: &'g ImmersedGrid, material: MaterialParams, constrained: &[bool], settings: SolverSettings) -> Result<Self, FemError> {
+    pub fn new(
+        grid: &'g ImmersedGrid,
+        material: MaterialParams,
+        constrained: &[bool],
+        settings: SolverSettings,
+    ) -> Result<Self, FemError> {
         material.validate().map_err(|e| FemError::InvalidInput(e.into()))?;
         if constrained.len() != grid.node_count() {
-            return Err(FemError::InvalidInput(format!("{} constraint flags for {} nodes", constrained.len(), grid.node_count())));
+            return Err(FemError::InvalidInput(format!(
+                "{} constraint flags for {} nodes",
+                constrained.len(),
+                grid.node_count()
+            )));
         }
         if !constrained.iter().any(|&c| c) {
             return Err(FemError::InvalidInput("no node is fixed: the problem has rigid-body modes".into()));
@@ -356,7 +276,9 @@ impl<'g> FeSolver<'g> {
             constrained[node] = true;
         }
         if constrained != self.constrained_nodes {
-            return Err(FemError::InvalidInput("the constrained nodes differ from those the solver was built for".into()));
+            return Err(FemError::InvalidInput(
+                "the constrained nodes differ from those the solver was built for".into(),
+            ));
         }
         if bc.forces_n.iter().any(|f| !f.iter().all(|v| v.is_finite())) {
             return Err(FemError::InvalidInput("a force is not finite".into()));
@@ -391,7 +313,11 @@ pub fn solve(
 ) -> Result<Solution, FemError> {
     let mut constrained = bc.fixed.clone();
     if constrained.len() != grid.node_count() {
-        return Err(FemError::InvalidInput(format!("{} fixed flags for {} nodes", constrained.len(), grid.node_count())));
+        return Err(FemError::InvalidInput(format!(
+            "{} fixed flags for {} nodes",
+            constrained.len(),
+            grid.node_count()
+        )));
     }
     for &(n, _) in &bc.prescribed_mm {
         if n >= constrained.len() {

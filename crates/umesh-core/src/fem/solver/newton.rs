@@ -87,7 +87,6 @@ impl FeSolver<'_> {
         })
     }
 
-
     pub(super) fn solve_incremental(
         &mut self,
         bc: &BoundaryConditions,
@@ -113,11 +112,23 @@ impl FeSolver<'_> {
                 && history.len() >= budget
             {
                 return Err(FemError::NotConverged {
-                    reason: format!("gave up after {budget} Newton iterations at load factor {done:.3} (iteration budget)"),
+                    reason: format!(
+                        "gave up after {budget} Newton iterations at load factor {done:.3} (iteration budget)"
+                    ),
                     history,
                 });
             }
-            match self.newton(&mut trial, bc, model, load, increments + 1, &mut history, &mut timings, progress, cancel)? {
+            match self.newton(
+                &mut trial,
+                bc,
+                model,
+                load,
+                increments + 1,
+                &mut history,
+                &mut timings,
+                progress,
+                cancel,
+            )? {
                 Ok((iters, res)) => {
                     u = trial;
                     done = load;
@@ -187,7 +198,9 @@ impl FeSolver<'_> {
             let (du, fac_name, factorization_ms, solve_ms) = self.linear_step(&r, rel, at_rest, &mut stale)?;
             if s.reject_indefinite && fac_name == "lu" {
                 timings.factorization_ms += factorization_ms;
-                return Ok(Err(crate::Invalid::from("the tangent stiffness is indefinite (the material collapses under this load)")));
+                return Ok(Err(crate::Invalid::from(
+                    "the tangent stiffness is indefinite (the material collapses under this load)",
+                )));
             }
             let du_norm = (0..du.nrows()).map(|i| du[(i, 0)].powi(2)).sum::<f64>().sqrt();
             if !du_norm.is_finite() {
@@ -201,8 +214,9 @@ impl FeSolver<'_> {
             let t = Instant::now();
             let base: Vec<Vector3<f64>> = u.to_vec();
             let slope0: f64 = r.iter().enumerate().map(|(i, v)| v * du[(i, 0)]).sum();
-            let potential =
-                |a: &Assembled, u: &[Vector3<f64>]| a.energy - load * u.iter().zip(&bc.forces_n).map(|(x, f)| x.dot(f)).sum::<f64>();
+            let potential = |a: &Assembled, u: &[Vector3<f64>]| {
+                a.energy - load * u.iter().zip(&bc.forces_n).map(|(x, f)| x.dot(f)).sum::<f64>()
+            };
             let pi0 = potential(&current, &base);
             loop {
                 u.copy_from_slice(&base);
@@ -216,7 +230,9 @@ impl FeSolver<'_> {
                     n2.is_finite()
                         && (n2 <= refn * s.residual_tol
                             || match model {
-                                ElementModel::Hyperelastic(_) if slope0 > 0.0 && pi.is_finite() => pi <= pi0 - 1e-4 * alpha * slope0,
+                                ElementModel::Hyperelastic(_) if slope0 > 0.0 && pi.is_finite() => {
+                                    pi <= pi0 - 1e-4 * alpha * slope0
+                                }
                                 // The co-rotational forces are not the exact gradient of an energy:
                                 // accept a falling residual or a halved slope along the step.
                                 _ => n2 <= (1.0 - 1e-4 * alpha) * rnorm || slope.abs() <= 0.5 * slope0.abs(),

@@ -187,22 +187,7 @@ fn segment_settings(a: &Args, s: &RegisterSettings) -> umesh_core::rgbd::segment
 const REGISTRATION_FILES: &[&str] = &["report.json"];
 
 pub fn run(a: Args) -> Result<()> {
-    if a.fe_converged && !a.compare_fe {
-        bail!("--fe-converged applies to --compare-fe");
-    }
-    // Before any work: --out apart from every input (a recording, a model, a patient).
-    let mut inputs = a.input.paths();
-    inputs.extend(a.recording.iter().map(|p| ("--recording", p.as_path())));
-    inputs.extend(a.model.iter().map(|p| ("--model", p.as_path())));
-    inputs.extend(a.patient.iter().map(|p| ("--patient", p.as_path())));
-    inputs.extend(a.ground_truth.iter().map(|p| ("--ground-truth", p.as_path())));
-    umesh_core::check_apart(&a.out, &inputs)?;
-    umesh_core::check_replaceable(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
-        .with_context(|| format!("--out {}", a.out.display()))?;
-
-    if !(a.frame_budget_ms.is_finite() && (0.0..=3.6e6).contains(&a.frame_budget_ms)) {
-        bail!("--frame-budget-ms {}: between 0 (no limit) and 3600000 (an hour)", umesh_core::shown(a.frame_budget_ms));
-    }
+    check_before_work(&a)?;
     // The options that do not depend on the model, checked before it loads (seconds on a big
     // liver); the correction's are checked once the model's form is known.
     let early = RegisterSettings {
@@ -225,34 +210,9 @@ pub fn run(a: Args) -> Result<()> {
     // that arrive while it is built.
     let budget = (a.frame_budget_ms > 0.0).then_some(a.frame_budget_ms);
     let (form, form_reason) = correction_form(&a.correction_form, &model_dir, budget)?;
-    let base = form.settings();
-    let correction = CorrectionSettings {
-        updates: a.correction_updates.unwrap_or(base.updates),
-        cg_iterations: a.correction_cg.unwrap_or(base.cg_iterations),
-        subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
-        doubted_updates: a.doubted_updates.unwrap_or(base.doubted_updates),
-        doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
-        ..base
-    };
-    // A doubted frame is corrected by the correction: asked for with it off, it would be
-    // ignored without a word.
-    if correction.updates == 0 && (a.doubted_updates.is_some() || a.doubted_cg.is_some()) {
-        bail!(
-            "--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off"
-        );
-    }
-    correction.validate()?;
+    let correction = correction_settings(&a, form.settings())?;
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
-    let imported = match &a.recording {
-        Some(f) if is_realsense_file(f) => {
-            let name = a.out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-            let dir = a.out.with_file_name(format!(".{name}.import-{}", std::process::id()));
-            let r = super::camera::import_to(f, &dir).with_context(|| format!("--recording {}", f.display()))?;
-            eprintln!("imported {} frames of {} ({} dropped by the camera)", r.frames, f.display(), r.dropped);
-            Imported(Some(dir))
-        }
-        _ => Imported(None),
-    };
+    let imported = import_if_realsense(&a)?;
     let recording = imported.0.as_deref().or(a.recording.as_deref());
     let Opened { mut source, pose: rec_pose, truth, tracked } = open_source(&a, recording)?;
     let (pose_policy, pose_reason) = choose_pose(requested, tracked);
@@ -313,26 +273,11 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         None
     };
-    let summary = |r: &RegisterReport| {
-        let s = &r.summary;
-        serde_json::json!({
-            "model": r.model, "pose": r.pose.name(), "pose_reason": r.pose_reason, "pose_moved_max_mm": s.pose_moved_max_mm, "frames": s.frames, "skipped": s.skipped, "dropped": s.dropped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
-            "end_to_end_ms_median": s.end_to_end_ms_median,
-            "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
-            "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
-            "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
-            "last_marker_displacement_mm": s.last_marker_displacement_mm,
-            "frames_with_warning": s.frames_with_warning, "frames_corrected_as_fe": s.frames_corrected_as_fe, "residual_p95_median_mm": s.residual_p95_median_mm,
-            "confidence_calibrated": r.frames.first().is_some_and(|f| f.confidence.calibrated),
-            "latency_ms_median": latency_medians(r),
-            "correction_moved_rms_mm_median": correction_moved_median(r),
-        })
-    };
-    let mut v = summary(&report);
+    let mut v = summary_json(&report);
     v["correction_form"] = serde_json::json!((correction.updates > 0).then_some(form.name()));
     v["correction_reason"] = serde_json::json!((correction.updates > 0).then_some(&form_reason));
     if let Some(fe) = &fe_report {
-        v["fe"] = summary(fe);
+        v["fe"] = summary_json(fe);
     }
     let full = serde_json::json!({ "summary": v, "frames": report.frames, "log": report.log, "fe_frames": fe_report.as_ref().map(|r| &r.frames) });
     umesh_core::write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&full)?.as_bytes())
@@ -347,74 +292,153 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         super::output::print_json(&v);
     } else {
-        println!(
-            "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10}  confidence",
-            "frame", "points", "ICP", "u_s", "predict", "overlay", "total ms", "TRE mm", "fit p95"
-        );
-        for f in &report.frames {
-            let l = &f.latency;
-            println!(
-                "{:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10} {:>10.2}  {}",
-                f.frame,
-                l.points_ms,
-                l.icp_ms,
-                l.surface_ms,
-                l.predict_ms,
-                l.overlay_ms,
-                l.total_ms,
-                f.tre_mean_mm.map(|t| format!("{t:.2}")).unwrap_or_else(|| "-".into()),
-                f.confidence.residual_p95_mm,
-                if !f.confidence.calibrated {
-                    "not calibrated".to_string()
-                } else if f.confidence.warning() {
-                    format!("WARNING: {}", f.confidence.warnings.join("; "))
-                } else {
-                    "ok".to_string()
-                }
-            );
-        }
-        for r in std::iter::once(&report).chain(fe_report.as_ref()) {
-            let s = &r.summary;
-            println!(
-                "{}{}: {} frames ({} skipped, {} with a confidence warning{}), {:.1} ms median, {:.1} ms p95{}",
-                r.model,
-                match correction_moved_median(r) {
-                    Some(m) => format!(" + physics correction (moved {m:.2} mm RMS median)"),
-                    None => String::new(),
-                },
-                s.frames,
-                s.skipped,
-                s.frames_with_warning,
-                if s.frames_corrected_as_fe > 0 {
-                    format!(", {} corrected as the FE fit", s.frames_corrected_as_fe)
-                } else {
-                    String::new()
-                },
-                s.frame_ms_median,
-                s.frame_ms_p95,
-                match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {
-                    (Some(m), Some(x), Some(r0)) =>
-                        format!("; TRE {m:.2} mm mean, {x:.2} mm max (rigid only: {r0:.2} mm)"),
-                    _ => String::new(),
-                }
-            );
-        }
-        match report.summary.pose_moved_max_mm {
-            Some(m) => println!("pose: {} (ICP moved the organ points by at most {m:.2} mm RMS)", report.pose_reason),
-            None => println!("pose: {}", report.pose_reason),
-        }
-        if report.summary.dropped > 0 {
-            println!(
-                "{} frames dropped by the source (the camera's gaps, or frames arriving while one was registered)",
-                report.summary.dropped
-            );
-        }
-        if let Some(e) = report.summary.end_to_end_ms_median {
-            println!("end-to-end latency (camera bridge to overlay): {e:.1} ms median");
-        }
-        println!("overlays and report.json in {}", a.out.display());
+        print_table(&report, fe_report.as_ref(), &a.out);
     }
     Ok(())
+}
+
+/// What is refused before any work: options that do not go together, an output that is an
+/// input or holds something else, a frame budget out of range.
+fn check_before_work(a: &Args) -> Result<()> {
+    if a.fe_converged && !a.compare_fe {
+        bail!("--fe-converged applies to --compare-fe");
+    }
+    // Before any work: --out apart from every input (a recording, a model, a patient).
+    let mut inputs = a.input.paths();
+    inputs.extend(a.recording.iter().map(|p| ("--recording", p.as_path())));
+    inputs.extend(a.model.iter().map(|p| ("--model", p.as_path())));
+    inputs.extend(a.patient.iter().map(|p| ("--patient", p.as_path())));
+    inputs.extend(a.ground_truth.iter().map(|p| ("--ground-truth", p.as_path())));
+    umesh_core::check_apart(&a.out, &inputs)?;
+    umesh_core::check_replaceable(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
+        .with_context(|| format!("--out {}", a.out.display()))?;
+
+    if !(a.frame_budget_ms.is_finite() && (0.0..=3.6e6).contains(&a.frame_budget_ms)) {
+        bail!("--frame-budget-ms {}: between 0 (no limit) and 3600000 (an hour)", umesh_core::shown(a.frame_budget_ms));
+    }
+    Ok(())
+}
+
+/// The form's correction with the options that change it; refused when inconsistent.
+fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionSettings> {
+    let correction = CorrectionSettings {
+        updates: a.correction_updates.unwrap_or(base.updates),
+        cg_iterations: a.correction_cg.unwrap_or(base.cg_iterations),
+        subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
+        doubted_updates: a.doubted_updates.unwrap_or(base.doubted_updates),
+        doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
+        ..base
+    };
+    // A doubted frame is corrected by the correction: asked for with it off, it would be
+    // ignored without a word.
+    if correction.updates == 0 && (a.doubted_updates.is_some() || a.doubted_cg.is_some()) {
+        bail!(
+            "--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off"
+        );
+    }
+    correction.validate()?;
+    Ok(correction)
+}
+
+/// A RealSense file given as `--recording`, imported into a folder beside `--out` (removed
+/// with the `Imported` guard).
+fn import_if_realsense(a: &Args) -> Result<Imported> {
+    Ok(match &a.recording {
+        Some(f) if is_realsense_file(f) => {
+            let name = a.out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+            let dir = a.out.with_file_name(format!(".{name}.import-{}", std::process::id()));
+            let r = super::camera::import_to(f, &dir).with_context(|| format!("--recording {}", f.display()))?;
+            eprintln!("imported {} frames of {} ({} dropped by the camera)", r.frames, f.display(), r.dropped);
+            Imported(Some(dir))
+        }
+        _ => Imported(None),
+    })
+}
+
+/// A registration's summary as `--json` prints it (and `report.json` holds).
+fn summary_json(r: &RegisterReport) -> serde_json::Value {
+    let s = &r.summary;
+    serde_json::json!({
+        "model": r.model, "pose": r.pose.name(), "pose_reason": r.pose_reason, "pose_moved_max_mm": s.pose_moved_max_mm, "frames": s.frames, "skipped": s.skipped, "dropped": s.dropped, "frame_ms_median": s.frame_ms_median, "frame_ms_p95": s.frame_ms_p95,
+        "end_to_end_ms_median": s.end_to_end_ms_median,
+        "tre_mean_mm": s.tre_mean_mm, "tre_max_mm": s.tre_max_mm, "tre_rigid_mean_mm": s.tre_rigid_mean_mm,
+        "marker_displacement_mean_mm": s.marker_displacement_mean_mm,
+        "last_tre_mm": s.last_tre_mm, "last_tre_rigid_mm": s.last_tre_rigid_mm,
+        "last_marker_displacement_mm": s.last_marker_displacement_mm,
+        "frames_with_warning": s.frames_with_warning, "frames_corrected_as_fe": s.frames_corrected_as_fe, "residual_p95_median_mm": s.residual_p95_median_mm,
+        "confidence_calibrated": r.frames.first().is_some_and(|f| f.confidence.calibrated),
+        "latency_ms_median": latency_medians(r),
+        "correction_moved_rms_mm_median": correction_moved_median(r),
+    })
+}
+
+/// The per-frame table and the summary lines printed without `--json`.
+fn print_table(report: &RegisterReport, fe_report: Option<&RegisterReport>, out: &std::path::Path) {
+    println!(
+        "{:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10}  confidence",
+        "frame", "points", "ICP", "u_s", "predict", "overlay", "total ms", "TRE mm", "fit p95"
+    );
+    for f in &report.frames {
+        let l = &f.latency;
+        println!(
+            "{:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>10.1} {:>10} {:>10.2}  {}",
+            f.frame,
+            l.points_ms,
+            l.icp_ms,
+            l.surface_ms,
+            l.predict_ms,
+            l.overlay_ms,
+            l.total_ms,
+            f.tre_mean_mm.map(|t| format!("{t:.2}")).unwrap_or_else(|| "-".into()),
+            f.confidence.residual_p95_mm,
+            if !f.confidence.calibrated {
+                "not calibrated".to_string()
+            } else if f.confidence.warning() {
+                format!("WARNING: {}", f.confidence.warnings.join("; "))
+            } else {
+                "ok".to_string()
+            }
+        );
+    }
+    for r in std::iter::once(report).chain(fe_report) {
+        let s = &r.summary;
+        println!(
+            "{}{}: {} frames ({} skipped, {} with a confidence warning{}), {:.1} ms median, {:.1} ms p95{}",
+            r.model,
+            match correction_moved_median(r) {
+                Some(m) => format!(" + physics correction (moved {m:.2} mm RMS median)"),
+                None => String::new(),
+            },
+            s.frames,
+            s.skipped,
+            s.frames_with_warning,
+            if s.frames_corrected_as_fe > 0 {
+                format!(", {} corrected as the FE fit", s.frames_corrected_as_fe)
+            } else {
+                String::new()
+            },
+            s.frame_ms_median,
+            s.frame_ms_p95,
+            match (s.tre_mean_mm, s.tre_max_mm, s.tre_rigid_mean_mm) {
+                (Some(m), Some(x), Some(r0)) => format!("; TRE {m:.2} mm mean, {x:.2} mm max (rigid only: {r0:.2} mm)"),
+                _ => String::new(),
+            }
+        );
+    }
+    match report.summary.pose_moved_max_mm {
+        Some(m) => println!("pose: {} (ICP moved the organ points by at most {m:.2} mm RMS)", report.pose_reason),
+        None => println!("pose: {}", report.pose_reason),
+    }
+    if report.summary.dropped > 0 {
+        println!(
+            "{} frames dropped by the source (the camera's gaps, or frames arriving while one was registered)",
+            report.summary.dropped
+        );
+    }
+    if let Some(e) = report.summary.end_to_end_ms_median {
+        println!("end-to-end latency (camera bridge to overlay): {e:.1} ms median");
+    }
+    println!("overlays and report.json in {}", out.display());
 }
 
 /// The correction form `--correction-form` names, and why; auto: the model folder's choice for

@@ -4,7 +4,7 @@
 
 use crate::data::{Normalization, SampleSet};
 use crate::info::{ModelInfo, TrainSettings};
-use crate::model::UNet;
+use crate::model::{UNet, UNetConfig};
 use crate::model::{load_weights, save_weights};
 use crate::{NetError, tre};
 use burn::optim::{AdamConfig, GradientsParams};
@@ -158,6 +158,330 @@ pub fn run_train(
     on_epoch: &(dyn Fn(&EpochMetrics) + Sync),
     cancel: &Cancel,
 ) -> Result<TrainReport, NetError> {
+    check_settings(settings)?;
+    check_out_apart(dataset, out, settings)?;
+    let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
+    let mut rest = vec![false; set.len()];
+    let refresher = match (&settings.observation, settings.fresh_views) {
+        (Some(o), true) => Some(crate::data::ViewRefresher::new(dataset, o)?),
+        _ => None,
+    };
+    let (train, val) = split(&set, dataset)?;
+    let cfg = &settings.network();
+    cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
+        .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
+    let final_out = out;
+    let staged = stage(final_out, resume)?;
+    let out = staged.path();
+    let device = Device::flex();
+    device.seed(settings.seed);
+    let ad = device.clone().autodiff();
+    let mut norm = Normalization::fit(&set, &train);
+    let mut model = cfg.init(&ad);
+    let metrics_path = out.join("metrics.jsonl");
+    let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
+    let start = Start { dataset, out, resume, manifest: manifest.as_ref() };
+    let mut epochs = start.load(settings, set.shape, &mut model, &mut norm, &metrics_path)?;
+    let markers = tre::markers(&set.grid, settings.markers, settings.seed ^ 0x5EED);
+    write_info(out, dataset, settings, (&set, &train, &val), norm, manifest)?;
+    let mut optim = AdamConfig::new().init();
+    let mut best = epochs.iter().map(|e| e.val_loss).fold(f64::INFINITY, f64::min);
+    let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
+    let total_batches = settings.epochs.saturating_mul(train.len().div_ceil(settings.batch_size.max(1)));
+    let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
+    let mut plan = EpochPlan {
+        asked: settings.epochs,
+        patience: settings.patience,
+        budget_s: settings.time_budget_s,
+        spent_s: 0.0,
+        run_epochs: 0,
+    };
+    let mut stopped_early = epochs.last().and_then(|e| plan.stop(e.epoch, best_epoch));
+    for epoch in epochs.len() + 1..=settings.epochs {
+        if stopped_early.is_some() {
+            break;
+        }
+        let t = Instant::now();
+        let learning_rate = settings.lr_schedule.rate(settings.learning_rate, epoch, plan.last_epoch(epoch - 1));
+        let order = shuffled(&train, settings.seed.wrapping_add(epoch as u64));
+        if let Some(r) = &refresher
+            && epoch > 1
+        {
+            progress.report(
+                done_batches as u64,
+                total_batches as u64,
+                &format!("epoch {epoch}/{}: new camera views", settings.epochs),
+            );
+            r.refresh(&mut set, &train, epoch, settings.rest_views, &mut rest)
+                .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
+        }
+        let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();
+        let steps = Steps { learning_rate, epoch, epochs: settings.epochs, total_batches };
+        let train_loss;
+        (model, train_loss) = train_batches(
+            model,
+            &mut optim,
+            &batches,
+            (&set, &rest, &norm),
+            &ad,
+            &steps,
+            &mut done_batches,
+            progress,
+            cancel,
+        )?;
+        let train_secs = t.elapsed().as_secs_f64();
+        let valid = model.valid();
+        let (val_loss, tres, _) = validate(&valid, &set, &val, &norm, &markers, &device);
+        let (tre_mean, _, tre_max) = tre::summary(&tres);
+        let m = EpochMetrics {
+            epoch,
+            train_loss,
+            val_loss,
+            val_tre_mean_mm: tre_mean,
+            val_tre_max_mm: tre_max,
+            seconds: t.elapsed().as_secs_f64(),
+            train_samples_per_s: train.len() as f64 / train_secs.max(1e-9),
+        };
+        // The last weights (for --resume) and the best so far (the model).
+        save_weights(&valid, &out.join("last.safetensors"))?;
+        if val_loss < best {
+            (best, best_epoch) = (val_loss, epoch);
+            save_weights(&valid, &out.join("model.safetensors"))?;
+        }
+        append_metrics(&metrics_path, &m)?;
+        plan.spent_s += m.seconds;
+        plan.run_epochs += 1;
+        stopped_early = plan.stop(epoch, best_epoch);
+        on_epoch(&m);
+        epochs.push(m);
+    }
+    check_usable(out, best, &epochs, settings, final_out)?;
+    calibrate_confidence(out, dataset, settings, progress)?;
+    staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
+    Ok(TrainReport {
+        out: final_out.into(),
+        epochs,
+        train_samples: train.len(),
+        val_samples: val.len(),
+        best_epoch,
+        stopped_early,
+    })
+}
+
+/// The model (and its staging folder beside it) is not written into a dataset or a model it
+/// reads.
+fn check_out_apart(dataset: &Path, out: &Path, settings: &TrainSettings) -> Result<(), NetError> {
+    // The model (and its staging folder beside it) must not be written into a dataset or a
+    // model it reads. Fine-tuning a model in place (`--init-from M --out M`) is safe: its
+    // weights are read before the new folder is swapped in, and only when training succeeds.
+    let mut inputs: Vec<(&str, &Path)> = vec![("--dataset", dataset)];
+    if let Some(init) = &settings.init_from {
+        let same = matches!((init.canonicalize(), out.canonicalize()), (Ok(a), Ok(b)) if a == b);
+        if !same {
+            inputs.push(("--init-from", init.as_path()));
+        }
+    }
+    umesh_core::check_apart(out, &inputs).map_err(|e| NetError::Invalid(e.0))
+}
+
+/// The staging folder the model is written in.
+fn stage(final_out: &Path, resume: bool) -> Result<umesh_core::StagedDir, NetError> {
+    // Training runs in a staging folder beside `out`, kept on failure or cancel (so `resume`
+    // continues there) and swapped in whole at the end: a failed or cancelled run never leaves
+    // `out` half-overwritten, and no file of an earlier model survives in the new one.
+    let pending = umesh_core::StagedDir::pending_path(final_out);
+    let continue_pending = resume && pending.join("last.safetensors").exists();
+    let staged = umesh_core::StagedDir::resumable(
+        final_out,
+        umesh_core::OutputKind::Model,
+        &["model.json", "metrics.jsonl", JOB_FILE],
+        continue_pending,
+    )
+    .map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
+    let out = staged.path();
+    if resume && !continue_pending && final_out.join("last.safetensors").exists() {
+        copy_files(final_out, out)?;
+        // The correction form was chosen for the weights before: the resumed model has none
+        // until it is checked again (`umesh choose-correction`, or prepare's check).
+        let _ = std::fs::remove_file(out.join(umesh_core::register::correction::CorrectionChoice::FILE));
+    }
+    // The app records a job's settings in the folder before it runs: they travel with the model.
+    let job = final_out.join(JOB_FILE);
+    if job.is_file() {
+        std::fs::copy(&job, out.join(JOB_FILE)).map_err(|e| NetError::Io { path: job.to_path_buf(), source: e })?;
+    }
+    Ok(staged)
+}
+
+/// Swapped in only when usable: a run whose validation loss was never finite (diverged) leaves
+/// the folder it would replace as it was.
+fn check_usable(
+    out: &Path,
+    best: f64,
+    epochs: &[EpochMetrics],
+    settings: &TrainSettings,
+    final_out: &Path,
+) -> Result<(), NetError> {
+    if !out.join("model.safetensors").exists() || !best.is_finite() {
+        let last = epochs.last().map(|m| m.val_loss).unwrap_or(f64::NAN);
+        return Err(NetError::Invalid(format!(
+            "training produced no usable weights (validation loss {last} at the last epoch, never finite: the learning rate {} is too large for this dataset?); {} left as it was",
+            settings.learning_rate,
+            final_out.display()
+        )));
+    }
+    Ok(())
+}
+
+/// The training and validation samples (80/20), refused when either would be empty.
+fn split(set: &SampleSet, dataset: &Path) -> Result<(Vec<usize>, Vec<usize>), NetError> {
+    let (train, val) = set.split();
+    if train.is_empty() || val.is_empty() {
+        return Err(NetError::Invalid(format!(
+            "{}: {} samples are too few for an 80/20 split",
+            dataset.display(),
+            set.len()
+        )));
+    }
+    Ok((train, val))
+}
+
+/// `model.json` (and the grid beside it: registration needs its visible nodes and surface).
+fn write_info(
+    out: &Path,
+    dataset: &Path,
+    settings: &TrainSettings,
+    (set, train, val): (&SampleSet, &[usize], &[usize]),
+    norm: Normalization,
+    manifest: Option<umesh_core::dataset::Manifest>,
+) -> Result<(), NetError> {
+    // The grid travels with the model: registration needs its visible nodes and surface.
+    let grid_src = dataset.join("grid.npz");
+    if let Ok(bytes) = std::fs::read(&grid_src) {
+        umesh_core::write_atomic(&out.join("grid.npz"), &bytes)
+            .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
+    }
+    let info = ModelInfo {
+        config: settings.network(),
+        normalization: norm,
+        padded_shape: set.shape,
+        dataset: dataset.display().to_string(),
+        train_indices: train.iter().map(|&k| set.indices[k]).collect(),
+        val_indices: val.iter().map(|&k| set.indices[k]).collect(),
+        settings: settings.clone(),
+        grid_hash: manifest.as_ref().map(|m| m.grid_hash.clone()),
+        dataset_config: manifest.map(|m| m.config),
+    };
+    info.write(out)
+}
+
+/// The training samples in an epoch's order: a Fisher-Yates shuffle from the epoch's seed.
+fn shuffled(train: &[usize], seed: u64) -> Vec<usize> {
+    let mut order = train.to_vec();
+    let mut rng = SplitMix64(seed);
+    for i in (1..order.len()).rev() {
+        order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+    }
+    order
+}
+
+/// Where a training starts: the dataset, the staging folder, whether it resumes, the dataset's
+/// manifest.
+struct Start<'a> {
+    dataset: &'a Path,
+    out: &'a Path,
+    resume: bool,
+    manifest: Option<&'a umesh_core::dataset::Manifest>,
+}
+
+impl Start<'_> {
+    /// With --init-from, the network and its scales come from that model; a resumed run keeps
+    /// the scales and continues from its own last weights and epochs (returned).
+    fn load(
+        &self,
+        settings: &TrainSettings,
+        shape: [usize; 3],
+        model: &mut UNet,
+        norm: &mut Normalization,
+        metrics_path: &Path,
+    ) -> Result<Vec<EpochMetrics>, NetError> {
+        if let Some(init) = &settings.init_from {
+            let from = check_init_from(init, &settings.network(), shape, self.manifest, self.dataset)?;
+            if !(self.resume && self.out.join("last.safetensors").exists()) {
+                load_weights(model, &init.join("model.safetensors"))?;
+            }
+            // The weights expect the scales they were trained with.
+            *norm = from.normalization;
+        }
+        if self.resume && self.out.join("last.safetensors").exists() {
+            check_resume(self.out, self.manifest, &settings.network(), self.dataset)?;
+            load_weights(model, &self.out.join("last.safetensors"))?;
+            if let Ok(text) = std::fs::read_to_string(metrics_path) {
+                return Ok(text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect());
+            }
+        }
+        Ok(Vec::new())
+    }
+}
+
+/// What registration compares each frame's fit with (camera-view models only).
+fn calibrate_confidence(
+    out: &Path,
+    dataset: &Path,
+    settings: &TrainSettings,
+    progress: &Progress,
+) -> Result<(), NetError> {
+    if settings.observation.is_some() && out.join("model.safetensors").exists() {
+        let r = crate::eval::calibrate_confidence(out, dataset, progress)?;
+        crate::eval::write_confidence(out, &r)?;
+    }
+    Ok(())
+}
+
+/// Where an epoch stands in the training: its learning rate, its number, and the batches of
+/// the whole run (for progress).
+struct Steps {
+    learning_rate: f64,
+    epoch: usize,
+    epochs: usize,
+    total_batches: usize,
+}
+
+/// One epoch's batches, each a forward pass, a backward pass and an Adam step: the model and
+/// the mean training loss.
+#[allow(clippy::too_many_arguments)]
+fn train_batches(
+    mut model: UNet,
+    optim: &mut burn::optim::ModuleOptimizer,
+    batches: &[&[usize]],
+    (set, rest, norm): (&SampleSet, &[bool], &Normalization),
+    ad: &Device,
+    steps: &Steps,
+    done_batches: &mut usize,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<(UNet, f64), NetError> {
+    let mut train_loss = 0.0;
+    for ids in batches {
+        cancel.check()?;
+        let x = batch(&set.u_s, ids, set.shape, norm.input_scale_mm, ad);
+        let y = target_batch(set, ids, rest, norm.output_scale_mm, ad);
+        let loss = (model.forward(x) - y).square().mean();
+        train_loss += loss.clone().into_scalar::<f32>() as f64;
+        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        model = optim.step(steps.learning_rate, model, grads);
+        *done_batches += 1;
+        progress.report(
+            *done_batches as u64,
+            steps.total_batches as u64,
+            &format!("epoch {}/{}", steps.epoch, steps.epochs),
+        );
+    }
+    Ok((model, train_loss / batches.len().max(1) as f64))
+}
+
+/// The settings a training can run with, each refused naming its option.
+fn check_settings(settings: &TrainSettings) -> Result<(), NetError> {
     if !(settings.rest_views.is_finite() && (0.0..=0.5).contains(&settings.rest_views)) {
         return Err(NetError::Invalid(format!("rest_views must be in [0, 0.5], got {}", settings.rest_views)));
     }
@@ -185,240 +509,74 @@ pub fn run_train(
         return Err(NetError::Invalid("--batch-size 0: at least one sample a batch".into()));
     }
     settings.network().check_size().map_err(|e| NetError::Invalid(e.0))?;
-    // The model (and its staging folder beside it) must not be written into a dataset or a
-    // model it reads. Fine-tuning a model in place (`--init-from M --out M`) is safe: its
-    // weights are read before the new folder is swapped in, and only when training succeeds.
-    let mut inputs: Vec<(&str, &Path)> = vec![("--dataset", dataset)];
-    if let Some(init) = &settings.init_from {
-        let same = matches!((init.canonicalize(), out.canonicalize()), (Ok(a), Ok(b)) if a == b);
-        if !same {
-            inputs.push(("--init-from", init.as_path()));
-        }
-    }
-    umesh_core::check_apart(out, &inputs).map_err(|e| NetError::Invalid(e.0))?;
-    let mut set = SampleSet::load_inputs(dataset, settings.observation.as_ref())?;
-    let mut rest = vec![false; set.len()];
-    let refresher = match (&settings.observation, settings.fresh_views) {
-        (Some(o), true) => Some(crate::data::ViewRefresher::new(dataset, o)?),
-        _ => None,
-    };
-    let (train, val) = set.split();
-    if train.is_empty() || val.is_empty() {
+    Ok(())
+}
+
+/// The model `--init-from` names, if it has this network on this grid.
+fn check_init_from(
+    init: &Path,
+    cfg: &UNetConfig,
+    shape: [usize; 3],
+    manifest: Option<&umesh_core::dataset::Manifest>,
+    dataset: &Path,
+) -> Result<ModelInfo, NetError> {
+    let from = ModelInfo::read(init)?;
+    if from.config != *cfg || from.padded_shape != shape {
         return Err(NetError::Invalid(format!(
-            "{}: {} samples are too few for an 80/20 split",
-            dataset.display(),
-            set.len()
+            "--init-from {}: its network {:?} on grid {:?} differs from this one's {:?} on {:?}",
+            init.display(),
+            from.config,
+            from.padded_shape,
+            cfg,
+            shape
         )));
     }
-    let cfg = &settings.network();
-    cfg.check_shape([1, set.channels, set.shape[0], set.shape[1], set.shape[2]])
-        .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
-    // Training runs in a staging folder beside `out`, kept on failure or cancel (so `resume`
-    // continues there) and swapped in whole at the end: a failed or cancelled run never leaves
-    // `out` half-overwritten, and no file of an earlier model survives in the new one.
-    let final_out = out;
-    let pending = umesh_core::StagedDir::pending_path(final_out);
-    let continue_pending = resume && pending.join("last.safetensors").exists();
-    let staged = umesh_core::StagedDir::resumable(
-        final_out,
-        umesh_core::OutputKind::Model,
-        &["model.json", "metrics.jsonl", JOB_FILE],
-        continue_pending,
-    )
-    .map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
-    let out = staged.path();
-    if resume && !continue_pending && final_out.join("last.safetensors").exists() {
-        copy_files(final_out, out)?;
-        // The correction form was chosen for the weights before: the resumed model has none
-        // until it is checked again (`umesh choose-correction`, or prepare's check).
-        let _ = std::fs::remove_file(out.join(umesh_core::register::correction::CorrectionChoice::FILE));
+    if let (Some(h), Some(m)) = (&from.grid_hash, manifest)
+        && *h != m.grid_hash
+    {
+        return Err(NetError::Invalid(format!(
+            "--init-from {}: it was trained on another grid than {}",
+            init.display(),
+            dataset.display()
+        )));
     }
-    // The app records a job's settings in the folder before it runs: they travel with the model.
-    let job = final_out.join(JOB_FILE);
-    if job.is_file() {
-        std::fs::copy(&job, out.join(JOB_FILE)).map_err(|e| NetError::Io { path: job.to_path_buf(), source: e })?;
-    }
-    let device = Device::flex();
-    device.seed(settings.seed);
-    let ad = device.clone().autodiff();
-    let mut norm = Normalization::fit(&set, &train);
-    let mut model = cfg.init(&ad);
-    let metrics_path = out.join("metrics.jsonl");
-    let mut epochs: Vec<EpochMetrics> = Vec::new();
-    let manifest = umesh_core::dataset::Manifest::read(dataset).ok();
-    // With --init-from, the network and its scales come from that model; a resumed run keeps
-    // the scales and continues from its own last weights.
-    if let Some(init) = &settings.init_from {
-        let from = ModelInfo::read(init)?;
-        if from.config != *cfg || from.padded_shape != set.shape {
+    Ok(from)
+}
+
+/// Resuming into a model trained on another dataset or network would mix both.
+fn check_resume(
+    out: &Path,
+    manifest: Option<&umesh_core::dataset::Manifest>,
+    cfg: &UNetConfig,
+    dataset: &Path,
+) -> Result<(), NetError> {
+    // Resuming into a model trained on another dataset would mix both.
+    if let Ok(old) = ModelInfo::read(out) {
+        let same = manifest.is_some_and(|m| {
+            old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config)
+        });
+        if !same || old.config != *cfg {
             return Err(NetError::Invalid(format!(
-                "--init-from {}: its network {:?} on grid {:?} differs from this one's {:?} on {:?}",
-                init.display(),
-                from.config,
-                from.padded_shape,
-                cfg,
-                set.shape
-            )));
-        }
-        if let (Some(h), Some(m)) = (&from.grid_hash, &manifest)
-            && *h != m.grid_hash
-        {
-            return Err(NetError::Invalid(format!(
-                "--init-from {}: it was trained on another grid than {}",
-                init.display(),
+                "{}: --resume: the model there was trained on another dataset or network configuration than {} (start in an empty folder)",
+                out.display(),
                 dataset.display()
             )));
         }
-        if !(resume && out.join("last.safetensors").exists()) {
-            load_weights(&mut model, &init.join("model.safetensors"))?;
-        }
-        // The weights expect the scales they were trained with.
-        norm = from.normalization;
     }
-    if resume && out.join("last.safetensors").exists() {
-        // Resuming into a model trained on another dataset would mix both.
-        if let Ok(old) = ModelInfo::read(out) {
-            let same = manifest.as_ref().is_some_and(|m| {
-                old.grid_hash.as_deref() == Some(m.grid_hash.as_str()) && old.dataset_config.as_ref() == Some(&m.config)
-            });
-            if !same || old.config != *cfg {
-                return Err(NetError::Invalid(format!(
-                    "{}: --resume: the model there was trained on another dataset or network configuration than {} (start in an empty folder)",
-                    out.display(),
-                    dataset.display()
-                )));
-            }
-        }
-        load_weights(&mut model, &out.join("last.safetensors"))?;
-        if let Ok(text) = std::fs::read_to_string(&metrics_path) {
-            epochs = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
-        }
-    }
-    let markers = tre::markers(&set.grid, settings.markers, settings.seed ^ 0x5EED);
-    // The grid travels with the model: registration needs its visible nodes and surface.
-    let grid_src = dataset.join("grid.npz");
-    if let Ok(bytes) = std::fs::read(&grid_src) {
-        umesh_core::write_atomic(&out.join("grid.npz"), &bytes)
-            .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
-    }
-    let info = ModelInfo {
-        config: cfg.clone(),
-        normalization: norm,
-        padded_shape: set.shape,
-        dataset: dataset.display().to_string(),
-        train_indices: train.iter().map(|&k| set.indices[k]).collect(),
-        val_indices: val.iter().map(|&k| set.indices[k]).collect(),
-        settings: settings.clone(),
-        grid_hash: manifest.as_ref().map(|m| m.grid_hash.clone()),
-        dataset_config: manifest.map(|m| m.config),
-    };
-    info.write(out)?;
-    let mut optim = AdamConfig::new().init();
-    let mut best = epochs.iter().map(|e| e.val_loss).fold(f64::INFINITY, f64::min);
-    let mut best_epoch = epochs.iter().min_by(|a, b| a.val_loss.total_cmp(&b.val_loss)).map(|e| e.epoch).unwrap_or(0);
-    let total_batches = settings.epochs.saturating_mul(train.len().div_ceil(settings.batch_size.max(1)));
-    let mut done_batches = epochs.len() * train.len().div_ceil(settings.batch_size.max(1));
-    let mut plan = EpochPlan {
-        asked: settings.epochs,
-        patience: settings.patience,
-        budget_s: settings.time_budget_s,
-        spent_s: 0.0,
-        run_epochs: 0,
-    };
-    let mut stopped_early = epochs.last().and_then(|e| plan.stop(e.epoch, best_epoch));
-    for epoch in epochs.len() + 1..=settings.epochs {
-        if stopped_early.is_some() {
-            break;
-        }
-        let t = Instant::now();
-        let learning_rate = settings.lr_schedule.rate(settings.learning_rate, epoch, plan.last_epoch(epoch - 1));
-        let mut order = train.clone();
-        let mut rng = SplitMix64(settings.seed.wrapping_add(epoch as u64));
-        for i in (1..order.len()).rev() {
-            order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
-        }
-        if let Some(r) = &refresher
-            && epoch > 1
-        {
-            progress.report(
-                done_batches as u64,
-                total_batches as u64,
-                &format!("epoch {epoch}/{}: new camera views", settings.epochs),
-            );
-            r.refresh(&mut set, &train, epoch, settings.rest_views, &mut rest)
-                .map_err(|e| NetError::Invalid(format!("{}: {e}", dataset.display())))?;
-        }
-        let mut train_loss = 0.0;
-        let batches: Vec<&[usize]> = order.chunks(settings.batch_size.max(1)).collect();
-        for ids in &batches {
-            cancel.check()?;
-            let x = batch(&set.u_s, ids, set.shape, norm.input_scale_mm, &ad);
-            let y = target_batch(&set, ids, &rest, norm.output_scale_mm, &ad);
-            let loss = (model.forward(x) - y).square().mean();
-            train_loss += loss.clone().into_scalar::<f32>() as f64;
-            let grads = GradientsParams::from_grads(loss.backward(), &model);
-            model = optim.step(learning_rate, model, grads);
-            done_batches += 1;
-            progress.report(done_batches as u64, total_batches as u64, &format!("epoch {epoch}/{}", settings.epochs));
-        }
-        let train_secs = t.elapsed().as_secs_f64();
-        let valid = model.valid();
-        let (val_loss, tres, _) = validate(&valid, &set, &val, &norm, &markers, &device);
-        let (tre_mean, _, tre_max) = tre::summary(&tres);
-        let m = EpochMetrics {
-            epoch,
-            train_loss: train_loss / batches.len().max(1) as f64,
-            val_loss,
-            val_tre_mean_mm: tre_mean,
-            val_tre_max_mm: tre_max,
-            seconds: t.elapsed().as_secs_f64(),
-            train_samples_per_s: train.len() as f64 / train_secs.max(1e-9),
-        };
-        save_weights(&valid, &out.join("last.safetensors"))?;
-        if val_loss < best {
-            best = val_loss;
-            best_epoch = epoch;
-            save_weights(&valid, &out.join("model.safetensors"))?;
-        }
-        let mut line = serde_json::to_string(&m).unwrap_or_default();
-        line.push('\n');
-        use std::io::Write;
-        std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&metrics_path)
-            .and_then(|mut f| f.write_all(line.as_bytes()))
-            .map_err(|e| NetError::Io { path: metrics_path.to_path_buf(), source: e })?;
-        plan.spent_s += m.seconds;
-        plan.run_epochs += 1;
-        stopped_early = plan.stop(epoch, best_epoch);
-        on_epoch(&m);
-        epochs.push(m);
-    }
-    // Swapped in only when usable: a run whose validation loss was never finite (diverged)
-    // leaves the folder it would replace as it was.
-    if !out.join("model.safetensors").exists() || !best.is_finite() {
-        let last = epochs.last().map(|m| m.val_loss).unwrap_or(f64::NAN);
-        return Err(NetError::Invalid(format!(
-            "training produced no usable weights (validation loss {last} at the last epoch, never finite: the learning rate {} is too large for this dataset?); {} left as it was",
-            settings.learning_rate,
-            final_out.display()
-        )));
-    }
-    // What registration compares each frame's fit with (camera-view models only).
-    if settings.observation.is_some() && out.join("model.safetensors").exists() {
-        let r = crate::eval::calibrate_confidence(out, dataset, progress)?;
-        crate::eval::write_confidence(out, &r)?;
-    }
-    staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
-    Ok(TrainReport {
-        out: final_out.into(),
-        epochs,
-        train_samples: train.len(),
-        val_samples: val.len(),
-        best_epoch,
-        stopped_early,
-    })
+    Ok(())
+}
+
+/// One epoch's line of `metrics.jsonl`.
+fn append_metrics(path: &Path, m: &EpochMetrics) -> Result<(), NetError> {
+    use std::io::Write;
+    let mut line = serde_json::to_string(m).map_err(|e| NetError::Invalid(format!("{}: {e}", path.display())))?;
+    line.push('\n');
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .and_then(|mut f| f.write_all(line.as_bytes()))
+        .map_err(|e| NetError::Io { path: path.to_path_buf(), source: e })
 }
 
 #[cfg(test)]

@@ -139,17 +139,7 @@ pub fn run_generate_checked(
     cancel: &Cancel,
 ) -> Result<GenerateReport, DatasetError> {
     let start = Instant::now();
-    if !(1..=super::MAX_SAMPLES).contains(&config.samples) || config.shard_size == 0 {
-        return Err(invalid(
-            out,
-            format!(
-                "{} samples in shards of {}: between 1 and {} samples, shards of at least 1",
-                config.samples,
-                config.shard_size,
-                super::MAX_SAMPLES
-            ),
-        ));
-    }
+    check_counts(out, config)?;
     let fresh = !out.join("manifest.json").exists();
     if fresh {
         check_new_dataset_folder(out)?;
@@ -168,83 +158,14 @@ pub fn run_generate_checked(
         checked = Some(check.judge(preflight_with(&ctx, config, &check.settings, d, start, progress, cancel)?)?);
     }
     std::fs::create_dir_all(out).map_err(|source| DatasetError::Io { path: out.into(), source })?;
-    // Temporary files of an interrupted run are never data.
-    if let Ok(entries) = std::fs::read_dir(out) {
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with('.') && name.ends_with(".tmp") {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
-    }
+    remove_temporaries(out);
     let mut manifest = base_manifest(seg, config, &ctx)?;
-    // Shard file -> content hash, as the manifest on disk recorded them when they were written.
-    let mut recorded: BTreeMap<String, String> = BTreeMap::new();
-    if out.join("manifest.json").exists() {
-        let old = Manifest::read(out)?;
-        if old.config_hash != manifest.config_hash
-            || old.grid_hash != manifest.grid_hash
-            || old.segmentation_hash != manifest.segmentation_hash
-        {
-            return Err(invalid(
-                out,
-                "holds a dataset made with another configuration or segmentation; choose an empty folder",
-            ));
-        }
-        // Keep what the old manifest knows (timings, reasons) for shards still on disk.
-        manifest.samples = old.samples;
-        recorded = old.shards.into_iter().map(|s| (s.file, s.hash)).collect();
-    } else if (0..config.shard_count()).any(|s| out.join(shard_file_name(s)).exists())
-        || std::fs::read_dir(out)
-            .map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_")))
-            .unwrap_or(false)
-    {
-        // The manifest is written before the first shard: shards without one are left over from
-        // another run (or its manifest was deleted), and their settings cannot be checked.
-        return Err(invalid(
-            out,
-            "holds shard files but no manifest.json, so what made them cannot be checked; choose an empty folder (or restore its manifest.json)",
-        ));
-    }
+    let recorded = resume_from(out, config, &mut manifest)?;
     let grid_path = out.join("grid.npz");
     crate::write_atomic(&grid_path, &ctx.grid_npz)
         .map_err(|source| DatasetError::Io { path: grid_path.clone(), source })?;
 
-    // Shards already on disk and sound are adopted; the rest are computed.
-    let padded = ctx.grid.padded_shape();
-    let mut todo: Vec<usize> = Vec::new();
-    let known: BTreeMap<usize, SampleRecord> = manifest.samples.drain(..).map(|s| (s.index, s)).collect();
-    let mut reused = 0;
-    for shard in 0..config.shard_count() {
-        let path = out.join(shard_file_name(shard));
-        // A shard is adopted only when its bytes are the ones this dataset's manifest recorded:
-        // a file copied in from another dataset (another seed, same grid) is recomputed.
-        let bytes = if path.exists() { std::fs::read(&path).ok() } else { None };
-        if let Some(bytes) = bytes
-            && recorded.get(&shard_file_name(shard)) == Some(&fnv_hex(&bytes))
-            && let Ok((records, accepted)) = read_shard_records(&path, config, shard, padded)
-        {
-            let range = config.shard_range(shard);
-            manifest.shards.push(ShardRecord {
-                file: shard_file_name(shard),
-                first: range.start,
-                count: range.len(),
-                accepted,
-                hash: fnv_hex(&bytes),
-            });
-            for r in records {
-                let kept = known.get(&r.index).filter(|k| k.shard == r.shard).cloned();
-                manifest.samples.push(kept.unwrap_or(r));
-            }
-            if selection.includes(shard) {
-                reused += range.len();
-            }
-            continue;
-        }
-        if selection.includes(shard) {
-            todo.push(shard);
-        }
-    }
+    let (todo, reused) = adopt_shards(out, config, &selection, &ctx, &mut manifest, &recorded);
     finalize(&mut manifest);
     manifest.write(out)?;
 
@@ -319,25 +240,157 @@ pub fn run_generate_checked(
     }
     cancel.check()?;
     let manifest = manifest.into_inner().map_err(|_| invalid(out, "a worker panicked"))?;
+    let computed = done.into_inner();
+    let shards_written = shards_written.into_inner();
+    Ok(generate_report(out, config, &manifest, start, computed, reused, shards_written, checked))
+}
+
+/// The sample and shard counts a job can afford.
+fn check_counts(out: &Path, config: &DatasetConfig) -> Result<(), DatasetError> {
+    if !(1..=super::MAX_SAMPLES).contains(&config.samples) || config.shard_size == 0 {
+        return Err(invalid(
+            out,
+            format!(
+                "{} samples in shards of {}: between 1 and {} samples, shards of at least 1",
+                config.samples,
+                config.shard_size,
+                super::MAX_SAMPLES
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Temporary files of an interrupted run are never data.
+fn remove_temporaries(out: &Path) {
+    // Temporary files of an interrupted run are never data.
+    if let Ok(entries) = std::fs::read_dir(out) {
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') && name.ends_with(".tmp") {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
+/// What a folder's earlier run left: its samples' records moved into `manifest` and each shard
+/// file's recorded hash. Refused when the folder holds another dataset, or shards without a
+/// manifest.
+fn resume_from(
+    out: &Path,
+    config: &DatasetConfig,
+    manifest: &mut Manifest,
+) -> Result<BTreeMap<String, String>, DatasetError> {
+    // Shard file -> content hash, as the manifest on disk recorded them when they were written.
+    let mut recorded: BTreeMap<String, String> = BTreeMap::new();
+    if out.join("manifest.json").exists() {
+        let old = Manifest::read(out)?;
+        if old.config_hash != manifest.config_hash
+            || old.grid_hash != manifest.grid_hash
+            || old.segmentation_hash != manifest.segmentation_hash
+        {
+            return Err(invalid(
+                out,
+                "holds a dataset made with another configuration or segmentation; choose an empty folder",
+            ));
+        }
+        // Keep what the old manifest knows (timings, reasons) for shards still on disk.
+        manifest.samples = old.samples;
+        recorded = old.shards.into_iter().map(|s| (s.file, s.hash)).collect();
+    } else if (0..config.shard_count()).any(|s| out.join(shard_file_name(s)).exists())
+        || std::fs::read_dir(out)
+            .map(|d| d.flatten().any(|e| e.file_name().to_string_lossy().starts_with("shard_")))
+            .unwrap_or(false)
+    {
+        // The manifest is written before the first shard: shards without one are left over from
+        // another run (or its manifest was deleted), and their settings cannot be checked.
+        return Err(invalid(
+            out,
+            "holds shard files but no manifest.json, so what made them cannot be checked; choose an empty folder (or restore its manifest.json)",
+        ));
+    }
+    Ok(recorded)
+}
+
+/// Shards already on disk and sound are adopted into `manifest`: the selected shards left to
+/// compute, and how many samples of the selection were adopted.
+fn adopt_shards(
+    out: &Path,
+    config: &DatasetConfig,
+    selection: &ShardSelection,
+    ctx: &DatasetContext,
+    manifest: &mut Manifest,
+    recorded: &BTreeMap<String, String>,
+) -> (Vec<usize>, usize) {
+    // Shards already on disk and sound are adopted; the rest are computed.
+    let padded = ctx.grid.padded_shape();
+    let mut todo: Vec<usize> = Vec::new();
+    let known: BTreeMap<usize, SampleRecord> = manifest.samples.drain(..).map(|s| (s.index, s)).collect();
+    let mut reused = 0;
+    for shard in 0..config.shard_count() {
+        let path = out.join(shard_file_name(shard));
+        // A shard is adopted only when its bytes are the ones this dataset's manifest recorded:
+        // a file copied in from another dataset (another seed, same grid) is recomputed.
+        let bytes = if path.exists() { std::fs::read(&path).ok() } else { None };
+        if let Some(bytes) = bytes
+            && recorded.get(&shard_file_name(shard)) == Some(&fnv_hex(&bytes))
+            && let Ok((records, accepted)) = read_shard_records(&path, config, shard, padded)
+        {
+            let range = config.shard_range(shard);
+            manifest.shards.push(ShardRecord {
+                file: shard_file_name(shard),
+                first: range.start,
+                count: range.len(),
+                accepted,
+                hash: fnv_hex(&bytes),
+            });
+            for r in records {
+                let kept = known.get(&r.index).filter(|k| k.shard == r.shard).cloned();
+                manifest.samples.push(kept.unwrap_or(r));
+            }
+            if selection.includes(shard) {
+                reused += range.len();
+            }
+            continue;
+        }
+        if selection.includes(shard) {
+            todo.push(shard);
+        }
+    }
+    (todo, reused)
+}
+
+/// The job's figures once its samples are in `manifest`.
+#[allow(clippy::too_many_arguments)]
+fn generate_report(
+    out: &Path,
+    config: &DatasetConfig,
+    manifest: &Manifest,
+    start: Instant,
+    computed: usize,
+    reused: usize,
+    shards_written: usize,
+    checked: Option<Preflight>,
+) -> GenerateReport {
     let secs = start.elapsed().as_secs_f64();
     let mut rejected = BTreeMap::new();
     for s in manifest.samples.iter().filter(|s| !s.accepted) {
         *rejected.entry(format!("{:?}", s.rejection.unwrap_or(Rejection::Failed)).to_lowercase()).or_insert(0) += 1;
     }
-    let computed = done.into_inner();
-    Ok(GenerateReport {
+    GenerateReport {
         out: out.into(),
         samples_total: config.samples,
         samples_computed: computed,
         samples_reused: reused,
         accepted: manifest.accepted().count(),
         rejected,
-        shards_written: shards_written.into_inner(),
+        shards_written,
         seconds: secs,
         samples_per_minute: if secs > 0.0 { computed as f64 * 60.0 / secs } else { 0.0 },
         complete: manifest.complete,
         preflight: checked,
-    })
+    }
 }
 
 pub(super) fn record_error(slot: &Mutex<Option<DatasetError>>, e: DatasetError) {

@@ -8,12 +8,12 @@
 //! what is on disk; a folder made from other inputs or settings is refused.
 
 use super::folder::{
-    CheckReport, FORMAT, FORMAT_VERSION, Patient, PrepareReport, PrepareSettings, Stage, hash_inputs, model_dir,
-    read_json, read_metrics, same_as_stored, settings_differences, write_json,
+    CheckReport, FORMAT, FORMAT_VERSION, Patient, PrepareReport, PrepareSettings, Stage, Verdict, hash_inputs,
+    model_dir, read_json, read_metrics, same_as_stored, settings_differences, write_json,
 };
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use umesh_core::dataset::{DatasetConfig, DatasetContext, ShardSelection, run_generate, run_stats};
+use umesh_core::dataset::{DatasetConfig, DatasetContext, DatasetStats, ShardSelection, run_generate, run_stats};
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, FormFigures};
 use umesh_core::register::pipeline::{DisplacementModel, GroundTruth, RegisterReport, RegisterSettings, run_register};
@@ -23,7 +23,7 @@ use umesh_core::segmentation::Segmentation;
 use umesh_core::synth::{SynthReport, run_rgbd_synth};
 use umesh_core::{Cancel, Progress};
 use umesh_net::inference::Predictor;
-use umesh_net::training::run_train;
+use umesh_net::training::{EpochMetrics, run_train};
 use umesh_net::{NetError, eval};
 
 /// Estimated cost of each stage (arbitrary units ~ 10 ms on 2 cores), for one progress bar.
@@ -64,109 +64,13 @@ pub fn run_prepare(
     let start = Instant::now();
     // Checks first: labels, grid, fixed region, camera (all raise before anything is written).
     let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
-    settings
-        .train
-        .network()
-        .check_shape([
-            1,
-            settings.train.network().in_channels,
-            ctx.grid.padded_shape()[0],
-            ctx.grid.padded_shape()[1],
-            ctx.grid.padded_shape()[2],
-        ])
-        .map_err(|e| NetError::Invalid(format!("{}: {e}", seg.source.display())))?;
-    if settings.dataset.samples < 10 {
-        return Err(NetError::Invalid(format!(
-            "{} samples: at least 10 are needed for a train/validation split",
-            settings.dataset.samples
-        )));
-    }
-    if settings.train.epochs == 0 {
-        return Err(NetError::Invalid("0 epochs: at least one is needed".into()));
-    }
-    let hashed = hash_inputs(inputs)?;
-    let seg_hash = umesh_core::dataset::segmentation_hash(seg);
-    let names = |ls: &[i64]| ls.iter().map(|&l| seg.label_name(l)).collect::<Vec<_>>();
-    let mut patient = Patient {
-        format: FORMAT.into(),
-        format_version: FORMAT_VERSION,
-        program_version: env!("CARGO_PKG_VERSION").into(),
-        inputs: hashed,
-        segmentation_hash: seg_hash.clone(),
-        organ_labels: names(&seg.organ_labels),
-        structures: names(&seg.structure_labels),
-        stored_segmentation_hash: None,
-        settings: settings.clone(),
-        stages: Default::default(),
-    };
-    if out.join("patient.json").exists() {
-        let old = Patient::read(out)?;
-        if old.segmentation_hash != seg_hash {
-            return Err(NetError::Invalid(format!(
-                "{}: holds a patient prepared from another segmentation (segmentation hash {} vs {seg_hash}); choose an empty folder",
-                out.display(),
-                old.segmentation_hash
-            )));
-        }
-        // The same voxels under other names are another patient's segmentation: its structures
-        // would be drawn under the wrong names, or dropped by `register --patient`.
-        if (&old.organ_labels, &old.structures) != (&patient.organ_labels, &patient.structures) {
-            return Err(NetError::Invalid(format!(
-                "{}: holds a patient whose label names differ (organ {:?}, structures {:?}; now organ {:?}, structures {:?}); choose an empty folder",
-                out.display(),
-                old.organ_labels,
-                old.structures,
-                patient.organ_labels,
-                patient.structures
-            )));
-        }
-        if !same_as_stored(&old.settings, settings)? {
-            return Err(NetError::Invalid(format!(
-                "{}: holds a patient prepared with other settings (same segmentation): {}; choose an empty folder or the same options",
-                out.display(),
-                settings_differences(&old.settings, settings).join(", ")
-            )));
-        }
-        // A resumed job's budget counts the time its earlier runs spent; a finished job run
-        // again only rewrites its report, and keeps the budget its work was done under.
-        let finished = Stage::ALL.iter().all(|s| *s == Stage::Report || old.done(*s));
-        patient.settings.time_budget_s = if finished { old.settings.time_budget_s } else { settings.time_budget_s };
-        patient.stages = old.stages;
-        patient.stored_segmentation_hash = old.stored_segmentation_hash;
-    } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
-        return Err(NetError::Invalid(format!(
-            "{}: the folder is not empty and holds no patient.json; choose an empty folder",
-            out.display()
-        )));
-    }
-    // A new patient's dataset is checked before the folder exists: a job that would store too
-    // few samples stops here with its likely cause.
-    if let Some(check) = preflight
-        && !out.join("patient.json").exists()
-        && settings.dataset.samples > check.settings.samples
-    {
-        let p = ctx.preflight(&settings.dataset, &check.settings, progress, cancel).map_err(|e| match e {
-            umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
-            e => e.into(),
-        })?;
-        check.judge(p).map_err(|e| NetError::Invalid(e.to_string()))?;
-    }
+    check_job(seg, settings, &ctx)?;
+    let mut patient = new_patient(seg, inputs, settings)?;
+    resume_or_start(out, settings, &mut patient)?;
+    preflight_new(out, settings, &ctx, preflight, progress, cancel)?;
     drop(ctx);
     std::fs::create_dir_all(out).map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
-    let seg_path = out.join("segmentation.nii.gz");
-    if !seg_path.exists() {
-        let mut vol = seg.volume.clone();
-        // Names travel with the labels so that `Patient::segmentation` finds them again.
-        for &l in seg.organ_labels.iter().chain(&seg.structure_labels) {
-            vol.label_names.entry(l).or_insert_with(|| seg.label_name(l));
-        }
-        umesh_core::nifti_io::write_volume(&seg_path, &vol, umesh_core::nifti_io::WriteType::I16)
-            .map_err(|e| NetError::Io { path: seg_path.to_path_buf(), source: e })?;
-    }
-    if patient.stored_segmentation_hash.is_none() {
-        let stored = patient.read_segmentation(out)?;
-        patient.stored_segmentation_hash = Some(umesh_core::dataset::segmentation_hash(&stored));
-    }
+    store_segmentation(seg, out, &mut patient)?;
     patient.write(out)?;
 
     // What earlier runs of this job spent (a resumed job's time budget counts it).
@@ -208,15 +112,7 @@ pub fn run_prepare(
         Ok(())
     })?;
     let stats = run_stats(&ds_dir)?;
-    // The job's time budget: training gets what the stages before it left, less what the
-    // stages after it take (an estimate: the evaluation and the check's frames).
-    let mut train_settings = settings.train.clone();
-    if settings.time_budget_s > 0.0 {
-        let spent = earlier_s + start.elapsed().as_secs_f64();
-        let after = 60.0 + 5.0 * settings.check.frames as f64;
-        // At least one epoch runs whatever the budget: a model is the job's point.
-        train_settings.time_budget_s = (settings.time_budget_s - spent - after).max(1e-3);
-    }
+    let train_settings = training_settings(settings, earlier_s + start.elapsed().as_secs_f64());
     let mut stopped_early = None;
     run_stage(&mut patient, Stage::Train, &mut |p| {
         let r = run_train(&ds_dir, &model, &train_settings, true, p, &|_| {}, cancel)?;
@@ -238,67 +134,17 @@ pub fn run_prepare(
     let synth_path = out.join("check").join("recording.json");
     let synth_failed_path = out.join("check").join("recording-failed.json");
     run_stage(&mut patient, Stage::Recording, &mut |p| {
-        // The check's load starts within what the dataset's samples reached, and an organ whose
-        // load still does not converge (an element inverts) is checked at lighter loads; if none
-        // converges the job ends with its model and a warning, never fails after training.
-        let mut check = settings.check.clone();
-        if let Some(reach) = stats.achieved_over_target.as_ref().map(|d| d.median)
-            && reach < 1.0 - umesh_core::dataset::CALIBRATION_TOLERANCE / 2.0
-        {
-            check.load_scale *= reach;
-        }
-        let mut failures = Vec::new();
-        // A failure recorded by an interrupted earlier run is not this run's.
-        let _ = std::fs::remove_file(&synth_failed_path);
-        for _ in 0..3 {
-            let _ = std::fs::remove_dir_all(&rec_dir);
-            match run_rgbd_synth(seg, &settings.dataset, &check, &rec_dir, p, cancel) {
-                Ok(r) => return write_json(&synth_path, &r),
-                Err(umesh_core::rgbd::RgbdError::Cancelled(c)) => return Err(c.into()),
-                Err(e @ umesh_core::rgbd::RgbdError::Io { .. }) => return Err(NetError::Invalid(e.to_string())),
-                Err(e) => failures.push(format!("at load scale {:.2}: {e}", check.load_scale)),
-            }
-            check.load_scale *= 0.6;
-        }
-        let _ = std::fs::remove_dir_all(&rec_dir);
-        write_json(&synth_failed_path, &format!("the check recording could not be made: {}", failures.join("; ")))
+        make_check_recording(seg, settings, &stats, &rec_dir, (&synth_path, &synth_failed_path), p, cancel)
     })?;
     let check_path = out.join("check").join("register.json");
     run_stage(&mut patient, Stage::Register, &mut |p| {
-        let r = match read_json::<String>(&synth_failed_path) {
-            Ok(reason) => CheckReport::not_run(reason),
-            Err(_) => match registration_check(seg, &settings.dataset, &model, &rec_dir, p, cancel) {
-                Ok(r) => r,
-                Err(NetError::Cancelled(c)) => return Err(c.into()),
-                Err(e) => CheckReport::not_run(format!("the registration check failed: {e}")),
-            },
-        };
-        write_json(&check_path, &r)
+        check_registration(seg, settings, &model, &rec_dir, (&synth_failed_path, &check_path), p, cancel)
     })?;
     let check: CheckReport = read_json(&check_path)?;
     let synth: Option<SynthReport> = read_json(&synth_path).ok();
     let metrics = read_metrics(&model);
-    // The report is rewritten on every run (its timings change).
-    let t = Instant::now();
-    patient.stages.entry(Stage::Report).or_default().done = true;
+    let verdict = write_report(out, &mut patient, settings, &stats, &metrics, &eval, synth.as_ref(), &check)?;
     let stopped_early = patient.stages.get(&Stage::Train).and_then(|r| r.note.clone());
-    let verdict = super::judge(&metrics, settings.train.epochs, stopped_early.as_deref(), &eval, &check, out);
-    let html = super::page::patient_html(
-        &patient,
-        &verdict,
-        &stats,
-        &metrics,
-        &eval,
-        synth.as_ref(),
-        &check,
-        &out.join("dataset").join("grid.npz"),
-    );
-    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes())
-        .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
-    let rec = patient.stages.entry(Stage::Report).or_default();
-    rec.done = true;
-    rec.seconds = t.elapsed().as_secs_f64();
-    patient.write(out)?;
     progress.report(total, total, "done");
     Ok(PrepareReport {
         out: out.into(),
@@ -316,6 +162,254 @@ pub fn run_prepare(
         verdict,
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The network fits the organ's grid, and the job has samples to split and epochs to run.
+fn check_job(seg: &Segmentation, settings: &PrepareSettings, ctx: &DatasetContext) -> Result<(), NetError> {
+    settings
+        .train
+        .network()
+        .check_shape([
+            1,
+            settings.train.network().in_channels,
+            ctx.grid.padded_shape()[0],
+            ctx.grid.padded_shape()[1],
+            ctx.grid.padded_shape()[2],
+        ])
+        .map_err(|e| NetError::Invalid(format!("{}: {e}", seg.source.display())))?;
+    if settings.dataset.samples < 10 {
+        return Err(NetError::Invalid(format!(
+            "{} samples: at least 10 are needed for a train/validation split",
+            settings.dataset.samples
+        )));
+    }
+    if settings.train.epochs == 0 {
+        return Err(NetError::Invalid("0 epochs: at least one is needed".into()));
+    }
+    Ok(())
+}
+
+/// A folder holding this patient's earlier run: its stages (and, when finished, its time
+/// budget) carried over. Refused: another segmentation, other label names, other settings, or a
+/// folder that is not empty and holds no patient.
+fn resume_or_start(out: &Path, settings: &PrepareSettings, patient: &mut Patient) -> Result<(), NetError> {
+    let seg_hash = &patient.segmentation_hash;
+    if out.join("patient.json").exists() {
+        let old = Patient::read(out)?;
+        if old.segmentation_hash != *seg_hash {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient prepared from another segmentation (segmentation hash {} vs {seg_hash}); choose an empty folder",
+                out.display(),
+                old.segmentation_hash
+            )));
+        }
+        // The same voxels under other names are another patient's segmentation: its structures
+        // would be drawn under the wrong names, or dropped by `register --patient`.
+        if (&old.organ_labels, &old.structures) != (&patient.organ_labels, &patient.structures) {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient whose label names differ (organ {:?}, structures {:?}; now organ {:?}, structures {:?}); choose an empty folder",
+                out.display(),
+                old.organ_labels,
+                old.structures,
+                patient.organ_labels,
+                patient.structures
+            )));
+        }
+        if !same_as_stored(&old.settings, settings)? {
+            return Err(NetError::Invalid(format!(
+                "{}: holds a patient prepared with other settings (same segmentation): {}; choose an empty folder or the same options",
+                out.display(),
+                settings_differences(&old.settings, settings).join(", ")
+            )));
+        }
+        // A resumed job's budget counts the time its earlier runs spent; a finished job run
+        // again only rewrites its report, and keeps the budget its work was done under.
+        let finished = Stage::ALL.iter().all(|s| *s == Stage::Report || old.done(*s));
+        patient.settings.time_budget_s = if finished { old.settings.time_budget_s } else { settings.time_budget_s };
+        patient.stages = old.stages;
+        patient.stored_segmentation_hash = old.stored_segmentation_hash;
+    } else if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false) {
+        return Err(NetError::Invalid(format!(
+            "{}: the folder is not empty and holds no patient.json; choose an empty folder",
+            out.display()
+        )));
+    }
+    Ok(())
+}
+
+/// The label volume the job uses, with its names, kept in the folder (and its hash, so an edit
+/// later is seen).
+fn store_segmentation(seg: &Segmentation, out: &Path, patient: &mut Patient) -> Result<(), NetError> {
+    let seg_path = out.join("segmentation.nii.gz");
+    if !seg_path.exists() {
+        let mut vol = seg.volume.clone();
+        // Names travel with the labels so that `Patient::segmentation` finds them again.
+        for &l in seg.organ_labels.iter().chain(&seg.structure_labels) {
+            vol.label_names.entry(l).or_insert_with(|| seg.label_name(l));
+        }
+        umesh_core::nifti_io::write_volume(&seg_path, &vol, umesh_core::nifti_io::WriteType::I16)
+            .map_err(|e| NetError::Io { path: seg_path.to_path_buf(), source: e })?;
+    }
+    if patient.stored_segmentation_hash.is_none() {
+        let stored = patient.read_segmentation(out)?;
+        patient.stored_segmentation_hash = Some(umesh_core::dataset::segmentation_hash(&stored));
+    }
+    Ok(())
+}
+
+/// The check's synthetic recording: its load within what the dataset's samples reached, lighter
+/// when the organ does not converge; when none converges the reason is written instead (the job
+/// then ends with its model and a warning, never fails after training).
+#[allow(clippy::too_many_arguments)]
+fn make_check_recording(
+    seg: &Segmentation,
+    settings: &PrepareSettings,
+    stats: &DatasetStats,
+    rec_dir: &Path,
+    (synth_path, synth_failed_path): (&Path, &Path),
+    p: &Progress,
+    cancel: &Cancel,
+) -> Result<(), NetError> {
+    // The check's load starts within what the dataset's samples reached, and an organ whose
+    // load still does not converge (an element inverts) is checked at lighter loads; if none
+    // converges the job ends with its model and a warning, never fails after training.
+    let mut check = settings.check.clone();
+    if let Some(reach) = stats.achieved_over_target.as_ref().map(|d| d.median)
+        && reach < 1.0 - umesh_core::dataset::CALIBRATION_TOLERANCE / 2.0
+    {
+        check.load_scale *= reach;
+    }
+    let mut failures = Vec::new();
+    // A failure recorded by an interrupted earlier run is not this run's.
+    let _ = std::fs::remove_file(synth_failed_path);
+    for _ in 0..3 {
+        let _ = std::fs::remove_dir_all(rec_dir);
+        match run_rgbd_synth(seg, &settings.dataset, &check, rec_dir, p, cancel) {
+            Ok(r) => return write_json(synth_path, &r),
+            Err(umesh_core::rgbd::RgbdError::Cancelled(c)) => return Err(c.into()),
+            Err(umesh_core::rgbd::RgbdError::Io { path, source }) => return Err(NetError::Io { path, source }),
+            Err(e) => failures.push(format!("at load scale {:.2}: {e}", check.load_scale)),
+        }
+        check.load_scale *= 0.6;
+    }
+    let _ = std::fs::remove_dir_all(rec_dir);
+    write_json(synth_failed_path, &format!("the check recording could not be made: {}", failures.join("; ")))
+}
+
+/// The verdict, and `report.html` written with it (on every run: its timings change).
+#[allow(clippy::too_many_arguments)]
+fn write_report(
+    out: &Path,
+    patient: &mut Patient,
+    settings: &PrepareSettings,
+    stats: &DatasetStats,
+    metrics: &[EpochMetrics],
+    eval: &eval::EvalReport,
+    synth: Option<&SynthReport>,
+    check: &CheckReport,
+) -> Result<Verdict, NetError> {
+    // The report is rewritten on every run (its timings change).
+    let t = Instant::now();
+    patient.stages.entry(Stage::Report).or_default().done = true;
+    let stopped_early = patient.stages.get(&Stage::Train).and_then(|r| r.note.clone());
+    let verdict = super::judge(metrics, settings.train.epochs, stopped_early.as_deref(), eval, check, out);
+    let html = super::page::patient_html(
+        patient,
+        &verdict,
+        stats,
+        metrics,
+        eval,
+        synth,
+        check,
+        &out.join("dataset").join("grid.npz"),
+    );
+    umesh_core::write_atomic(&out.join("report.html"), html.as_bytes())
+        .map_err(|e| NetError::Io { path: out.to_path_buf(), source: e })?;
+    let rec = patient.stages.entry(Stage::Report).or_default();
+    rec.done = true;
+    rec.seconds = t.elapsed().as_secs_f64();
+    patient.write(out)?;
+    Ok(verdict)
+}
+
+/// The record of a new job on this segmentation: its inputs' hashes, names and settings.
+fn new_patient(seg: &Segmentation, inputs: &[PathBuf], settings: &PrepareSettings) -> Result<Patient, NetError> {
+    let hashed = hash_inputs(inputs)?;
+    let seg_hash = umesh_core::dataset::segmentation_hash(seg);
+    let names = |ls: &[i64]| ls.iter().map(|&l| seg.label_name(l)).collect::<Vec<_>>();
+    Ok(Patient {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        program_version: env!("CARGO_PKG_VERSION").into(),
+        inputs: hashed,
+        segmentation_hash: seg_hash.clone(),
+        organ_labels: names(&seg.organ_labels),
+        structures: names(&seg.structure_labels),
+        stored_segmentation_hash: None,
+        settings: settings.clone(),
+        stages: Default::default(),
+    })
+}
+
+/// The check: the recording registered with the new model (each correction form, the chosen
+/// one written into the model folder), or why it did not run.
+fn check_registration(
+    seg: &Segmentation,
+    settings: &PrepareSettings,
+    model: &Path,
+    rec_dir: &Path,
+    (synth_failed_path, check_path): (&Path, &Path),
+    p: &Progress,
+    cancel: &Cancel,
+) -> Result<(), NetError> {
+    let r = match read_json::<String>(synth_failed_path) {
+        Ok(reason) => CheckReport::not_run(reason),
+        Err(_) => match registration_check(seg, &settings.dataset, model, rec_dir, p, cancel) {
+            Ok(r) => r,
+            Err(NetError::Cancelled(c)) => return Err(c.into()),
+            Err(e) => CheckReport::not_run(format!("the registration check failed: {e}")),
+        },
+    };
+    write_json(check_path, &r)
+}
+
+/// The training's settings with its share of the job's time budget: what the stages before it
+/// left (`spent` seconds so far, earlier runs included), less what the stages after it take.
+fn training_settings(settings: &PrepareSettings, spent: f64) -> umesh_net::TrainSettings {
+    // The job's time budget: training gets what the stages before it left, less what the
+    // stages after it take (an estimate: the evaluation and the check's frames).
+    let mut train = settings.train.clone();
+    if settings.time_budget_s > 0.0 {
+        let after = 60.0 + 5.0 * settings.check.frames as f64;
+        // At least one epoch runs whatever the budget: a model is the job's point.
+        train.time_budget_s = (settings.time_budget_s - spent - after).max(1e-3);
+    }
+    train
+}
+
+/// A new patient's dataset checked before the folder exists: a job that would store too few
+/// samples stops here with its likely cause.
+fn preflight_new(
+    out: &Path,
+    settings: &PrepareSettings,
+    ctx: &DatasetContext,
+    preflight: Option<&umesh_core::dataset::PreflightCheck>,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<(), NetError> {
+    // A new patient's dataset is checked before the folder exists: a job that would store too
+    // few samples stops here with its likely cause.
+    if let Some(check) = preflight
+        && !out.join("patient.json").exists()
+        && settings.dataset.samples > check.settings.samples
+    {
+        let p = ctx.preflight(&settings.dataset, &check.settings, progress, cancel).map_err(|e| match e {
+            umesh_core::dataset::DatasetError::Cancelled(c) => NetError::Cancelled(c),
+            e => e.into(),
+        })?;
+        check.judge(p).map_err(|e| NetError::Invalid(e.to_string()))?;
+    }
+    Ok(())
 }
 
 /// Register the check recording with the patient's model, once with each correction form

@@ -4,6 +4,94 @@
 use super::*;
 
 impl FeSolver<'_> {
+    /// The probe that landed within the tolerance of the target, refined to the settings'
+    /// residual: the solve's result.
+    #[allow(clippy::too_many_arguments)]
+    fn refine_accepted(
+        &mut self,
+        mut trial: Vec<Vector3<f64>>,
+        bc: &BoundaryConditions,
+        model: ElementModel,
+        (lambda, increments): (f64, usize),
+        over: MeanOver,
+        mut history: Vec<IterationRecord>,
+        mut timings: Timings,
+        start: Instant,
+        cancel: &Cancel,
+    ) -> Result<MeanSolve, FemError> {
+        let refined = self.newton(
+            &mut trial,
+            bc,
+            model,
+            lambda,
+            increments,
+            &mut history,
+            &mut timings,
+            &Progress::none(),
+            cancel,
+        )?;
+        let res = match refined {
+            Ok((_, res)) => res,
+            Err(reason) => return Err(FemError::NotConverged { reason: reason.into(), history }),
+        };
+        let iterations = history.len();
+        timings.total_ms = ms(start);
+        let mean_mm = over.mean_mm(&trial, &self.constrained_nodes);
+        let solution =
+            Solution { displacement_mm: trial, history, increments, iterations, timings, final_residual: res };
+        Ok(MeanSolve { solution, lambda, mean_mm, reached: true })
+    }
+
+    /// The problem a calibrated solve takes: fixed nodes only, a positive target and factor.
+    fn check_calibrated(
+        &self,
+        bc: &BoundaryConditions,
+        target_mm: f64,
+        rel_tol: f64,
+        first_lambda: f64,
+    ) -> Result<(), FemError> {
+        let n = self.grid.node_count();
+        if bc.forces_n.len() != n || bc.fixed != self.constrained_nodes || !bc.prescribed_mm.is_empty() {
+            return Err(FemError::InvalidInput(
+                "boundary conditions do not match the solver (fixed nodes only, no prescribed values)".into(),
+            ));
+        }
+        if !(target_mm > 0.0 && target_mm.is_finite() && rel_tol > 0.0 && first_lambda > 0.0) {
+            return Err(FemError::InvalidInput(format!(
+                "target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// One probe of a load factor: Newton to a loose residual (the mean displacement is then
+    /// already right to a fraction of a percent; the accepted probe is refined to the settings'),
+    /// given up once its iterate passes OVERSHOOT times the target.
+    #[allow(clippy::too_many_arguments)]
+    fn probe(
+        &mut self,
+        trial: &mut [Vector3<f64>],
+        bc: &BoundaryConditions,
+        model: ElementModel,
+        lambda: f64,
+        increment: usize,
+        (target_mm, over): (f64, MeanOver),
+        history: &mut Vec<IterationRecord>,
+        timings: &mut Timings,
+        cancel: &Cancel,
+    ) -> Result<Result<(usize, f64), crate::Invalid>, FemError> {
+        // Probing solves stop at a loose residual (the mean displacement is then already
+        // right to a fraction of a percent); the accepted one is refined to the settings'.
+        let tight = self.settings.clone();
+        self.settings.residual_tol = tight.residual_tol.max(1e-3);
+        self.settings.correction_tol = tight.correction_tol.max(1e-2);
+        self.overshoot_mm = Some((OVERSHOOT * target_mm, over));
+        let probe = self.newton(trial, bc, model, lambda, increment, history, timings, &Progress::none(), cancel);
+        self.settings = tight;
+        self.overshoot_mm = None;
+        probe
+    }
+
     /// A probe's start: the nearest converged state below `lambda`, scaled to it (the secant
     /// through the origin); unscaled when the scaled guess would invert an element.
     fn warm_start(
@@ -47,16 +135,7 @@ impl FeSolver<'_> {
         cancel: &Cancel,
     ) -> Result<MeanSolve, FemError> {
         let n = self.grid.node_count();
-        if bc.forces_n.len() != n || bc.fixed != self.constrained_nodes || !bc.prescribed_mm.is_empty() {
-            return Err(FemError::InvalidInput(
-                "boundary conditions do not match the solver (fixed nodes only, no prescribed values)".into(),
-            ));
-        }
-        if !(target_mm > 0.0 && target_mm.is_finite() && rel_tol > 0.0 && first_lambda > 0.0) {
-            return Err(FemError::InvalidInput(format!(
-                "target {target_mm} mm, tolerance {rel_tol}, first factor {first_lambda}"
-            )));
-        }
+        self.check_calibrated(bc, target_mm, rel_tol, first_lambda)?;
         let start = Instant::now();
         let s = self.settings.clone();
         let model = ElementModel::Hyperelastic(self.material.material());
@@ -91,73 +170,36 @@ impl FeSolver<'_> {
                 )? {
                     return Ok(kept);
                 }
-                let closest = states
-                    .iter()
-                    .skip(1)
-                    .map(|x| x.1)
-                    .min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
-                return Err(FemError::NotConverged {
-                    reason: format!(
-                        "gave up after {budget} Newton iterations without reaching a mean displacement of {target_mm:.2} mm ({}; iteration budget)",
-                        closest
-                            .map(|c| format!("closest {c:.2} mm"))
-                            .unwrap_or_else(|| "no load step converged".into())
-                    ),
-                    history,
-                });
+                return Err(gave_up(&states, target_mm, budget, history));
             }
             let mut trial = self.warm_start(&states, lambda, model);
-            // Probing solves stop at a loose residual (the mean displacement is then already
-            // right to a fraction of a percent); the accepted one is refined to the settings'.
-            let tight = self.settings.clone();
-            self.settings.residual_tol = tight.residual_tol.max(1e-3);
-            self.settings.correction_tol = tight.correction_tol.max(1e-2);
-            self.overshoot_mm = Some((OVERSHOOT * target_mm, over));
-            let probe = self.newton(
+            let probe = self.probe(
                 &mut trial,
                 bc,
                 model,
                 lambda,
                 increments + 1,
+                (target_mm, over),
                 &mut history,
                 &mut timings,
-                &Progress::none(),
                 cancel,
             );
-            self.settings = tight;
-            self.overshoot_mm = None;
             match probe? {
                 Ok(_) => {
                     increments += 1;
                     let m = mean(&trial);
                     if (m - target_mm).abs() <= rel_tol * target_mm {
-                        let refined = self.newton(
-                            &mut trial,
+                        return self.refine_accepted(
+                            trial,
                             bc,
                             model,
-                            lambda,
-                            increments,
-                            &mut history,
-                            &mut timings,
-                            &Progress::none(),
-                            cancel,
-                        )?;
-                        let res = match refined {
-                            Ok((_, res)) => res,
-                            Err(reason) => return Err(FemError::NotConverged { reason: reason.into(), history }),
-                        };
-                        let iterations = history.len();
-                        timings.total_ms = ms(start);
-                        let mean_mm = mean(&trial);
-                        let solution = Solution {
-                            displacement_mm: trial,
+                            (lambda, increments),
+                            over,
                             history,
-                            increments,
-                            iterations,
                             timings,
-                            final_residual: res,
-                        };
-                        return Ok(MeanSolve { solution, lambda, mean_mm, reached: true });
+                            start,
+                            cancel,
+                        );
                     }
                     let k = states.partition_point(|x| x.0 < lambda);
                     states.insert(k, (lambda, m, trial));
@@ -243,6 +285,25 @@ impl FeSolver<'_> {
         };
         // Every state within the tolerance was accepted when it converged: this one is not.
         Ok(Some(MeanSolve { solution, lambda, mean_mm, reached: false }))
+    }
+}
+
+/// The error of a calibrated solve that spent its iteration budget (or its probes), naming the
+/// converged state nearest the target.
+fn gave_up(
+    states: &[(f64, f64, Vec<Vector3<f64>>)],
+    target_mm: f64,
+    budget: usize,
+    history: Vec<IterationRecord>,
+) -> FemError {
+    let closest =
+        states.iter().skip(1).map(|x| x.1).min_by(|a, b| (a - target_mm).abs().total_cmp(&(b - target_mm).abs()));
+    FemError::NotConverged {
+        reason: format!(
+            "gave up after {budget} Newton iterations without reaching a mean displacement of {target_mm:.2} mm ({}; iteration budget)",
+            closest.map(|c| format!("closest {c:.2} mm")).unwrap_or_else(|| "no load step converged".into())
+        ),
+        history,
     }
 }
 

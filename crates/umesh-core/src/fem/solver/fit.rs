@@ -343,6 +343,79 @@ impl<'g> PointFit<'g> {
         self.fit_updates(points_mm, u, work, true)
     }
 
+    /// The Newton-like step `du` from the rest stiffness can overshoot under large rotations:
+    /// halved (at most four times) until the energy, elastic plus the matched springs,
+    /// decreases. The elastic energy is `e_elastic` at `u`, and along the step either the
+    /// quadratic (slope, curvature) of the from-the-start form or a co-rotational assembly.
+    #[allow(clippy::type_complexity)]
+    fn halving_step(
+        &mut self,
+        u: &[Vector3<f64>],
+        du: &[f64],
+        free: &[u32],
+        (e_elastic, quad): (f64, Option<(f64, f64)>),
+        targets: &[Option<(Vector3<f64>, Matrix3<f64>)>],
+    ) -> (Vec<Vector3<f64>>, f64) {
+        let e0 = e_elastic + self.spring_energy(u, targets);
+        let mut step = 1.0;
+        let mut trial = u.to_vec();
+        for _ in 0..4 {
+            for (n, (tn, un)) in trial.iter_mut().zip(u.iter()).enumerate() {
+                for c in 0..3 {
+                    let f = free[3 * n + c];
+                    tn[c] = un[c] + if f != NONE { step * du[f as usize] } else { 0.0 };
+                }
+            }
+            let el = match quad {
+                Some((slope, curvature)) => e_elastic + step * slope + 0.5 * step * step * curvature,
+                None => self.solver.asm.assemble(ElementModel::Corotational, &trial, false).energy,
+            };
+            let e1 = el + self.spring_energy(&trial, targets);
+            if e1 <= e0 {
+                break;
+            }
+            step *= 0.5;
+        }
+        (trial, step)
+    }
+
+    /// From the start: the co-rotational stiffness (this assembly's rotations) times the
+    /// displacement since `u0` as the elastic force on every node, its energy, and the product
+    /// on the free dofs.
+    fn elastic_since(
+        &mut self,
+        u: &[Vector3<f64>],
+        u0: &[Vector3<f64>],
+        free: &[u32],
+        nf: usize,
+    ) -> (Vec<Vector3<f64>>, f64, Vec<f64>) {
+        let mut d = vec![0.0; nf];
+        for (n, (a, b)) in u.iter().zip(u0).enumerate() {
+            for c in 0..3 {
+                let f = free[3 * n + c];
+                if f != NONE {
+                    d[f as usize] = a[c] - b[c];
+                }
+            }
+        }
+        let mut kd = vec![0.0; nf];
+        // The first update starts where it measures from: nothing to multiply.
+        if d.iter().any(|&v| v != 0.0) {
+            self.solver.asm.corotational_matvec(&d, &mut kd);
+        }
+        let e = 0.5 * d.iter().zip(&kd).map(|(a, b)| a * b).sum::<f64>();
+        let mut g = vec![Vector3::zeros(); u.len()];
+        for (n, gn) in g.iter_mut().enumerate() {
+            for c in 0..3 {
+                let f = free[3 * n + c];
+                if f != NONE {
+                    gn[c] = kd[f as usize];
+                }
+            }
+        }
+        (g, e, kd)
+    }
+
     fn fit_updates(
         &mut self,
         points_mm: &[Vector3<f64>],
@@ -396,30 +469,7 @@ impl<'g> PointFit<'g> {
             // The elastic part: the co-rotational forces from rest, or, from the start, the
             // co-rotational stiffness (rotations of this assembly) times the displacement since.
             let (mut g, e_elastic, kd) = if from_start {
-                let mut d = vec![0.0; nf];
-                for (n, (a, b)) in u.iter().zip(&u0).enumerate() {
-                    for c in 0..3 {
-                        let f = free[3 * n + c];
-                        if f != NONE {
-                            d[f as usize] = a[c] - b[c];
-                        }
-                    }
-                }
-                let mut kd = vec![0.0; nf];
-                // The first update starts where it measures from: nothing to multiply.
-                if d.iter().any(|&v| v != 0.0) {
-                    self.solver.asm.corotational_matvec(&d, &mut kd);
-                }
-                let e = 0.5 * d.iter().zip(&kd).map(|(a, b)| a * b).sum::<f64>();
-                let mut g = vec![Vector3::zeros(); u.len()];
-                for (n, gn) in g.iter_mut().enumerate() {
-                    for c in 0..3 {
-                        let f = free[3 * n + c];
-                        if f != NONE {
-                            gn[c] = kd[f as usize];
-                        }
-                    }
-                }
+                let (g, e, kd) = self.elastic_since(u, &u0, &free, nf);
                 (g, e, Some(kd))
             } else {
                 (a.f_int, a.energy, None)
@@ -436,15 +486,7 @@ impl<'g> PointFit<'g> {
                     }
                 }
             }
-            let mut b = vec![0.0; nf];
-            for (n, gn) in g.iter().enumerate() {
-                for c in 0..3 {
-                    let f = free[3 * n + c];
-                    if f != NONE {
-                        b[f as usize] = -gn[c];
-                    }
-                }
-            }
+            let b = minus_on_free(&g, &free, nf);
             let t = Instant::now();
             let (du, iters) = self.pcg(&b, &metrics, &free, cg_iterations, cg_tol);
             report.solve_ms += ms(t);
@@ -463,26 +505,7 @@ impl<'g> PointFit<'g> {
                 let curvature: f64 = du.iter().zip(&kdu).map(|(a, b)| a * b).sum();
                 (slope, curvature)
             });
-            let e0 = e_elastic + self.spring_energy(u, &targets);
-            let mut step = 1.0;
-            let mut trial = u.to_vec();
-            for _ in 0..4 {
-                for (n, (tn, un)) in trial.iter_mut().zip(u.iter()).enumerate() {
-                    for c in 0..3 {
-                        let f = free[3 * n + c];
-                        tn[c] = un[c] + if f != NONE { step * du[f as usize] } else { 0.0 };
-                    }
-                }
-                let el = match quad {
-                    Some((slope, curvature)) => e_elastic + step * slope + 0.5 * step * step * curvature,
-                    None => self.solver.asm.assemble(ElementModel::Corotational, &trial, false).energy,
-                };
-                let e1 = el + self.spring_energy(&trial, &targets);
-                if e1 <= e0 {
-                    break;
-                }
-                step *= 0.5;
-            }
+            let (trial, step) = self.halving_step(u, &du, &free, (e_elastic, quad), &targets);
             report.assembly_ms += ms(t);
             if step < 0.1 {
                 // No decrease even at a sixteenth of the step: this update changes nothing (and,
@@ -661,6 +684,55 @@ impl<'g> PointFit<'g> {
         self.subspace.as_ref().map_or(0, |s| s.k_r.nrows())
     }
 
+    /// G (m x matched, column-major: one sample's column after another, built in parallel):
+    /// each matched sample's spring along its normal, in the basis.
+    fn sample_jacobian(&self, basis_s: &Mat<f32>, matched: &[usize], normals: &[Vector3<f64>], m: usize) -> Vec<f32> {
+        let free = &self.solver.asm.dofs.free_of;
+        let sk = self.k_n_per_mm.sqrt();
+        let mut g_data = vec![0.0f32; m * matched.len()];
+        g_data.par_chunks_mut(m).zip(matched.par_iter().zip(normals)).for_each(|(col, (&s, n))| {
+            let e = &self.samples[s];
+            for k in 0..8 {
+                for c in 0..3 {
+                    let f = free[3 * e.nodes[k] as usize + c];
+                    let coef = (sk * e.weights[k] * n[c]) as f32;
+                    if f != NONE
+                        && coef != 0.0
+                        && let Some(basis) = basis_s.col(self.sample_slot[f as usize] as usize).try_as_col_major()
+                    {
+                        for (o, b) in col.iter_mut().zip(basis.as_slice()) {
+                            *o += coef * *b;
+                        }
+                    }
+                }
+            }
+        });
+        g_data
+    }
+
+    /// Each matched sample's normal, turned by its cell's rotation in `u` (one polar
+    /// decomposition per cell: neighbouring samples share cells).
+    fn turned_normals(&self, matched: &[usize], u: &[Vector3<f64>], g0: &[Vector3<f64>; 8]) -> Vec<Vector3<f64>> {
+        let grid = self.solver.grid;
+        let mut cells: Vec<u32> = matched.iter().map(|&s| self.samples[s].cell).collect();
+        cells.sort_unstable();
+        cells.dedup();
+        let rotations: Vec<Matrix3<f64>> = cells
+            .par_iter()
+            .map(|&c| {
+                let ue: [Vector3<f64>; 8] = grid.cells[c as usize].nodes.map(|n| u[n as usize]);
+                crate::fem::assembly::rotation_of(&crate::fem::element::deformation_gradient(&ue, g0))
+            })
+            .collect();
+        matched
+            .iter()
+            .map(|&s| {
+                let c = cells.binary_search(&self.samples[s].cell).unwrap_or(0);
+                (rotations[c] * self.normals[s]).normalize()
+            })
+            .collect()
+    }
+
     /// The correction's updates in the subspace, the elastic energy measured from the start
     /// (see `FitWork::from_start`) and linearised there: the increment's stiffness is the
     /// projected rest stiffness (the increment is a fraction of the prediction; the prediction
@@ -700,49 +772,7 @@ impl<'g> PointFit<'g> {
         // Between updates only the samples' nodes move (the basis's sample rows); the whole
         // grid takes the sum of the steps once, at the end.
         let mut filled = Vec::new();
-        // Phi^T K u_start (m x 1), the starting elastic force in the basis.
-        let k_start = from_rest.then(|| {
-            let mut v = Mat::<f32>::zeros(nf, 1);
-            for (nd, un) in u.iter().enumerate() {
-                for c in 0..3 {
-                    let f = free[3 * nd + c];
-                    if f != NONE {
-                        v[(f as usize, 0)] = un[c] as f32;
-                    }
-                }
-            }
-            let mut k = Mat::<f32>::zeros(m, 1);
-            faer::linalg::matmul::matmul(k.as_mut(), faer::Accum::Replace, sub.kphit.as_ref(), v.as_ref(), 1.0, par);
-            Mat::<f64>::from_fn(m, 1, |i, _| k[(i, 0)] as f64)
-        });
-        // From rest the state lies in the basis: the start is replaced by its energy projection
-        // (K_r q0 = Phi^T K u_start). What the basis cannot hold of a prediction is not
-        // supported by any load on the seen surface, and kept it pulled the fit away from the
-        // points (CT patient's check recording: last frame 1.96 mm kept, 1.17 projected).
-        if let Some(k) = &k_start
-            && let Ok(llt) = sub.k_r.llt(faer::Side::Lower)
-        {
-            use faer::linalg::solvers::Solve;
-            let q0 = llt.solve(k);
-            let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q0[(i, 0)] as f32);
-            let mut v = Mat::<f32>::zeros(nf, 1);
-            faer::linalg::matmul::matmul(
-                v.as_mut(),
-                faer::Accum::Replace,
-                sub.phit.transpose(),
-                q32.as_ref(),
-                1.0,
-                par,
-            );
-            for (nd, un) in u.iter_mut().enumerate() {
-                for c in 0..3 {
-                    let f = free[3 * nd + c];
-                    if f != NONE {
-                        un[c] = v[(f as usize, 0)] as f64;
-                    }
-                }
-            }
-        }
+        let k_start = if from_rest { Some(start_in_basis(sub, u, (free, nf), par)) } else { None };
         let u_start = u.to_vec();
         for it in 0..updates {
             let t = Instant::now();
@@ -761,49 +791,14 @@ impl<'g> PointFit<'g> {
             if matched.is_empty() {
                 break;
             }
-            // Each matched sample's normal, turned by its cell's rotation in `u` (one polar
-            // decomposition per cell: neighbouring samples share cells).
             let t = Instant::now();
-            let mut cells: Vec<u32> = matched.iter().map(|&s| self.samples[s].cell).collect();
-            cells.sort_unstable();
-            cells.dedup();
-            let rotations: Vec<Matrix3<f64>> = cells
-                .par_iter()
-                .map(|&c| {
-                    let ue: [Vector3<f64>; 8] = grid.cells[c as usize].nodes.map(|n| u[n as usize]);
-                    crate::fem::assembly::rotation_of(&crate::fem::element::deformation_gradient(&ue, &g0))
-                })
-                .collect();
-            let normals: Vec<Vector3<f64>> = matched
-                .iter()
-                .map(|&s| {
-                    let c = cells.binary_search(&self.samples[s].cell).unwrap_or(0);
-                    (rotations[c] * self.normals[s]).normalize()
-                })
-                .collect();
+            let normals = self.turned_normals(&matched, u, &g0);
             report.assembly_ms += ms(t);
             let t = Instant::now();
             // G (m x matched, column-major: one sample's column after another, built in
             // parallel) and the distances along the normals.
             // Single precision, as the basis: G G^T is the update's largest product.
-            let mut g_data = vec![0.0f32; m * matched.len()];
-            g_data.par_chunks_mut(m).zip(matched.par_iter().zip(&normals)).for_each(|(col, (&s, n))| {
-                let e = &self.samples[s];
-                for k in 0..8 {
-                    for c in 0..3 {
-                        let f = free[3 * e.nodes[k] as usize + c];
-                        let coef = (sk * e.weights[k] * n[c]) as f32;
-                        if f != NONE
-                            && coef != 0.0
-                            && let Some(basis) = basis_s.col(self.sample_slot[f as usize] as usize).try_as_col_major()
-                        {
-                            for (o, b) in col.iter_mut().zip(basis.as_slice()) {
-                                *o += coef * *b;
-                            }
-                        }
-                    }
-                }
-            });
+            let g_data = self.sample_jacobian(&basis_s, &matched, &normals, m);
             let g = faer::MatRef::from_column_major_slice(&g_data, m, matched.len());
             let rho = Mat::<f32>::from_fn(matched.len(), 1, |j, _| {
                 let s = matched[j];
@@ -858,24 +853,7 @@ impl<'g> PointFit<'g> {
         }
         let t = Instant::now();
         if report.updates > 0 {
-            let mut du = Mat::<f32>::zeros(nf, 1);
-            let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q_sum[(i, 0)] as f32);
-            faer::linalg::matmul::matmul(
-                du.as_mut(),
-                faer::Accum::Replace,
-                sub.phit.transpose(),
-                q32.as_ref(),
-                1.0,
-                par,
-            );
-            for (nd, (un, u0)) in u.iter_mut().zip(&u_start).enumerate() {
-                for c in 0..3 {
-                    let f = free[3 * nd + c];
-                    if f != NONE {
-                        un[c] = u0[c] + du[(f as usize, 0)] as f64;
-                    }
-                }
-            }
+            expand_into(u, &u_start, sub, &q_sum, (free, nf), par);
         }
         report.solve_ms += ms(t);
         report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate(&self.samples[s], u), points_mm, &nearest);
@@ -1054,6 +1032,84 @@ pub fn check_frame(
         motion_rms_mm: rms(&u_prev, &u_conv),
         converged_updates: conv.updates,
     })
+}
+
+/// The free dofs' entries of minus the nodal vector `g` (the right-hand side of a step).
+fn minus_on_free(g: &[Vector3<f64>], free: &[u32], nf: usize) -> Vec<f64> {
+    let mut b = vec![0.0; nf];
+    for (n, gn) in g.iter().enumerate() {
+        for c in 0..3 {
+            let f = free[3 * n + c];
+            if f != NONE {
+                b[f as usize] = -gn[c];
+            }
+        }
+    }
+    b
+}
+
+/// From rest: Phi^T K u_start (m x 1), the starting elastic force in the basis, with `u`
+/// replaced by its energy projection onto the basis (K_r q0 = Phi^T K u_start).
+fn start_in_basis(sub: &Subspace, u: &mut [Vector3<f64>], (free, nf): (&[u32], usize), par: faer::Par) -> Mat<f64> {
+    let m = sub.k_r.nrows();
+    // Phi^T K u_start (m x 1), the starting elastic force in the basis.
+    let k_start = {
+        let mut v = Mat::<f32>::zeros(nf, 1);
+        for (nd, un) in u.iter().enumerate() {
+            for c in 0..3 {
+                let f = free[3 * nd + c];
+                if f != NONE {
+                    v[(f as usize, 0)] = un[c] as f32;
+                }
+            }
+        }
+        let mut k = Mat::<f32>::zeros(m, 1);
+        faer::linalg::matmul::matmul(k.as_mut(), faer::Accum::Replace, sub.kphit.as_ref(), v.as_ref(), 1.0, par);
+        Mat::<f64>::from_fn(m, 1, |i, _| k[(i, 0)] as f64)
+    };
+    // From rest the state lies in the basis: the start is replaced by its energy projection
+    // (K_r q0 = Phi^T K u_start). What the basis cannot hold of a prediction is not
+    // supported by any load on the seen surface, and kept it pulled the fit away from the
+    // points (CT patient's check recording: last frame 1.96 mm kept, 1.17 projected).
+    if let Ok(llt) = sub.k_r.llt(faer::Side::Lower) {
+        use faer::linalg::solvers::Solve;
+        let q0 = llt.solve(&k_start);
+        let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q0[(i, 0)] as f32);
+        let mut v = Mat::<f32>::zeros(nf, 1);
+        faer::linalg::matmul::matmul(v.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q32.as_ref(), 1.0, par);
+        for (nd, un) in u.iter_mut().enumerate() {
+            for c in 0..3 {
+                let f = free[3 * nd + c];
+                if f != NONE {
+                    un[c] = v[(f as usize, 0)] as f64;
+                }
+            }
+        }
+    }
+    k_start
+}
+
+/// The whole grid's displacement: the start plus the basis's sum of the steps, `q_sum`.
+fn expand_into(
+    u: &mut [Vector3<f64>],
+    u_start: &[Vector3<f64>],
+    sub: &Subspace,
+    q_sum: &Mat<f64>,
+    (free, nf): (&[u32], usize),
+    par: faer::Par,
+) {
+    let m = sub.k_r.nrows();
+    let mut du = Mat::<f32>::zeros(nf, 1);
+    let q32 = Mat::<f32>::from_fn(m, 1, |i, _| q_sum[(i, 0)] as f32);
+    faer::linalg::matmul::matmul(du.as_mut(), faer::Accum::Replace, sub.phit.transpose(), q32.as_ref(), 1.0, par);
+    for (nd, (un, u0)) in u.iter_mut().zip(u_start).enumerate() {
+        for c in 0..3 {
+            let f = free[3 * nd + c];
+            if f != NONE {
+                un[c] = u0[c] + du[(f as usize, 0)] as f64;
+            }
+        }
+    }
 }
 
 /// For each observed point, the index of the sample nearest it within `band` (u32::MAX: none),

@@ -177,14 +177,14 @@ fn worker(
         .check_grid(&dctx.grid_hash(), dctx.grid.padded_shape())
         .with_context(|| format!("the model {} does not fit {}", am.dir.display(), seg.source.display()))?;
     let ctx = RegistrationContext::new(dctx, seg)?;
+    // The form the panel starts with (the model's choice), as the panel reads it.
+    let form = match umesh_core::register::correction::CorrectionChoice::read(&am.dir) {
+        Ok(Some(c)) => c.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0,
+        _ => CorrectionForm::Subspace,
+    };
     if !matches!(source, ArSource::Recording(_)) {
         // The correction's subspace before a live source opens (as `umesh register` does): the
         // frames arriving while it is built would be dropped.
-        // The basis of the form the panel starts with (the model's choice), as the panel reads it.
-        let form = match umesh_core::register::correction::CorrectionChoice::read(&am.dir) {
-            Ok(Some(c)) => c.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0,
-            _ => CorrectionForm::Subspace,
-        };
         umesh_core::register::correction::prepare_correction(&ctx, form.settings().basis())?;
     }
     let (mut src, base_pose, truth, label, fps, tracked) = open_source(&source, &ctx, &log)?;
@@ -195,6 +195,9 @@ fn worker(
     let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
     let settings = RegisterSettings { overlay: true, ..Default::default() };
     let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
+    // Its FE model now rather than in the first frame (half a second on a 5000-node liver).
+    reg.set_correction(form.settings());
+    reg.prepare_correction()?;
     let (pose, why) = choose_pose(None, tracked);
     reg.settings.pose = pose;
     let _ = tx.send(ArEvent::Pose(pose, why));

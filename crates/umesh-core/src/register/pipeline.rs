@@ -53,6 +53,11 @@ pub trait DisplacementModel {
     fn confidence_reference(&self) -> Option<ConfidenceReference> {
         None
     }
+    /// Whether the physics correction follows the model's prediction: not after the FE fit,
+    /// which is that fit already.
+    fn takes_correction(&self) -> bool {
+        true
+    }
 }
 
 /// The FE registration alone: the rest grid's co-rotational model pulled onto the frame's
@@ -109,6 +114,9 @@ impl DisplacementModel for FeDisplacementModel<'_> {
         out.clear();
         self.fit.write_field(out);
         Some(Ok(r.samples_matched))
+    }
+    fn takes_correction(&self) -> bool {
+        false
     }
 }
 
@@ -427,6 +435,32 @@ pub struct FrameOutput {
     pub world_from_camera: Matrix4<f64>,
 }
 
+/// A frame's organ points (camera, mm), how many there were before thinning, and its depth
+/// image with the other pixels cleared.
+struct OrganPoints {
+    points: Vec<Vector3<f64>>,
+    thinned_from: Option<usize>,
+    depth: DepthImage,
+}
+
+/// What the model's prediction of a frame measured and cost.
+struct Prediction {
+    /// The model is the FE fit itself (no correction follows it).
+    fe_fit: bool,
+    measured: usize,
+    surface_ms: f64,
+    predict_ms: f64,
+}
+
+/// The registered markers' error against a synthetic recording's truth (mm).
+#[derive(Default)]
+struct Tre {
+    mean_mm: Option<f64>,
+    max_mm: Option<f64>,
+    rigid_mean_mm: Option<f64>,
+    displacement_mean_mm: Option<f64>,
+}
+
 /// Registration state carried from frame to frame.
 pub struct Registrar<'c> {
     pub ctx: &'c RegistrationContext,
@@ -502,6 +536,18 @@ impl<'c> Registrar<'c> {
         }
     }
 
+    /// Build the physics correction's FE model now (its factorisation, about half a second on
+    /// a 5000-node liver, and its subspace unless the context holds it): before the first
+    /// frame, which would otherwise take that time. Nothing when the correction is off.
+    pub fn prepare_correction(&mut self) -> Result<(), crate::Invalid> {
+        if self.corrector.is_none() && self.settings.correction.updates > 0 {
+            let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
+            fit.use_subspace(self.settings.correction.basis())?;
+            self.corrector = Some(fit);
+        }
+        Ok(())
+    }
+
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
     pub fn process(
         &mut self,
@@ -513,7 +559,86 @@ impl<'c> Registrar<'c> {
     ) -> Result<FrameOutput, FrameError> {
         let t0 = Instant::now();
         frame.validate()?;
-        let k = frame.intrinsics;
+        let OrganPoints { points, thinned_from, depth } = self.organ_points(frame)?;
+        let points_ms = ms(t0);
+        let t1 = Instant::now();
+        let icp = self.align(frame, &points)?;
+        let icp_ms = ms(t1);
+        let camera_from_world = rigid_inverse(&self.world_from_camera);
+        let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
+        // Too little of the organ seen (a cloud off the organ, a camera looking away): no
+        // deformation can be inferred from it. Each point is taken to the rest surface first,
+        // so that a deformed or pushed organ (a first frame already deformed) is not refused.
+        let coverage = self.ctx.gate_coverage(&world);
+        if coverage < self.settings.min_coverage {
+            return Err(FrameError::Invalid(crate::Invalid(format!(
+                "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
+                frame.index,
+                100.0 * coverage,
+                100.0 * self.settings.min_coverage
+            ))));
+        }
+        let p = self.predict(frame, model, &world, &depth, &camera_from_world)?;
+        // The physics correction: the prediction pulled onto the observed points by the FE model
+        // (not after the FE registration, which is that fit already).
+        let reference = model.confidence_reference();
+        let (correction, correction_ms, judged_confidence) = if self.settings.correction.updates > 0 && !p.fe_fit {
+            let t = Instant::now();
+            let (c, judged) = self.correct(frame, &world, reference.as_ref())?;
+            (Some(c), ms(t), Some(judged))
+        } else {
+            (None, 0.0, None)
+        };
+        self.prev_field.clone_from(&self.field);
+        let t = Instant::now();
+        let (overlay, (confidence, confidence_ms)) =
+            self.draw(frame, &world, &camera_from_world, judged_confidence, reference.as_ref());
+        let overlay_ms = if self.settings.overlay { ms(t) } else { 0.0 };
+        let tre = match (truth, rest, true_pose) {
+            (Some(truth), Some(rest), Some(tp)) => self.tre(truth, rest, tp, &camera_from_world),
+            _ => Tre::default(),
+        };
+        let latency = Latency {
+            points_ms,
+            icp_ms,
+            surface_ms: p.surface_ms,
+            predict_ms: p.predict_ms,
+            overlay_ms,
+            confidence_ms,
+            correction_ms,
+            total_ms: ms(t0),
+        };
+        Ok(FrameOutput {
+            report: FrameReport {
+                frame: frame.index,
+                timestamp_s: frame.timestamp_s,
+                observed_points: points.len(),
+                points_thinned_from: thinned_from,
+                surface_coverage: confidence.surface_coverage,
+                measured_vertices: p.measured,
+                icp,
+                latency,
+                tre_mean_mm: tre.mean_mm,
+                tre_max_mm: tre.max_mm,
+                tre_rigid_mean_mm: tre.rigid_mean_mm,
+                marker_displacement_mean_mm: tre.displacement_mean_mm,
+                confidence,
+                correction,
+                end_to_end_ms: frame.host_time_s.and_then(|t| {
+                    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok()?.as_secs_f64();
+                    let ms = (now - t) * 1e3;
+                    // Another machine's clock gives nonsense: no figure rather than a wrong one.
+                    (0.0..3.6e6).contains(&ms).then_some(ms)
+                }),
+            },
+            field: self.field.clone(),
+            overlay,
+            world_from_camera: self.world_from_camera,
+        })
+    }
+
+    /// The frame's organ points (camera, mm) and its depth image with every other pixel cleared.
+    fn organ_points(&self, frame: &Frame) -> Result<OrganPoints, FrameError> {
         let keep = segment_frame(frame, &self.settings.segment)?;
         let mut depth = frame.depth.clone();
         for (d, &kp) in depth.depth_mm.iter_mut().zip(&keep) {
@@ -535,9 +660,12 @@ impl<'c> Registrar<'c> {
                 frame.index
             ))));
         }
-        let points_ms = ms(t0);
-        let t1 = Instant::now();
-        let mut icp = None;
+        Ok(OrganPoints { points, thinned_from, depth })
+    }
+
+    /// The frame's camera pose: its tracked pose with the last refinement, aligned by ICP as the
+    /// pose policy asks (the report of that alignment, when one ran).
+    fn align(&mut self, frame: &Frame, points: &[Vector3<f64>]) -> Result<Option<IcpReport>, FrameError> {
         if self.needs_frame_pose && !self.posed && frame.world_from_camera.is_none() {
             return Err(FrameError::Invalid(crate::Invalid(format!(
                 "frame {}: no camera pose (the source gives none and no initial pose was given)",
@@ -549,65 +677,56 @@ impl<'c> Registrar<'c> {
             self.world_from_camera = self.correction.map_or(t, |c| c * t);
         }
         let policy = self.settings.pose;
-        if !self.posed || policy == PosePolicy::IcpEveryFrame {
-            let mut r = icp_point_to_plane(
-                &points,
-                &self.ctx.icp_target,
-                &self.world_from_camera,
-                &self.settings.icp_settings(),
-            );
-            if r.fitness < 0.3 {
-                if policy != PosePolicy::Tracked {
-                    return Err(FrameError::Invalid(crate::Invalid(format!(
-                        "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
-                        frame.index, r.fitness, r.rms_mm
-                    ))));
-                }
-                // A tracked pose stands on its own: kept as it is when too little fits.
-                r.transform = self.world_from_camera;
-                r.moved_mm = 0.0;
+        if self.posed && policy != PosePolicy::IcpEveryFrame {
+            return Ok(None);
+        }
+        let mut r =
+            icp_point_to_plane(points, &self.ctx.icp_target, &self.world_from_camera, &self.settings.icp_settings());
+        if r.fitness < 0.3 {
+            if policy != PosePolicy::Tracked {
+                return Err(FrameError::Invalid(crate::Invalid(format!(
+                    "frame {}: rigid alignment failed (ICP fitness {:.2}, RMS {:.1} mm)",
+                    frame.index, r.fitness, r.rms_mm
+                ))));
             }
-            self.correction = frame.world_from_camera.map(|t| r.transform * rigid_inverse(&t));
-            self.world_from_camera = r.transform;
-            self.posed = true;
-            icp = Some(r);
+            // A tracked pose stands on its own: kept as it is when too little fits.
+            r.transform = self.world_from_camera;
+            r.moved_mm = 0.0;
         }
-        let icp_ms = ms(t1);
-        let camera_from_world = rigid_inverse(&self.world_from_camera);
-        let mut surface_ms = 0.0;
-        let mut predict_ms = 0.0;
-        let mut measured = 0;
-        let start = if self.settings.warm_start { self.prev_field.clone() } else { vec![0.0; self.prev_field.len()] };
-        let mut current = start;
+        self.correction = frame.world_from_camera.map(|t| r.transform * rigid_inverse(&t));
+        self.world_from_camera = r.transform;
+        self.posed = true;
+        Ok(Some(r))
+    }
+
+    /// The model's displacement field for the frame, in `self.field`: the FE fit of the points,
+    /// the network on their encoding, or the network on the surface displacement measured
+    /// along the normals (iterated from the previous frame's field).
+    fn predict(
+        &mut self,
+        frame: &Frame,
+        model: &mut dyn DisplacementModel,
+        world: &[Vector3<f64>],
+        depth: &DepthImage,
+        camera_from_world: &Matrix4<f64>,
+    ) -> Result<Prediction, FrameError> {
+        let (mut surface_ms, mut predict_ms, mut measured) = (0.0, 0.0, 0);
         let observation = model.observation();
-        let world: Vec<Vector3<f64>> = points.iter().map(|p| transform_point(&self.world_from_camera, p)).collect();
-        // Too little of the organ seen (a cloud off the organ, a camera looking away): no
-        // deformation can be inferred from it. Each point is taken to the rest surface first,
-        // so that a deformed or pushed organ (a first frame already deformed) is not refused.
-        let coverage = self.ctx.gate_coverage(&world);
-        if coverage < self.settings.min_coverage {
-            return Err(FrameError::Invalid(crate::Invalid(format!(
-                "frame {}: the organ points cover {:.1} % of the organ's surface (under {:.0} %): not registered, the previous overlay stays",
-                frame.index,
-                100.0 * coverage,
-                100.0 * self.settings.min_coverage
-            ))));
-        }
         let t = Instant::now();
-        let fitted = model.fit_points(&world, &mut self.field);
+        let fitted = model.fit_points(world, &mut self.field);
         let fe_fit = fitted.is_some();
         let direct = fe_fit || observation.is_some();
         if let Some(r) = fitted {
             measured = r.map_err(|e| crate::Invalid(format!("frame {}: {}: {e}", frame.index, model.name())))?;
             predict_ms += ms(t);
-        } else if let Some(o) = observation.clone() {
+        } else if let Some(o) = observation {
             // Correspondence-free: the frame's organ points in the world, encoded on the rest
             // grid as the training views were; one prediction, no iteration.
             let t = Instant::now();
             if self.observer.as_ref().is_none_or(|x| x.settings != o) {
                 self.observer = Some(crate::observation::Observer::new(&self.ctx.grid, &self.ctx.surface, o)?);
             }
-            let stats = self.observer.as_mut().map(|x| x.encode(&world, &mut self.u_s)).unwrap_or_default();
+            let stats = self.observer.as_mut().map(|x| x.encode(world, &mut self.u_s)).unwrap_or_default();
             measured = stats.nodes_observed;
             surface_ms += ms(t);
             if measured > 0 {
@@ -620,18 +739,22 @@ impl<'c> Registrar<'c> {
                 predict_ms += ms(t);
             }
         }
-        for _ in 0..if direct { 0 } else { self.settings.iterations.max(1) } {
-            let t = Instant::now();
-            measured = self.surface_input(&depth, &k, &camera_from_world, &current);
-            surface_ms += ms(t);
-            let t = Instant::now();
-            model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
-                frame: frame.index,
-                model: model.name(),
-                source,
-            })?;
-            predict_ms += ms(t);
-            current.clone_from(&self.field);
+        if !direct {
+            let mut current =
+                if self.settings.warm_start { self.prev_field.clone() } else { vec![0.0; self.prev_field.len()] };
+            for _ in 0..self.settings.iterations.max(1) {
+                let t = Instant::now();
+                measured = self.surface_input(depth, &frame.intrinsics, camera_from_world, &current);
+                surface_ms += ms(t);
+                let t = Instant::now();
+                model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
+                    frame: frame.index,
+                    model: model.name(),
+                    source,
+                })?;
+                predict_ms += ms(t);
+                current.clone_from(&self.field);
+            }
         }
         if measured == 0 {
             return Err(FrameError::Invalid(crate::Invalid(format!(
@@ -639,70 +762,69 @@ impl<'c> Registrar<'c> {
                 frame.index
             ))));
         }
-        // The physics correction: the prediction pulled onto the observed points by the FE model
-        // (not after the FE registration, which is that fit already).
-        let mut correction = None;
-        let mut correction_ms = 0.0;
-        let correct = self.settings.correction.updates > 0 && !fe_fit;
-        let reference = model.confidence_reference();
+        Ok(Prediction { fe_fit, measured, surface_ms, predict_ms })
+    }
+
+    /// The physics correction of `self.field` in place, with the confidence of the prediction it
+    /// corrects (and that judgement's time).
+    fn correct(
+        &mut self,
+        frame: &Frame,
+        world: &[Vector3<f64>],
+        reference: Option<&ConfidenceReference>,
+    ) -> Result<(CorrectionReport, (Confidence, f64)), FrameError> {
+        self.prepare_correction()?;
+        let settings = self.settings.correction;
+        let predicted = self.field.clone();
         // The confidence judges the model's own prediction: its reference is the model's residual
         // on its validation views, and the correction shrinks the residual by construction (on
         // eleven phantom recordings the corrected frames' residual hid all five frames above
         // 2 mm; the prediction's flagged four, the fifth at 2.00 mm, and no other frame).
-        let mut judged_confidence = None;
-        if correct {
-            let t = Instant::now();
-            if self.corrector.is_none() {
-                let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
-                fit.use_subspace(self.settings.correction.basis())?;
-                self.corrector = Some(fit);
+        // It runs beside the correction, on the two cores; a doubted prediction is then
+        // corrected again, from itself, as the FE fit.
+        let (ctx, rings) = (self.ctx, &self.rings);
+        let (corrector, field) = (self.corrector.as_mut().expect("prepared above"), &mut self.field);
+        let carried = settings.carry.then_some(&mut self.carried);
+        let ((c, conf_ms), corrected) = rayon::join(
+            || {
+                let t = Instant::now();
+                let predicted_organ = ctx.deformed_surface(&predicted);
+                let coverage = super::confidence::frame_coverage(&predicted_organ, world);
+                let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
+                (c, ms(t))
+            },
+            || corrector.correct(world, field, &settings, carried),
+        );
+        let mut corrected = corrected;
+        match settings.doubted() {
+            Some(d) if c.prediction_doubted => {
+                // Carried over consecutive doubted frames (in the tracking form, over all).
+                *field = predicted;
+                corrected = corrector
+                    .correct(world, field, &d, Some(&mut self.carried))
+                    .map(|r| CorrectionReport { doubted: true, ..r });
             }
-            let settings = self.settings.correction;
-            let predicted = self.field.clone();
-            // The confidence of the prediction (its organ deformed there too) beside its
-            // correction, on the two cores; a doubted prediction is then corrected again, from
-            // itself, as the FE fit.
-            let (ctx, rings, world_ref) = (self.ctx, &self.rings, &world);
-            let (corrector, field) = (self.corrector.as_mut().expect("built above"), &mut self.field);
-            let carried = settings.carry.then_some(&mut self.carried);
-            let ((c, conf_ms), corrected) = rayon::join(
-                || {
-                    let t = Instant::now();
-                    let predicted_organ = ctx.deformed_surface(&predicted);
-                    let coverage = super::confidence::frame_coverage(&predicted_organ, world_ref);
-                    let c = frame_confidence(
-                        world_ref,
-                        &predicted_organ,
-                        &ctx.surface,
-                        rings,
-                        coverage,
-                        reference.as_ref(),
-                    );
-                    (c, ms(t))
-                },
-                || corrector.correct(world_ref, field, &settings, carried),
-            );
-            let mut corrected = corrected;
-            match settings.doubted() {
-                Some(d) if c.prediction_doubted => {
-                    // Carried over consecutive doubted frames (in the tracking form, over all).
-                    *field = predicted;
-                    corrected = corrector
-                        .correct(world_ref, field, &d, Some(&mut self.carried))
-                        .map(|r| CorrectionReport { doubted: true, ..r });
-                }
-                _ if !settings.carry => self.carried.clear(),
-                _ => {}
-            }
-            correction =
-                Some(corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?);
-            correction_ms = ms(t);
-            judged_confidence = Some((c, conf_ms));
+            _ if !settings.carry => self.carried.clear(),
+            _ => {}
         }
-        self.prev_field.clone_from(&self.field);
-        // The registered organ (its silhouette's outline, and without a correction the frame's
-        // confidence) on one core, the deformed structures' layer on the other.
-        let t = Instant::now();
+        let corrected =
+            corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
+        Ok((corrected, (c, conf_ms)))
+    }
+
+    /// The overlay (when drawn) and the frame's confidence: the one judged beside the
+    /// correction, or else judged here on the registered organ. The registered organ (its
+    /// silhouette's outline, and without a correction the frame's confidence) on one core, the
+    /// deformed structures' layer on the other.
+    fn draw(
+        &self,
+        frame: &Frame,
+        world: &[Vector3<f64>],
+        camera_from_world: &Matrix4<f64>,
+        judged_confidence: Option<(Confidence, f64)>,
+        reference: Option<&ConfidenceReference>,
+    ) -> (Option<ColorImage>, (Confidence, f64)) {
+        let k = frame.intrinsics;
         let (ctx, field, draw) = (self.ctx, &self.field, self.settings.overlay);
         let ((inside, judged), layer) = rayon::join(
             || match judged_confidence {
@@ -716,22 +838,15 @@ impl<'c> Registrar<'c> {
                         || {
                             draw.then(|| {
                                 let mut inside = vec![false; k.width * k.height];
-                                rasterize_silhouette(&organ, &camera_from_world, &k, &mut inside);
+                                rasterize_silhouette(&organ, camera_from_world, &k, &mut inside);
                                 inside
                             })
                         },
                         || {
                             judged.unwrap_or_else(|| {
                                 let t = Instant::now();
-                                let coverage = super::confidence::frame_coverage(&organ, &world);
-                                let c = frame_confidence(
-                                    &world,
-                                    &organ,
-                                    &ctx.surface,
-                                    &self.rings,
-                                    coverage,
-                                    reference.as_ref(),
-                                );
+                                let coverage = super::confidence::frame_coverage(&organ, world);
+                                let c = frame_confidence(world, &organ, &ctx.surface, &self.rings, coverage, reference);
                                 (c, ms(t) + organ_ms)
                             })
                         },
@@ -742,11 +857,10 @@ impl<'c> Registrar<'c> {
                 draw.then(|| {
                     let structures: Vec<_> =
                         ctx.structures.iter().map(|s| (ctx.deformed_structure(s, field), s.color)).collect();
-                    structure_layer(&structures, &camera_from_world, &k)
+                    structure_layer(&structures, camera_from_world, &k)
                 })
             },
         );
-        let (confidence, confidence_ms) = judged;
         let overlay = match (inside, layer) {
             (Some(inside), Some(layer)) => {
                 let mut img = frame.color.clone().unwrap_or_else(|| depth_preview(&frame.depth));
@@ -755,66 +869,38 @@ impl<'c> Registrar<'c> {
             }
             _ => None,
         };
-        let overlay_ms = if draw { ms(t) } else { 0.0 };
-        let coverage = confidence.surface_coverage;
-        let (mut tre_mean, mut tre_max, mut tre_rigid, mut disp) = (None, None, None, None);
-        if let (Some(truth), Some(rest), Some(tp)) = (truth, rest, true_pose) {
-            let true_cam = rigid_inverse(tp);
-            let (mut e, mut e0, mut d) = (Vec::new(), Vec::new(), Vec::new());
-            for (m_true, m_rest) in truth.iter().zip(rest) {
-                let (mt, mr) = (Vector3::from(*m_true), Vector3::from(*m_rest));
-                let Some(emb) = self.ctx.grid.embed(&mr) else { continue };
-                let pred = mr + displacement_at(&self.ctx.grid, &self.field, &emb);
-                let truth_cam = transform_point(&true_cam, &mt);
-                e.push((transform_point(&camera_from_world, &pred) - truth_cam).norm());
-                e0.push((transform_point(&camera_from_world, &mr) - truth_cam).norm());
-                d.push((mt - mr).norm());
-            }
-            if !e.is_empty() {
-                let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-                tre_mean = Some(mean(&e));
-                tre_max = Some(e.iter().copied().fold(0.0, f64::max));
-                tre_rigid = Some(mean(&e0));
-                disp = Some(mean(&d));
-            }
+        (overlay, judged)
+    }
+
+    /// The registered markers against the truth, in the true camera's frame (a pose error counts).
+    fn tre(
+        &self,
+        truth: &[[f64; 3]],
+        rest: &[[f64; 3]],
+        true_pose: &Matrix4<f64>,
+        camera_from_world: &Matrix4<f64>,
+    ) -> Tre {
+        let true_cam = rigid_inverse(true_pose);
+        let (mut e, mut e0, mut d) = (Vec::new(), Vec::new(), Vec::new());
+        for (m_true, m_rest) in truth.iter().zip(rest) {
+            let (mt, mr) = (Vector3::from(*m_true), Vector3::from(*m_rest));
+            let Some(emb) = self.ctx.grid.embed(&mr) else { continue };
+            let pred = mr + displacement_at(&self.ctx.grid, &self.field, &emb);
+            let truth_cam = transform_point(&true_cam, &mt);
+            e.push((transform_point(camera_from_world, &pred) - truth_cam).norm());
+            e0.push((transform_point(camera_from_world, &mr) - truth_cam).norm());
+            d.push((mt - mr).norm());
         }
-        let latency = Latency {
-            points_ms,
-            icp_ms,
-            surface_ms,
-            predict_ms,
-            overlay_ms,
-            confidence_ms,
-            correction_ms,
-            total_ms: ms(t0),
-        };
-        Ok(FrameOutput {
-            report: FrameReport {
-                frame: frame.index,
-                timestamp_s: frame.timestamp_s,
-                observed_points: points.len(),
-                points_thinned_from: thinned_from,
-                surface_coverage: coverage,
-                measured_vertices: measured,
-                icp,
-                latency,
-                tre_mean_mm: tre_mean,
-                tre_max_mm: tre_max,
-                tre_rigid_mean_mm: tre_rigid,
-                marker_displacement_mean_mm: disp,
-                confidence,
-                correction,
-                end_to_end_ms: frame.host_time_s.and_then(|t| {
-                    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok()?.as_secs_f64();
-                    let ms = (now - t) * 1e3;
-                    // Another machine's clock gives nonsense: no figure rather than a wrong one.
-                    (0.0..3.6e6).contains(&ms).then_some(ms)
-                }),
-            },
-            field: self.field.clone(),
-            overlay,
-            world_from_camera: self.world_from_camera,
-        })
+        if e.is_empty() {
+            return Tre::default();
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        Tre {
+            mean_mm: Some(mean(&e)),
+            max_mm: Some(e.iter().copied().fold(0.0, f64::max)),
+            rigid_mean_mm: Some(mean(&e0)),
+            displacement_mean_mm: Some(mean(&d)),
+        }
     }
 
     /// u_s from the observed depth: each visible surface vertex, moved by the `current`
@@ -1051,6 +1137,9 @@ pub fn run_register(
     let mut reg = Registrar::new(ctx, settings.clone(), initial.unwrap_or_else(Matrix4::identity));
     if initial.is_none() {
         reg.require_frame_pose();
+    }
+    if model.takes_correction() {
+        reg.prepare_correction()?;
     }
     let mut frames = Vec::new();
     let mut log = Vec::new();

@@ -308,6 +308,113 @@ pub fn run_rgbd_synth(
     cancel: &Cancel,
 ) -> Result<SynthReport, RgbdError> {
     let bad = |r: String| crate::rgbd::invalid(out, r);
+    let config = &recording_config(config, settings);
+    let k = checked_intrinsics(config, settings, out)?;
+    progress.report(0, settings.frames as u64, "preparing the grid");
+    let mut ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
+    // The organ held elsewhere than the model assumes: the load is calibrated and the truth
+    // solved with the moved attachment.
+    let dataset_fixed_nodes = ctx.fixed.iter().filter(|&&f| f).count();
+    let shift_applied = match settings.attachment_shift_mm {
+        Some(shift) => {
+            let (f, applied) = shifted_fixed(&ctx.grid, &ctx.fixed, shift);
+            let held = f.iter().filter(|&&x| x).count();
+            // Fewer than a tenth of the nodes the dataset holds: the attachment left the organ.
+            if held * 10 < dataset_fixed_nodes {
+                return Err(bad(format!(
+                    "attachment shift {shift:?} mm: the shifted attachment holds {held} of the organ's nodes (the dataset's holds {dataset_fixed_nodes}); a smaller shift"
+                )));
+            }
+            ctx.fixed = f;
+            Some(applied)
+        }
+        None => None,
+    };
+    let (forces, load_scale) = recording_load(&ctx, config, settings, out, cancel)?;
+    let pose = camera_pose(&ctx.visible.camera);
+    let mut full = BoundaryConditions::new(ctx.grid.node_count());
+    full.fixed = ctx.fixed.clone();
+    ctx.apply_load(&mut full, config, &forces, settings.loads).map_err(|e| bad(e.into()))?;
+    let rest_surface = ctx.surface.clone();
+    let fixed = ctx.fixed.clone();
+    let reg = RegistrationContext::new(ctx, seg).map_err(|e| bad(e.into()))?;
+    let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
+    let grid = &reg.grid;
+    let material = settings.material.unwrap_or(config.material);
+    let mut truth_solve = TruthRamp::new(grid, material, &fixed, config, full).map_err(|e| bad(e.to_string()))?;
+    let fixed_count = fixed.iter().filter(|&&f| f).count();
+    let mut rng = SplitMix64(settings.seed);
+    let CameraPath { poses, sweeps } = camera_path(settings, &pose, &k);
+    let mut truth = GroundTruth {
+        world_from_camera: row_major(&pose),
+        world_from_camera_frames: if settings.camera_motion_mm > 0.0 || settings.camera_motion_deg > 0.0 {
+            poses.iter().map(row_major).collect()
+        } else {
+            Vec::new()
+        },
+        markers_rest_mm: markers.iter().map(|m| [m.x, m.y, m.z]).collect(),
+        markers_mm: Vec::new(),
+        grid_hash: Some(reg.grid_hash.clone()),
+    };
+    let mut disp = Vec::new();
+    for f in 0..settings.frames {
+        cancel.check()?;
+        progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
+        let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
+        let ramp = (settings.first_load + (1.0 - settings.first_load) * t).min(truth_solve.load_cap);
+        let u = truth_solve.displacement(ramp, cancel).map_err(|e| bad(format!("frame {f}: {e}")))?;
+        let surface = deform_mesh(grid, &rest_surface, &u);
+        let shafts: Vec<Shaft> = sweeps
+            .iter()
+            .map(|(a, b)| Shaft {
+                tip_px: [
+                    a.tip_px[0] + (b.tip_px[0] - a.tip_px[0]) * ramp,
+                    a.tip_px[1] + (b.tip_px[1] - a.tip_px[1]) * ramp,
+                ],
+                ..*a
+            })
+            .collect();
+        let (depth, color, mask) = render_frame(&surface, &poses[f], &k, settings, &shafts, &mut rng);
+        truth.markers_mm.push(marker_positions(grid, &markers, &u, &mut disp));
+        let frame = Frame {
+            index: f,
+            timestamp_s: f as f64 / settings.fps,
+            intrinsics: k,
+            depth,
+            color: Some(color),
+            mask: Some(mask),
+            world_from_camera: Some(poses[f]),
+            points: None,
+            device_frame: None,
+            host_time_s: None,
+        };
+        if settings.cloud_points > 0 {
+            write_cloud_frame(out, &format!("{f:05}"), &frame, settings.cloud_points, &mut rng)?;
+        } else {
+            write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
+        }
+    }
+    write_recording_files(out, &k, settings, &poses, &truth)?;
+    progress.report(settings.frames as u64, settings.frames as u64, "done");
+    let last = &disp[disp.len() - markers.len()..];
+    Ok(SynthReport {
+        out: out.to_path_buf(),
+        frames: settings.frames,
+        markers: markers.len(),
+        max_marker_displacement_mm: disp.iter().copied().fold(0.0, f64::max),
+        mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
+        solve_ms_total: truth_solve.solve_ms,
+        load_scale,
+        attachment_shift_mm: shift_applied,
+        load_reached: truth_solve.load_cap,
+        load_scale_asked: settings.load_scale,
+        fixed_nodes: fixed_count,
+        dataset_fixed_nodes,
+    })
+}
+
+/// The dataset's configuration as a recording uses it.
+fn recording_config(config: &DatasetConfig, settings: &SynthSettings) -> DatasetConfig {
     // A pressing recording is one of the dataset's pressing patterns, whatever families the
     // dataset mixes (its sample index would otherwise draw any of them).
     // A recording presses as hard as it is asked: the strain limit shapes training data only
@@ -318,9 +425,15 @@ pub fn run_rgbd_synth(
     let mut own = config.clone();
     own.forces.max_strain = 0.0;
     own.forces.target_spread = 0.0;
-    let mut pressing = own.clone();
-    pressing.forces.families = vec![LoadFamily::Pressing];
-    let config = if settings.loads == LoadFamily::Pressing { &pressing } else { &own };
+    if settings.loads == LoadFamily::Pressing {
+        own.forces.families = vec![LoadFamily::Pressing];
+    }
+    own
+}
+
+/// The settings checked, each refusal naming the figure and its range; the camera's intrinsics.
+fn checked_intrinsics(config: &DatasetConfig, settings: &SynthSettings, out: &Path) -> Result<Intrinsics, RgbdError> {
+    let bad = |r: String| crate::rgbd::invalid(out, r);
     if settings.frames == 0 || settings.frames > 100_000 {
         return Err(bad(format!("{} frames: between 1 and 100000", settings.frames)));
     }
@@ -384,32 +497,45 @@ pub fn run_rgbd_synth(
     if let Some(m) = &settings.material {
         m.validate().map_err(|e| bad(format!("truth material: {e}")))?;
     }
-    progress.report(0, settings.frames as u64, "preparing the grid");
-    let mut ctx = DatasetContext::prepare(seg, config, cancel).map_err(|e| bad(e.to_string()))?;
-    // The organ held elsewhere than the model assumes: the load is calibrated and the truth
-    // solved with the moved attachment.
-    let dataset_fixed_nodes = ctx.fixed.iter().filter(|&&f| f).count();
-    let shift_applied = match settings.attachment_shift_mm {
-        Some(shift) => {
-            let (f, applied) = shifted_fixed(&ctx.grid, &ctx.fixed, shift);
-            let held = f.iter().filter(|&&x| x).count();
-            // Fewer than a tenth of the nodes the dataset holds: the attachment left the organ.
-            if held * 10 < dataset_fixed_nodes {
-                return Err(bad(format!(
-                    "attachment shift {shift:?} mm: the shifted attachment holds {held} of the organ's nodes (the dataset's holds {dataset_fixed_nodes}); a smaller shift"
-                )));
-            }
-            ctx.fixed = f;
-            Some(applied)
+    Ok(k)
+}
+
+/// The recording's last-frame forces, calibrated as the dataset's samples are (its mean nodal
+/// displacement is the dataset's target times the load scale), and the scale used: a load the
+/// organ cannot take (SVK collapsing under it) is made smaller rather than refused, a test
+/// recording at the largest of these scales that converges, reported.
+fn recording_load(
+    ctx: &DatasetContext,
+    config: &DatasetConfig,
+    settings: &SynthSettings,
+    out: &Path,
+    cancel: &Cancel,
+) -> Result<(Vec<crate::loads::PointForce>, f64), RgbdError> {
+    let mut load_scale = settings.load_scale;
+    let mut forces = solve_recording_load(ctx, config, settings, load_scale, out, cancel);
+    for factor in [0.7, 0.5] {
+        if forces.is_ok() || cancel.is_cancelled() {
+            break;
         }
-        None => None,
-    };
-    // The dataset's load model (calibrated as its samples are: the last frame's mean nodal
-    // displacement is the dataset's target times `load_scale`).
-    let index = 10_000_000 + settings.seed as usize;
+        load_scale = settings.load_scale * factor;
+        forces = solve_recording_load(ctx, config, settings, load_scale, out, cancel);
+    }
+    Ok((forces?, load_scale))
+}
+
+/// The forces at one load scale, solved once to check that they converge and press as asked.
+fn solve_recording_load(
+    ctx: &DatasetContext,
+    config: &DatasetConfig,
+    settings: &SynthSettings,
+    load_scale: f64,
+    out: &Path,
+    cancel: &Cancel,
+) -> Result<Vec<crate::loads::PointForce>, RgbdError> {
+    let bad = |r: String| crate::rgbd::invalid(out, r);
     // A recording presses as asked or says it could not: a state the dataset would keep below
     // an unreachable target (down to a tenth of it) is refused under half of it, as it was
-    // before, and the load is made smaller below.
+    // before, and the load is made smaller by the caller.
     let reached = |sol: &crate::fem::solver::Solution, target_mm: f64| -> Result<(), RgbdError> {
         let m = config.forces.mean_over.mean_mm(&sol.displacement_mm, &ctx.fixed);
         if m < RECORDING_MIN_REACHED * target_mm {
@@ -417,87 +543,143 @@ pub fn run_rgbd_synth(
         }
         Ok(())
     };
-    let solve_load = |load_scale: f64| -> Result<Vec<crate::loads::PointForce>, RgbdError> {
-        Ok(if settings.loads != LoadFamily::Pressing {
-            // Another family: its own draw from the seed, calibrated and solved as a sample's.
-            let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
-            let pts = crate::visible::sample_points(
-                &ctx.surface,
-                &ctx.pressable,
-                crate::loads::family_points(settings.loads, &config.forces),
-                &mut rng,
-            );
-            let mut f = crate::loads::family_forces(
-                settings.loads,
-                &pts,
-                &ctx.grid,
-                &config.material,
-                &config.forces,
-                &mut rng,
-            );
-            let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-            let mut s0 =
-                FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-            let target = config.forces.target_displacement_mm * load_scale * settings.loads.target_factor();
-            ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads)
-                .map_err(|e| bad(format!("the recording's load: {e}")))?;
-            let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
-            let sol =
-                r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
-            reached(&sol, r.target_mm)?;
-            r.forces
-        } else if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
-            let mut f = ctx.sample_forces(config, index).0;
-            let _ = crate::loads::scale_forces(&mut f, 1.0, load_scale);
-            f
-        } else {
-            let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
-            let mut s0 =
-                FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
-            let r = ctx.solve_sample(&mut s0, config, index, load_scale, 0.5, cancel);
-            let sol = r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
-            reached(&sol, r.target_mm)?;
-            r.forces
-        })
-    };
-    // A load the organ cannot take (SVK collapsing under it) is made smaller rather than
-    // refused: a test recording at the largest of these scales that converges, reported.
-    let mut load_scale = settings.load_scale;
-    let mut forces = solve_load(load_scale);
-    for factor in [0.7, 0.5] {
-        if forces.is_ok() || cancel.is_cancelled() {
-            break;
-        }
-        load_scale = settings.load_scale * factor;
-        forces = solve_load(load_scale);
+    let budget = SolverSettings { max_total_iterations: Some(120), max_halvings: 8, ..config.solver.clone() };
+    if settings.loads != LoadFamily::Pressing {
+        // Another family: its own draw from the seed, calibrated and solved as a sample's.
+        let mut rng = SplitMix64(settings.seed ^ 0x10AD_FA11);
+        let pts = crate::visible::sample_points(
+            &ctx.surface,
+            &ctx.pressable,
+            crate::loads::family_points(settings.loads, &config.forces),
+            &mut rng,
+        );
+        let mut f =
+            crate::loads::family_forces(settings.loads, &pts, &ctx.grid, &config.material, &config.forces, &mut rng);
+        let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+        let target = config.forces.target_displacement_mm * load_scale * settings.loads.target_factor();
+        ctx.calibrate_forces(&mut s0, config, &mut f, target, settings.loads)
+            .map_err(|e| bad(format!("the recording's load: {e}")))?;
+        let r = ctx.solve_calibrated(&mut s0, config, f, target, settings.loads, 0.5, cancel);
+        let sol = r.solution.map_err(|e| bad(format!("the recording's {} load: {}", settings.loads.name(), e.1)))?;
+        reached(&sol, r.target_mm)?;
+        return Ok(r.forces);
     }
-    let forces = forces?;
-    let pose = camera_pose(&ctx.visible.camera);
-    let grid_ref = &ctx.grid;
-    let mut full = BoundaryConditions::new(grid_ref.node_count());
-    full.fixed = ctx.fixed.clone();
-    ctx.apply_load(&mut full, config, &forces, settings.loads).map_err(|e| bad(e.into()))?;
-    let rest_surface = ctx.surface.clone();
-    let fixed = ctx.fixed.clone();
-    let reg = RegistrationContext::new(ctx, seg).map_err(|e| bad(e.into()))?;
-    let markers = virtual_markers(&reg, settings.markers, settings.seed ^ 0xA11CE);
-    let grid = &reg.grid;
-    // The truth is solved with a larger budget than the dataset's (a frame must not be
-    // dropped), but a bounded one: a truth collapsing under its load (a softer material than
-    // the loads were calibrated on) ran over 6 minutes a frame; it now falls to the bisection.
-    let truth_solver = SolverSettings {
-        max_total_iterations: Some(TRUTH_ITERATIONS),
-        max_halvings: 8,
-        reject_indefinite: false,
-        ..config.solver.clone()
-    };
-    let material = settings.material.unwrap_or(config.material);
-    let mut solver = FeSolver::new(grid, material, &fixed, truth_solver).map_err(|e| bad(e.to_string()))?;
-    let fixed_count = fixed.iter().filter(|&&f| f).count();
-    let mut rng = SplitMix64(settings.seed);
-    let row_major = |m: &Matrix4<f64>| -> [f64; 16] { m.transpose().as_slice().try_into().unwrap_or([0.0; 16]) };
-    // Camera motion and instruments from their own stream, so that a recording without them
-    // is the one this seed always gave.
+    // The dataset's load model for a sample index no dataset draws.
+    let index = 10_000_000 + settings.seed as usize;
+    if config.forces.calibration == crate::loads::LoadCalibration::EnergyScale {
+        let mut f = ctx.sample_forces(config, index).0;
+        let _ = crate::loads::scale_forces(&mut f, 1.0, load_scale);
+        return Ok(f);
+    }
+    let mut s0 = FeSolver::new(&ctx.grid, config.material, &ctx.fixed, budget).map_err(|e| bad(e.to_string()))?;
+    let r = ctx.solve_sample(&mut s0, config, index, load_scale, 0.5, cancel);
+    let sol = r.solution.map_err(|e| bad(format!("the recording's load: {}", e.1)))?;
+    reached(&sol, r.target_mm)?;
+    Ok(r.forces)
+}
+
+/// The truth's solves along the load ramp, frame after frame.
+struct TruthRamp<'g> {
+    solver: FeSolver<'g>,
+    /// The last frame's full load.
+    full: BoundaryConditions,
+    /// The share of the final load the truth reached (below 1 when it could not converge).
+    load_cap: f64,
+    last_ramp: f64,
+    /// The state at `load_cap`, once capped.
+    held: Option<Vec<Vector3<f64>>>,
+    solve_ms: f64,
+}
+
+impl<'g> TruthRamp<'g> {
+    fn new(
+        grid: &'g crate::grid::ImmersedGrid,
+        material: MaterialParams,
+        fixed: &[bool],
+        config: &DatasetConfig,
+        full: BoundaryConditions,
+    ) -> Result<Self, crate::fem::FemError> {
+        // The truth is solved with a larger budget than the dataset's (a frame must not be
+        // dropped), but a bounded one: a truth collapsing under its load (a softer material than
+        // the loads were calibrated on) ran over 6 minutes a frame; it now falls to the bisection.
+        let settings = SolverSettings {
+            max_total_iterations: Some(TRUTH_ITERATIONS),
+            max_halvings: 8,
+            reject_indefinite: false,
+            ..config.solver.clone()
+        };
+        let solver = FeSolver::new(grid, material, fixed, settings)?;
+        Ok(Self { solver, full, load_cap: 1.0, last_ramp: 0.0, held: None, solve_ms: 0.0 })
+    }
+
+    fn scaled(&self, r: f64) -> BoundaryConditions {
+        let mut bc = self.full.clone();
+        for v in &mut bc.forces_n {
+            *v *= r;
+        }
+        bc
+    }
+
+    /// The nodal displacement at `ramp` times the full load (at most `load_cap`).
+    fn displacement(&mut self, ramp: f64, cancel: &Cancel) -> Result<Vec<Vector3<f64>>, String> {
+        let n = self.full.fixed.len();
+        let u = if ramp == 0.0 {
+            vec![Vector3::zeros(); n]
+        } else if let Some(u) = self.held.as_ref().filter(|_| ramp >= self.load_cap) {
+            // Capped at the largest load that converged: that state, not solved again.
+            u.clone()
+        } else {
+            let t = std::time::Instant::now();
+            let sol = match self.solver.solve(&self.scaled(ramp), SolveMethod::Newton, &Progress::none(), cancel) {
+                Ok(sol) => sol,
+                // The truth cannot reach this frame's load (SVK collapsing under it): the
+                // largest load between the last converged frame's and this one that converges
+                // (bisected), kept for the frames after; the report says how far it got.
+                Err(e) if !cancel.is_cancelled() => {
+                    let Some((lo, sol)) = self.bisect(ramp, cancel) else { return Err(e.to_string()) };
+                    self.load_cap = lo;
+                    self.held = Some(sol.displacement_mm.clone());
+                    sol
+                }
+                Err(e) => return Err(e.to_string()),
+            };
+            self.solve_ms += t.elapsed().as_secs_f64() * 1e3;
+            sol.displacement_mm
+        };
+        self.last_ramp = ramp.min(self.load_cap);
+        Ok(u)
+    }
+
+    /// The largest load between the last converged frame's and `ramp` that converges, with its
+    /// solution; each probe bounded, so a collapsing truth costs a few solves, not hours.
+    fn bisect(&mut self, ramp: f64, cancel: &Cancel) -> Option<(f64, crate::fem::solver::Solution)> {
+        let (mut lo, mut hi, mut best) = (self.last_ramp, ramp, None);
+        let unbounded = self.solver.settings.max_total_iterations;
+        self.solver.settings.max_total_iterations = Some(BISECTION_ITERATIONS);
+        for _ in 0..LOAD_BISECTIONS {
+            let mid = 0.5 * (lo + hi);
+            match self.solver.solve(&self.scaled(mid), SolveMethod::Newton, &Progress::none(), cancel) {
+                Ok(sol) => {
+                    lo = mid;
+                    best = Some(sol);
+                }
+                Err(_) => hi = mid,
+            }
+        }
+        self.solver.settings.max_total_iterations = unbounded;
+        best.map(|sol| (lo, sol))
+    }
+}
+
+/// The camera's pose at each frame and the instruments' sweeps.
+struct CameraPath {
+    poses: Vec<Matrix4<f64>>,
+    sweeps: Vec<(Shaft, Shaft)>,
+}
+
+/// Camera motion and instruments from their own stream, so that a recording without them is
+/// the one this seed always gave.
+fn camera_path(settings: &SynthSettings, pose: &Matrix4<f64>, k: &Intrinsics) -> CameraPath {
     let mut motion_rng = SplitMix64(settings.seed ^ 0x00C0_FFEE);
     let unit = |rng: &mut SplitMix64| loop {
         let v = Vector3::new(rng.next_f64() * 2.0 - 1.0, rng.next_f64() * 2.0 - 1.0, rng.next_f64() * 2.0 - 1.0);
@@ -513,120 +695,49 @@ pub fn run_rgbd_synth(
         Vector3::x() * settings.camera_motion_mm
     };
     let axis_cam = unit(&mut motion_rng);
-    let sweeps = instrument_sweeps(settings.instruments, &k, &mut motion_rng);
-    let moving = settings.camera_motion_mm > 0.0 || settings.camera_motion_deg > 0.0;
-    let poses: Vec<Matrix4<f64>> = (0..settings.frames)
+    let sweeps = instrument_sweeps(settings.instruments, k, &mut motion_rng);
+    let poses = (0..settings.frames)
         .map(|f| {
             let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 0.0 };
-            moved_pose(&pose, &offset_cam, &axis_cam, settings.camera_motion_deg.to_radians(), t)
+            moved_pose(pose, &offset_cam, &axis_cam, settings.camera_motion_deg.to_radians(), t)
         })
         .collect();
-    let mut truth = GroundTruth {
-        world_from_camera: row_major(&pose),
-        world_from_camera_frames: if moving { poses.iter().map(row_major).collect() } else { Vec::new() },
-        markers_rest_mm: markers.iter().map(|m| [m.x, m.y, m.z]).collect(),
-        markers_mm: Vec::new(),
-        grid_hash: Some(reg.grid_hash.clone()),
-    };
-    let mut solve_ms = 0.0;
-    let mut disp = Vec::new();
-    // The share of the final load the truth reached (below 1 when it could not converge).
-    let mut load_cap = 1.0f64;
-    let mut last_ramp = 0.0f64;
-    let mut held: Option<Vec<Vector3<f64>>> = None;
-    for f in 0..settings.frames {
-        cancel.check()?;
-        progress.report(f as u64, settings.frames as u64, &format!("frame {f}: solving"));
-        let t = if settings.frames > 1 { f as f64 / (settings.frames - 1) as f64 } else { 1.0 };
-        let ramp = (settings.first_load + (1.0 - settings.first_load) * t).min(load_cap);
-        let scaled = |r: f64| {
-            let mut bc = full.clone();
-            for v in &mut bc.forces_n {
-                *v *= r;
-            }
-            bc
-        };
-        let u: Vec<Vector3<f64>> = if ramp == 0.0 {
-            vec![Vector3::zeros(); grid.node_count()]
-        } else if let Some(u) = held.as_ref().filter(|_| ramp >= load_cap) {
-            // Capped at the largest load that converged: that state, not solved again.
-            u.clone()
-        } else {
-            let t = std::time::Instant::now();
-            let sol = match solver.solve(&scaled(ramp), SolveMethod::Newton, &Progress::none(), cancel) {
-                Ok(sol) => sol,
-                // The truth cannot reach this frame's load (SVK collapsing under it): the
-                // largest load between the last converged frame's and this one that converges
-                // (bisected), kept for the frames after; the report says how far it got.
-                Err(e) if !cancel.is_cancelled() => {
-                    let (mut lo, mut hi, mut best) = (last_ramp, ramp, None);
-                    // Each probe bounded, so a collapsing truth costs a few solves, not hours.
-                    let unbounded = solver.settings.max_total_iterations;
-                    solver.settings.max_total_iterations = Some(BISECTION_ITERATIONS);
-                    for _ in 0..LOAD_BISECTIONS {
-                        let mid = 0.5 * (lo + hi);
-                        match solver.solve(&scaled(mid), SolveMethod::Newton, &Progress::none(), cancel) {
-                            Ok(sol) => {
-                                lo = mid;
-                                best = Some(sol);
-                            }
-                            Err(_) => hi = mid,
-                        }
-                    }
-                    solver.settings.max_total_iterations = unbounded;
-                    let Some(sol) = best else { return Err(bad(format!("frame {f}: {e}"))) };
-                    load_cap = lo;
-                    held = Some(sol.displacement_mm.clone());
-                    sol
-                }
-                Err(e) => return Err(bad(format!("frame {f}: {e}"))),
-            };
-            solve_ms += t.elapsed().as_secs_f64() * 1e3;
-            sol.displacement_mm
-        };
-        last_ramp = ramp.min(load_cap);
-        let surface = deform_mesh(grid, &rest_surface, &u);
-        let shafts: Vec<Shaft> = sweeps
-            .iter()
-            .map(|(a, b)| Shaft {
-                tip_px: [
-                    a.tip_px[0] + (b.tip_px[0] - a.tip_px[0]) * ramp,
-                    a.tip_px[1] + (b.tip_px[1] - a.tip_px[1]) * ramp,
-                ],
-                ..*a
-            })
-            .collect();
-        let (depth, color, mask) = render_frame(&surface, &poses[f], &k, settings, &shafts, &mut rng);
-        let m: Vec<[f64; 3]> = markers
-            .iter()
-            .map(|p| {
-                let d: Vector3<f64> = grid
-                    .embed(p)
-                    .map(|e| e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum())
-                    .unwrap_or_default();
-                disp.push(d.norm());
-                [p.x + d.x, p.y + d.y, p.z + d.z]
-            })
-            .collect();
-        truth.markers_mm.push(m);
-        let frame = Frame {
-            index: f,
-            timestamp_s: f as f64 / settings.fps,
-            intrinsics: k,
-            depth,
-            color: Some(color),
-            mask: Some(mask),
-            world_from_camera: Some(poses[f]),
-            points: None,
-            device_frame: None,
-            host_time_s: None,
-        };
-        if settings.cloud_points > 0 {
-            write_cloud_frame(out, &format!("{f:05}"), &frame, settings.cloud_points, &mut rng)?;
-        } else {
-            write_frame(out, &format!("{f:05}"), &frame, 1000.0)?;
-        }
-    }
+    CameraPath { poses, sweeps }
+}
+
+fn row_major(m: &Matrix4<f64>) -> [f64; 16] {
+    m.transpose().as_slice().try_into().unwrap_or([0.0; 16])
+}
+
+/// The markers moved by the nodal displacement `u` (world, mm); each one's displacement is
+/// appended to `disp`.
+fn marker_positions(
+    grid: &crate::grid::ImmersedGrid,
+    markers: &[Vector3<f64>],
+    u: &[Vector3<f64>],
+    disp: &mut Vec<f64>,
+) -> Vec<[f64; 3]> {
+    markers
+        .iter()
+        .map(|p| {
+            let d: Vector3<f64> = grid
+                .embed(p)
+                .map(|e| e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum())
+                .unwrap_or_default();
+            disp.push(d.norm());
+            [p.x + d.x, p.y + d.y, p.z + d.z]
+        })
+        .collect()
+}
+
+/// The recording's files beside its frames: intrinsics, frame rate, poses, truth, settings.
+fn write_recording_files(
+    out: &Path,
+    k: &Intrinsics,
+    settings: &SynthSettings,
+    poses: &[Matrix4<f64>],
+    truth: &GroundTruth,
+) -> Result<(), RgbdError> {
     let io = |p: PathBuf| move |e: std::io::Error| RgbdError::Io { path: p, source: e };
     let w = |name: &str, text: String| -> Result<(), RgbdError> {
         let p = out.join(name);
@@ -634,25 +745,9 @@ pub fn run_rgbd_synth(
     };
     w("intrinsics.json", k.to_open3d_json())?;
     w("recording.json", json(&RecordingMeta { depth_scale: 1000.0, fps: settings.fps }))?;
-    w("trajectory.log", write_trajectory_log(&poses))?;
-    w("ground_truth.json", json(&truth))?;
-    w("synth.json", json(settings))?;
-    progress.report(settings.frames as u64, settings.frames as u64, "done");
-    let last = &disp[disp.len() - markers.len()..];
-    Ok(SynthReport {
-        out: out.to_path_buf(),
-        frames: settings.frames,
-        markers: markers.len(),
-        max_marker_displacement_mm: disp.iter().copied().fold(0.0, f64::max),
-        mean_marker_displacement_mm: last.iter().sum::<f64>() / last.len().max(1) as f64,
-        solve_ms_total: solve_ms,
-        load_scale,
-        attachment_shift_mm: shift_applied,
-        load_reached: load_cap,
-        load_scale_asked: settings.load_scale,
-        fixed_nodes: fixed_count,
-        dataset_fixed_nodes,
-    })
+    w("trajectory.log", write_trajectory_log(poses))?;
+    w("ground_truth.json", json(truth))?;
+    w("synth.json", json(settings))
 }
 
 /// A frame as a camera's sparse cloud: `count` organ pixels with depth drawn at random

@@ -1188,3 +1188,44 @@ fn a_ground_truth_with_huge_or_non_finite_values_is_refused_naming_the_file() {
     let e = GroundTruth::read(&path).unwrap_err().0;
     assert!(e.contains("ground_truth.json") && e.contains("camera pose"), "{e}");
 }
+
+#[test]
+fn building_the_correction_before_the_first_frame_changes_no_figure() {
+    use umesh_core::register::pipeline::Registrar;
+    let seg = phantom();
+    let d = tmp("prepared-correction");
+    let config = small_config(&seg);
+    let s = SynthSettings { frames: 3, width: 320, height: 240, focal_px: 262.5, ..Default::default() };
+    run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
+    let rec = Recording::open(&d, None).unwrap();
+    let pose = rec.trajectory.as_ref().unwrap()[0];
+    let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
+    let settings = RegisterSettings { overlay: false, ..Default::default() };
+    assert!(settings.correction.updates > 0, "the default registration corrects its predictions");
+    let mut prepared = Registrar::new(&ctx, settings.clone(), pose);
+    prepared.prepare_correction().unwrap();
+    let mut lazy = Registrar::new(&ctx, settings, pose);
+    // Doubted from the first deformed frame on: the correction of a doubted frame too.
+    let mut model = DoubtingRigid(ConfidenceReference {
+        residual_p95_mm: 0.3,
+        residual_mean_mm: 0.2,
+        correct_tre_mm: Some(2.0),
+        correct_views: 10,
+        coverage_min: 0.0,
+        displacement_max_mm: 100.0,
+        views: 10,
+    });
+    for i in 0..3 {
+        let frame = rec.read_frame(i).unwrap();
+        let a = prepared.process(&frame, &mut model, None, None, None).unwrap();
+        let b = lazy.process(&frame, &mut model, None, None, None).unwrap();
+        // Exactly the same field (bit for bit) and the same correction, timings aside.
+        assert_eq!(a.field, b.field, "frame {i}");
+        let (ca, cb) = (a.report.correction.unwrap(), b.report.correction.unwrap());
+        assert!(i == 0 || (ca.moved_rms_mm > 0.0 && ca.doubted), "frame {i}: {ca:?}");
+        assert_eq!(
+            (ca.moved_rms_mm, ca.fit.cg_iterations, ca.doubted),
+            (cb.moved_rms_mm, cb.fit.cg_iterations, cb.doubted)
+        );
+    }
+}

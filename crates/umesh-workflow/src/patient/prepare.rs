@@ -45,7 +45,14 @@ fn stage_progress(global: &Progress, offset: u64, width: u64, total: u64, stage:
     let g = global.clone();
     Progress::new(move |done, t, msg| {
         let frac = if t > 0 { (done as f64 / t as f64).clamp(0.0, 1.0) } else { 0.0 };
-        g.report(offset + (frac * width as f64) as u64, total, &format!("{}: {msg}", stage.name()));
+        // The stage's own count in the message: the figures after it are the job's units
+        // (a log read "samples: 5475/205810" for sample 73 of 1000).
+        let msg = if t > 0 {
+            format!("{}: {msg} {done} of {t}; job", stage.name())
+        } else {
+            format!("{}: {msg}", stage.name())
+        };
+        g.report(offset + (frac * width as f64) as u64, total, &msg);
     })
 }
 

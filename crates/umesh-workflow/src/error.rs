@@ -23,20 +23,7 @@ impl WorkflowError {
     }
 }
 
-/// `ensure!(condition, "format", args)`: an option error unless the condition holds.
-macro_rules! ensure {
-    ($cond:expr, $($fmt:tt)+) => {
-        if !$cond {
-            return Err($crate::WorkflowError::Option(format!($($fmt)+)));
-        }
-    };
+/// An option error with the message unless the condition holds (the message is made only then).
+pub(crate) fn require(holds: bool, message: impl FnOnce() -> String) -> Result<(), WorkflowError> {
+    if holds { Ok(()) } else { Err(WorkflowError::Option(message())) }
 }
-
-/// `bail!("format", args)`: an option error.
-macro_rules! bail {
-    ($($fmt:tt)+) => {
-        return Err($crate::WorkflowError::Option(format!($($fmt)+)))
-    };
-}
-
-pub(crate) use {bail, ensure};

@@ -3,7 +3,7 @@
 //! options and the app's forms are this one struct (with the `clap` feature it is also the
 //! command line's argument group).
 
-use crate::error::{WorkflowError, bail, ensure};
+use crate::error::{WorkflowError, require};
 use nalgebra::Vector3;
 use umesh_core::dataset::DatasetConfig;
 use umesh_core::fem::{FixedRegion, MaterialParams};
@@ -181,57 +181,56 @@ impl DatasetOptions {
     /// The fixed region: the options given, else core's default for this segmentation.
     pub fn fixed(&self, seg: &Segmentation) -> Result<FixedChoice, WorkflowError> {
         let finite = |v: &[f64], opt: &str| -> Result<(), WorkflowError> {
-            ensure!(v.iter().all(|x| x.is_finite()), "{opt}: every number must be finite");
-            Ok(())
+            require(v.iter().all(|x| x.is_finite()), || format!("{opt}: every number must be finite"))
         };
         if !self.fix_box.is_empty() {
-            ensure!(self.fix_box.len() == 6, "--fix-box: expected xmin,ymin,zmin,xmax,ymax,zmax (6 numbers)");
+            require(self.fix_box.len() == 6, || {
+                "--fix-box: expected xmin,ymin,zmin,xmax,ymax,zmax (6 numbers)".into()
+            })?;
             finite(&self.fix_box, "--fix-box")?;
             let b = &self.fix_box;
-            ensure!((0..3).all(|a| b[a] < b[a + 3]), "--fix-box: each minimum must be below its maximum");
+            require((0..3).all(|a| b[a] < b[a + 3]), || "--fix-box: each minimum must be below its maximum".into())?;
             return Ok(FixedChoice {
                 region: FixedRegion::Box { min_mm: [b[0], b[1], b[2]], max_mm: [b[3], b[4], b[5]] },
                 description: format!("nodes in the box {:?}..{:?} mm (chosen)", &b[..3], &b[3..]),
             });
         }
         if !self.fix_plane.is_empty() {
-            ensure!(self.fix_plane.len() == 5, "--fix-plane: expected nx,ny,nz,offset_mm,thickness_mm (5 numbers)");
+            require(self.fix_plane.len() == 5, || {
+                "--fix-plane: expected nx,ny,nz,offset_mm,thickness_mm (5 numbers)".into()
+            })?;
             finite(&self.fix_plane, "--fix-plane")?;
             let p = &self.fix_plane;
-            ensure!(p[4] >= 0.0, "--fix-plane: the thickness must be >= 0");
+            require(p[4] >= 0.0, || "--fix-plane: the thickness must be >= 0".into())?;
             return Ok(FixedChoice {
                 region: FixedRegion::Plane { normal: [p[0], p[1], p[2]], offset_mm: p[3], thickness_mm: p[4] },
                 description: format!("nodes with n.x < {} mm for n = {:?} (chosen)", p[3] + p[4], &p[..3]),
             });
         }
-        ensure!(
-            self.fix_distance_mm > 0.0 && self.fix_distance_mm < 1000.0,
-            "--fix-distance-mm {}: must be positive and below 1 m",
-            self.fix_distance_mm
-        );
+        require(self.fix_distance_mm > 0.0 && self.fix_distance_mm < 1000.0, || {
+            format!("--fix-distance-mm {}: must be positive and below 1 m", self.fix_distance_mm)
+        })?;
         if let Some(l) = self.fix_label {
-            ensure!(
-                seg.volume.label_counts().contains_key(&l),
-                "--fix-label {l}: {} has no voxel of that label",
-                seg.source.display()
-            );
+            require(seg.volume.label_counts().contains_key(&l), || {
+                format!("--fix-label {l}: {} has no voxel of that label", seg.source.display())
+            })?;
         }
         Ok(umesh_core::loads::default_fixed(seg, self.fix_label, self.fix_distance_mm))
     }
 
     pub fn camera(&self, seg: &Segmentation) -> Result<Option<Camera>, WorkflowError> {
-        ensure!(self.fov_deg > 0.0 && self.fov_deg < 170.0, "--fov-deg {}: must lie in (0, 170)", self.fov_deg);
+        require(self.fov_deg > 0.0 && self.fov_deg < 170.0, || {
+            format!("--fov-deg {}: must lie in (0, 170)", self.fov_deg)
+        })?;
         if !self.camera_from.is_empty() {
-            ensure!(
-                self.camera_from.len() == 3 && self.camera_to.len() == 3,
-                "--camera-from and --camera-to: x,y,z (3 numbers each)"
-            );
+            require(self.camera_from.len() == 3 && self.camera_to.len() == 3, || {
+                "--camera-from and --camera-to: x,y,z (3 numbers each)".into()
+            })?;
             let (f, t) = (Vector3::from_column_slice(&self.camera_from), Vector3::from_column_slice(&self.camera_to));
-            ensure!(
-                f.iter().chain(t.iter()).all(|v| v.is_finite()),
-                "--camera-from/--camera-to: numbers must be finite"
-            );
-            ensure!((f - t).norm() > 1e-6, "--camera-from and --camera-to are the same point");
+            require(f.iter().chain(t.iter()).all(|v| v.is_finite()), || {
+                "--camera-from/--camera-to: numbers must be finite".into()
+            })?;
+            require((f - t).norm() > 1e-6, || "--camera-from and --camera-to are the same point".into())?;
             return Ok(Some(Camera::look_at(&f, &t, self.fov_deg)));
         }
         let Some(view) = &self.camera else { return Ok(None) };
@@ -286,22 +285,25 @@ impl DatasetOptions {
                 "--probes/--target-displacement-mm/--target-spread/--probe-radius-mm/--max-strain/--loads: {e}"
             ))
         })?;
-        ensure!(
-            self.visible_fraction > 0.0 && self.visible_fraction <= 1.0,
-            "--visible-fraction {}: must lie in (0, 1]",
-            self.visible_fraction
-        );
+        require(self.visible_fraction > 0.0 && self.visible_fraction <= 1.0, || {
+            format!("--visible-fraction {}: must lie in (0, 1]", self.visible_fraction)
+        })?;
         c.visibility.max_fraction = self.visible_fraction;
         c.visibility.camera = self.camera(seg)?;
         c.material = MaterialParams { young_pa: self.young_pa, poisson: self.poisson, ..Default::default() };
-        ensure!(self.max_newton_iterations >= 1, "--max-newton-iterations must be at least 1");
+        require(self.max_newton_iterations >= 1, || "--max-newton-iterations must be at least 1".into())?;
         c.solver.max_total_iterations = Some(self.max_newton_iterations);
         c.material.validate().map_err(|e| WorkflowError::option_message(format!("--young-pa/--poisson: {e}")))?;
         if !self.poisson_range.is_empty() || self.neo_hookean_fraction != 0.0 {
             let (lo, hi) = match self.poisson_range.as_slice() {
                 [lo, hi] => (*lo, *hi),
                 [] => (self.poisson, self.poisson),
-                v => bail!("--poisson-range takes two values MIN,MAX, got {}", v.len()),
+                v => {
+                    return Err(WorkflowError::option_message(format!(
+                        "--poisson-range takes two values MIN,MAX, got {}",
+                        v.len()
+                    )));
+                }
             };
             let v = umesh_core::fem::material::MaterialVariation {
                 poisson_min: lo,

@@ -730,13 +730,7 @@ impl<'c> Registrar<'c> {
             measured = stats.nodes_observed;
             surface_ms += ms(t);
             if measured > 0 {
-                let t = Instant::now();
-                model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
-                    frame: frame.index,
-                    model: model.name(),
-                    source,
-                })?;
-                predict_ms += ms(t);
+                predict_ms += self.run_model(frame, model)?;
             }
         }
         if !direct {
@@ -746,13 +740,7 @@ impl<'c> Registrar<'c> {
                 let t = Instant::now();
                 measured = self.surface_input(depth, &frame.intrinsics, camera_from_world, &current);
                 surface_ms += ms(t);
-                let t = Instant::now();
-                model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
-                    frame: frame.index,
-                    model: model.name(),
-                    source,
-                })?;
-                predict_ms += ms(t);
+                predict_ms += self.run_model(frame, model)?;
                 current.clone_from(&self.field);
             }
         }
@@ -763,6 +751,17 @@ impl<'c> Registrar<'c> {
             ))));
         }
         Ok(Prediction { fe_fit, measured, surface_ms, predict_ms })
+    }
+
+    /// The model's prediction from `self.u_s` into `self.field`; its time (ms).
+    fn run_model(&mut self, frame: &Frame, model: &mut dyn DisplacementModel) -> Result<f64, FrameError> {
+        let t = Instant::now();
+        model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
+            frame: frame.index,
+            model: model.name(),
+            source,
+        })?;
+        Ok(ms(t))
     }
 
     /// The physics correction of `self.field` in place, with the confidence of the prediction it

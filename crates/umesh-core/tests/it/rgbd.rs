@@ -558,17 +558,24 @@ fn moving_camera_with_instruments_registers_every_frame_through_the_tracked_pose
     assert!(last.tre_mean_mm.unwrap() < last.tre_rigid_mean_mm.unwrap(), "the deformation must help: {last:?}");
 }
 
-#[test]
-fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on() {
-    use umesh_core::register::pipeline::Registrar;
+/// A small synthetic recording of the phantom (320 x 240) in its own folder, its first pose and
+/// the registration context of its grid.
+fn small_recording(name: &str, frames: usize) -> (DatasetConfig, Recording, Matrix4<f64>, RegistrationContext) {
     let seg = phantom();
-    let d = tmp("bad-clouds");
+    let d = tmp(name);
     let config = small_config(&seg);
-    let s = SynthSettings { frames: 2, width: 320, height: 240, focal_px: 262.5, ..Default::default() };
+    let s = SynthSettings { frames, width: 320, height: 240, focal_px: 262.5, ..Default::default() };
     run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     let rec = Recording::open(&d, None).unwrap();
     let pose = rec.trajectory.as_ref().unwrap()[0];
     let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
+    (config, rec, pose, ctx)
+}
+
+#[test]
+fn empty_far_or_tiny_clouds_are_skipped_with_a_reason_and_registration_goes_on() {
+    use umesh_core::register::pipeline::Registrar;
+    let (config, rec, pose, ctx) = small_recording("bad-clouds", 2);
     let mut fe = FeDisplacementModel::new(&ctx, config.material).unwrap();
     let mut reg = Registrar::new(&ctx, RegisterSettings { overlay: false, ..Default::default() }, pose);
     let good = rec.read_frame(0).unwrap();
@@ -874,15 +881,7 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     // is corrected as the FE fit, from rest, carried, 4 updates: nearer the converged fit than
     // the two updates of the default correction (measured: 2.52 mm against 7.39, the converged
     // fit 1.94; tolerance: half the gap).
-    let mut doubting = DoubtingRigid(ConfidenceReference {
-        residual_p95_mm: 0.3,
-        residual_mean_mm: 0.2,
-        correct_tre_mm: Some(2.0),
-        correct_views: 10,
-        coverage_min: 0.0,
-        displacement_max_mm: 100.0,
-        views: 10,
-    });
+    let mut doubting = DoubtingRigid::within_0_3_mm();
     let plain = run(&mut RigidModel, CorrectionSettings::default());
     let doubted = run(&mut doubting, CorrectionSettings::default());
     let c = doubted.correction.expect("the correction ran");
@@ -900,6 +899,22 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
 
 /// A prediction of no deformation with a confidence reference: its deformed frames are doubted.
 struct DoubtingRigid(ConfidenceReference);
+
+impl DoubtingRigid {
+    /// Right views within 0.3 mm (95th percentile) of their predictions: every deformed frame
+    /// of no deformation is beyond it.
+    fn within_0_3_mm() -> Self {
+        DoubtingRigid(ConfidenceReference {
+            residual_p95_mm: 0.3,
+            residual_mean_mm: 0.2,
+            correct_tre_mm: Some(2.0),
+            correct_views: 10,
+            coverage_min: 0.0,
+            displacement_max_mm: 100.0,
+            views: 10,
+        })
+    }
+}
 
 impl umesh_core::register::pipeline::DisplacementModel for DoubtingRigid {
     fn name(&self) -> String {
@@ -1192,29 +1207,14 @@ fn a_ground_truth_with_huge_or_non_finite_values_is_refused_naming_the_file() {
 #[test]
 fn building_the_correction_before_the_first_frame_changes_no_figure() {
     use umesh_core::register::pipeline::Registrar;
-    let seg = phantom();
-    let d = tmp("prepared-correction");
-    let config = small_config(&seg);
-    let s = SynthSettings { frames: 3, width: 320, height: 240, focal_px: 262.5, ..Default::default() };
-    run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
-    let rec = Recording::open(&d, None).unwrap();
-    let pose = rec.trajectory.as_ref().unwrap()[0];
-    let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
+    let (_, rec, pose, ctx) = small_recording("prepared-correction", 3);
     let settings = RegisterSettings { overlay: false, ..Default::default() };
     assert!(settings.correction.updates > 0, "the default registration corrects its predictions");
     let mut prepared = Registrar::new(&ctx, settings.clone(), pose);
     prepared.prepare_correction().unwrap();
     let mut lazy = Registrar::new(&ctx, settings, pose);
     // Doubted from the first deformed frame on: the correction of a doubted frame too.
-    let mut model = DoubtingRigid(ConfidenceReference {
-        residual_p95_mm: 0.3,
-        residual_mean_mm: 0.2,
-        correct_tre_mm: Some(2.0),
-        correct_views: 10,
-        coverage_min: 0.0,
-        displacement_max_mm: 100.0,
-        views: 10,
-    });
+    let mut model = DoubtingRigid::within_0_3_mm();
     for i in 0..3 {
         let frame = rec.read_frame(i).unwrap();
         let a = prepared.process(&frame, &mut model, None, None, None).unwrap();

@@ -31,6 +31,10 @@ pub struct Args {
     /// would leave too little of it for the evaluation and the check; the best epoch is the model.
     #[arg(long, default_value_t = 60.0)]
     pub time_budget_min: f64,
+    /// The most grid nodes the job trains in its hour (0: keep --cell-size-mm): a larger
+    /// organ's cells grow by whole millimetres until its grid fits, and the report says so.
+    #[arg(long, default_value_t = umesh_workflow::patient::MAX_GRID_NODES)]
+    pub max_grid_nodes: usize,
     #[command(flatten)]
     pub schedule: super::train::ScheduleArgs,
     /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
@@ -88,6 +92,7 @@ pub fn run(a: Args) -> Result<()> {
     settings.train.observation = super::train::parse_input(&a.network_input)?;
     a.schedule.apply(&mut settings.train)?;
     settings.time_budget_s = super::train::budget_seconds(a.time_budget_min)?;
+    settings.max_grid_nodes = a.max_grid_nodes;
     anyhow::ensure!(
         a.check_frames >= 2 && a.check_frames <= 1000,
         "--check-frames {}: between 2 and 1000",
@@ -133,6 +138,7 @@ pub fn run(a: Args) -> Result<()> {
         return Ok(());
     }
     println!("patient folder {} ({:.0} s)", r.out.display(), r.seconds);
+    println!("grid: {}", r.grid);
     for (s, t, done) in &r.stages {
         println!("  {:20} {:>8.1} s{}", s.name(), t, if *done { "" } else { "  (not done)" });
     }
@@ -179,7 +185,7 @@ pub fn run(a: Args) -> Result<()> {
 /// The job's figures as `--json` prints them.
 fn report_json(r: &umesh_workflow::patient::PrepareReport) -> serde_json::Value {
     serde_json::json!({
-        "out": r.out, "seconds": r.seconds,
+        "out": r.out, "seconds": r.seconds, "grid": r.grid,
         // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
         "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
         "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),

@@ -118,3 +118,54 @@ fn the_verdict_is_ready_only_with_a_good_network_and_check_and_says_what_to_do_o
     // A validation set that did not move cannot be judged ready.
     assert!(!judge(&falling, 20, None, &eval(0.0, 0.0), &check(1.2, 12.0, 12.0), dir).ready);
 }
+
+#[test]
+fn a_grid_over_the_node_limit_gets_larger_cells_and_says_why() {
+    use umesh_core::dataset::DatasetConfig;
+    use umesh_core::fem::FixedRegion;
+    use umesh_core::grid::ImmersedGrid;
+    use umesh_workflow::patient::{MAX_GRID_NODES, PrepareSettings, fit_grid_to_budget, same_as_stored};
+    let seg = umesh_core::segmentation::bundled_phantom(umesh_workflow::input::PHANTOM_BYTES).unwrap();
+    let cancel = umesh_core::Cancel::new();
+    let nodes = |s: &PrepareSettings| {
+        ImmersedGrid::from_mask(&seg.organ_mask(), &s.dataset.grid, &umesh_core::Progress::none(), &cancel)
+            .unwrap()
+            .node_count()
+    };
+    let base =
+        PrepareSettings::paper(DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 }), "a".into());
+    assert_eq!(base.max_grid_nodes, MAX_GRID_NODES);
+    // The phantom fits the default limit at its 7 mm: kept, and said.
+    let kept = fit_grid_to_budget(&seg, &base, &cancel).unwrap();
+    assert_eq!(kept.dataset.grid.cell_size_mm, base.dataset.grid.cell_size_mm);
+    let at_7 = nodes(&kept);
+    assert!(at_7 <= MAX_GRID_NODES, "{at_7}");
+    assert!(kept.grid_description.contains(&format!("{at_7} nodes")), "{}", kept.grid_description);
+    // Half its nodes: the smallest 1 mm step that fits, with both grids in the description.
+    let half = PrepareSettings { max_grid_nodes: at_7 / 2, ..base.clone() };
+    let grown = fit_grid_to_budget(&seg, &half, &cancel).unwrap();
+    let cell = grown.dataset.grid.cell_size_mm;
+    assert!(cell > 7.0 && (cell - 7.0).fract() == 0.0, "{cell}");
+    assert!(nodes(&grown) <= at_7 / 2, "{} nodes at {cell} mm", nodes(&grown));
+    let one_step_less = PrepareSettings {
+        dataset: DatasetConfig {
+            grid: umesh_core::grid::GridSettings { cell_size_mm: cell - 1.0, ..grown.dataset.grid.clone() },
+            ..grown.dataset.clone()
+        },
+        ..grown.clone()
+    };
+    assert!(nodes(&one_step_less) > at_7 / 2, "{cell} mm is not the smallest step that fits");
+    assert!(
+        grown.grid_description.contains(&format!("{cell} mm")) && grown.grid_description.contains(&at_7.to_string()),
+        "{}",
+        grown.grid_description
+    );
+    // No limit: the cell size as asked.
+    let none = fit_grid_to_budget(&seg, &PrepareSettings { max_grid_nodes: 0, ..half }, &cancel).unwrap();
+    assert_eq!(none.dataset.grid.cell_size_mm, 7.0);
+    // A folder from before the limit (neither field) is the same patient as the one fitted now.
+    let mut before = kept.clone();
+    before.max_grid_nodes = 0;
+    before.grid_description.clear();
+    assert!(same_as_stored(&before, &kept).unwrap());
+}

@@ -115,8 +115,10 @@ fn grid_section(body: El, patient: &Patient, grid_npz: &Path) -> El {
     body = body
         .child(el("h2").text("Grid, fixed region and camera"))
         .child(el("p").text(format!("Fixed region: {}.", s.fixed_description)).child(el("br")).text(format!(
-            "Camera: {camera}. Cells of {} mm, {} boundary level(s).",
-            s.dataset.grid.cell_size_mm, s.dataset.grid.subdivisions
+            "Camera: {camera}. Cells of {} mm, {} boundary level(s){}.",
+            s.dataset.grid.cell_size_mm,
+            s.dataset.grid.subdivisions,
+            if s.grid_description.is_empty() { String::new() } else { format!(": {}", s.grid_description) }
         )))
         .children(grid_svg(grid_npz))
         .child(

@@ -69,6 +69,8 @@ pub fn run_prepare(
     cancel: &Cancel,
 ) -> Result<PrepareReport, NetError> {
     let start = Instant::now();
+    // The cell size the hour affords, before anything is built on the grid.
+    let settings = &super::grid_budget::fit_grid_to_budget(seg, settings, cancel)?;
     // Checks first: labels, grid, fixed region, camera (all raise before anything is written).
     let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
     check_job(seg, settings, &ctx)?;
@@ -155,6 +157,7 @@ pub fn run_prepare(
     progress.report(total, total, "done");
     Ok(PrepareReport {
         out: out.into(),
+        grid: settings.grid_description.clone(),
         stages: Stage::ALL
             .iter()
             .map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s)))

@@ -35,6 +35,10 @@ pub struct Args {
     /// organ's cells grow by whole millimetres until its grid fits, and the report says so.
     #[arg(long, default_value_t = umesh_workflow::patient::MAX_GRID_NODES)]
     pub max_grid_nodes: usize,
+    /// The most triangles of the organ's surface, which registration judges and draws every
+    /// frame (0: keep the step): a larger surface is marched at a coarser step, said in the report.
+    #[arg(long, default_value_t = umesh_workflow::patient::MAX_SURFACE_TRIANGLES)]
+    pub max_surface_triangles: usize,
     #[command(flatten)]
     pub schedule: super::train::ScheduleArgs,
     /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
@@ -93,6 +97,7 @@ pub fn run(a: Args) -> Result<()> {
     a.schedule.apply(&mut settings.train)?;
     settings.time_budget_s = super::train::budget_seconds(a.time_budget_min)?;
     settings.max_grid_nodes = a.max_grid_nodes;
+    settings.max_surface_triangles = a.max_surface_triangles;
     anyhow::ensure!(
         a.check_frames >= 2 && a.check_frames <= 1000,
         "--check-frames {}: between 2 and 1000",
@@ -139,6 +144,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     println!("patient folder {} ({:.0} s)", r.out.display(), r.seconds);
     println!("grid: {}", r.grid);
+    println!("surface: {}", r.surface);
     for (s, t, done) in &r.stages {
         println!("  {:20} {:>8.1} s{}", s.name(), t, if *done { "" } else { "  (not done)" });
     }
@@ -185,7 +191,7 @@ pub fn run(a: Args) -> Result<()> {
 /// The job's figures as `--json` prints them.
 fn report_json(r: &umesh_workflow::patient::PrepareReport) -> serde_json::Value {
     serde_json::json!({
-        "out": r.out, "seconds": r.seconds, "grid": r.grid,
+        "out": r.out, "seconds": r.seconds, "grid": r.grid, "surface": r.surface,
         // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
         "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
         "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),

@@ -50,6 +50,10 @@ pub struct Args {
     /// input and grid).
     #[arg(long)]
     pub init_from: Option<PathBuf>,
+    /// Start from the weights of a model of another organ (a prior; the same network and
+    /// input, any grid), e.g. the bundled `assets/model`.
+    #[arg(long, conflicts_with = "init_from")]
+    pub prior: Option<PathBuf>,
     /// Stop before an epoch that would end after this many minutes of training (0: no limit);
     /// the best epoch's weights are the model either way.
     #[arg(long, default_value_t = 0.0)]
@@ -143,6 +147,7 @@ pub fn run(a: Args) -> Result<()> {
         fresh_views: !a.stored_views,
         rest_views: a.rest_views,
         init_from: a.init_from.clone(),
+        prior: a.prior.clone(),
         ..Default::default()
     };
     a.schedule.apply(&mut settings)?;

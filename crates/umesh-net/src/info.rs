@@ -32,6 +32,11 @@ pub struct TrainSettings {
     /// instead of random weights: fine-tuning.
     #[serde(default)]
     pub init_from: Option<PathBuf>,
+    /// Start from the weights and normalisation of a model of another organ (a prior: the same
+    /// network and input, any grid; the network is convolutional throughout) instead of random
+    /// weights.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior: Option<PathBuf>,
     /// How the learning rate moves over the epochs.
     #[serde(default, skip_serializing_if = "LrSchedule::is_constant")]
     pub lr_schedule: LrSchedule,
@@ -107,6 +112,7 @@ impl Default for TrainSettings {
             fresh_views: true,
             rest_views: 0.05,
             init_from: None,
+            prior: None,
             lr_schedule: LrSchedule::Constant,
             patience: 0,
             time_budget_s: 0.0,

@@ -275,6 +275,9 @@ fn check_out_apart(dataset: &Path, out: &Path, settings: &TrainSettings) -> Resu
     // model it reads. Fine-tuning a model in place (`--init-from M --out M`) is safe: its
     // weights are read before the new folder is swapped in, and only when training succeeds.
     let mut inputs: Vec<(&str, &Path)> = vec![("--dataset", dataset)];
+    if let Some(prior) = &settings.prior {
+        inputs.push(("--prior", prior.as_path()));
+    }
     if let Some(init) = &settings.init_from {
         let same = matches!((init.canonicalize(), out.canonicalize()), (Ok(a), Ok(b)) if a == b);
         if !same {
@@ -413,6 +416,13 @@ impl Start<'_> {
             // The weights expect the scales they were trained with.
             *norm = from.normalization;
         }
+        if let Some(prior) = &settings.prior {
+            let from = check_prior(prior, settings)?;
+            if !(self.resume && self.out.join("last.safetensors").exists()) {
+                load_weights(model, &prior.join("model.safetensors"))?;
+            }
+            *norm = from.normalization;
+        }
         if self.resume && self.out.join("last.safetensors").exists() {
             check_resume(self.out, self.manifest, &settings.network(), self.dataset)?;
             load_weights(model, &self.out.join("last.safetensors"))?;
@@ -538,6 +548,29 @@ fn check_init_from(
             "--init-from {}: it was trained on another grid than {}",
             init.display(),
             dataset.display()
+        )));
+    }
+    Ok(from)
+}
+
+/// The model `--prior` names, if it has this network and input (its grid may be another organ's).
+fn check_prior(prior: &Path, settings: &TrainSettings) -> Result<ModelInfo, NetError> {
+    if settings.init_from.is_some() {
+        return Err(NetError::Invalid(format!(
+            "--prior {}: a training starts from one model, --init-from or --prior, not both",
+            prior.display()
+        )));
+    }
+    let from = ModelInfo::read(prior)?;
+    let cfg = settings.network();
+    if from.config != cfg || from.settings.observation != settings.observation {
+        return Err(NetError::Invalid(format!(
+            "--prior {}: its network {:?} on input {:?} differs from this one's {:?} on {:?}",
+            prior.display(),
+            from.config,
+            from.settings.observation,
+            cfg,
+            settings.observation
         )));
     }
     Ok(from)

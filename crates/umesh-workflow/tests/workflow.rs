@@ -169,3 +169,41 @@ fn a_grid_over_the_node_limit_gets_larger_cells_and_says_why() {
     before.grid_description.clear();
     assert!(same_as_stored(&before, &kept).unwrap());
 }
+
+#[test]
+fn a_surface_over_the_triangle_limit_is_marched_at_a_coarser_step_and_says_why() {
+    use umesh_core::dataset::{DatasetConfig, organ_surface};
+    use umesh_core::fem::FixedRegion;
+    use umesh_workflow::patient::{MAX_SURFACE_TRIANGLES, PrepareSettings, fit_surface_to_budget, same_as_stored};
+    let seg = umesh_core::segmentation::bundled_phantom(umesh_workflow::input::PHANTOM_BYTES).unwrap();
+    let cancel = umesh_core::Cancel::new();
+    let mask = seg.organ_mask();
+    let base =
+        PrepareSettings::paper(DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 }), "a".into());
+    assert_eq!(base.max_surface_triangles, MAX_SURFACE_TRIANGLES);
+    let asked = base.dataset.surface_step;
+    let at_asked = organ_surface(&mask, asked).triangles.len();
+    // A limit the surface fits: the step as asked, and said.
+    let roomy = PrepareSettings { max_surface_triangles: at_asked, ..base.clone() };
+    let kept = fit_surface_to_budget(&seg, &roomy, &cancel).unwrap();
+    assert_eq!(kept.dataset.surface_step, asked);
+    assert!(kept.surface_description.contains(&format!("{at_asked} triangles")), "{}", kept.surface_description);
+    // Half its triangles: the smallest coarser step that fits, both counts in the description.
+    let half = PrepareSettings { max_surface_triangles: at_asked / 2, ..base.clone() };
+    let coarse = fit_surface_to_budget(&seg, &half, &cancel).unwrap();
+    let step = coarse.dataset.surface_step;
+    let at_step = organ_surface(&mask, step).triangles.len();
+    assert!(step > asked && at_step <= at_asked / 2, "step {step}: {at_step} triangles");
+    assert!(organ_surface(&mask, step - 1).triangles.len() > at_asked / 2, "step {step} is not the smallest that fits");
+    for n in [at_step, at_asked] {
+        assert!(coarse.surface_description.contains(&n.to_string()), "{}", coarse.surface_description);
+    }
+    // No limit: the step as asked.
+    let none = fit_surface_to_budget(&seg, &PrepareSettings { max_surface_triangles: 0, ..half }, &cancel).unwrap();
+    assert_eq!(none.dataset.surface_step, asked);
+    // A folder from before the limit (neither field) is the same patient as the one fitted now.
+    let mut before = kept.clone();
+    before.max_surface_triangles = 0;
+    before.surface_description.clear();
+    assert!(same_as_stored(&before, &kept).unwrap());
+}

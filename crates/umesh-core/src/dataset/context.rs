@@ -105,6 +105,12 @@ pub fn observation_setup(
     Ok(ObservationSetup { visible, visible_nodes, fixed: bc.fixed })
 }
 
+/// The organ's surface as a dataset of `surface_step` builds it (and registration reads it
+/// back): marching every `surface_step`-th voxel of the organ's mask.
+pub fn organ_surface(mask: &crate::volume::Mask, surface_step: usize) -> TriMesh {
+    extract_surface(mask, &SurfaceSettings { step: surface_step.max(1), ..Default::default() })
+}
+
 impl DatasetContext {
     pub fn prepare(seg: &Segmentation, config: &DatasetConfig, cancel: &Cancel) -> Result<Self, DatasetError> {
         let seg_path = seg.source.clone();
@@ -123,8 +129,7 @@ impl DatasetContext {
         }
         let mask = seg.organ_mask();
         let grid = ImmersedGrid::from_mask(&mask, &config.grid, &Progress::none(), cancel)?;
-        let surface =
-            extract_surface(&mask, &SurfaceSettings { step: config.surface_step.max(1), ..Default::default() });
+        let surface = organ_surface(&mask, config.surface_step);
         let ObservationSetup { visible, visible_nodes, fixed } =
             observation_setup(seg, &grid, &surface, &config.visibility, &config.fixed)?;
         let mut grid_arrays = grid.to_npz_arrays();

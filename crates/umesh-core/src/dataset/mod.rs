@@ -29,6 +29,7 @@ pub use config::{
 };
 pub use context::{
     DatasetContext, LOCAL_STRAIN_FACTOR, LinearStrain, ObservationSetup, STRAIN_QUANTILE, observation_setup,
+    organ_surface,
 };
 pub use error::DatasetError;
 pub use generate::{GenerateReport, ShardSelection, run_generate, run_generate_checked};

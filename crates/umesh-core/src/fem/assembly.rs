@@ -76,8 +76,12 @@ pub struct Assembler<'g> {
     /// Per-cell scale of the stabilising ersatz stiffness (alpha * (1 - volume fraction)).
     stab_scale: Vec<f64>,
     k_stab: Ke,
-    /// Per-cell small-strain stiffness, built on first co-rotational use.
-    k_lin: Vec<Ke>,
+    /// Each cell's small-strain stiffness with its stabilisation (k_lin + k_stab * stab), built
+    /// on first co-rotational use, as an index into the distinct ones: the grid's whole cells
+    /// share one matrix, so a co-rotational product reads a few hundred matrices, not one per
+    /// cell (the product is memory-bound).
+    k_of: Vec<u32>,
+    k_unique: Vec<Ke>,
     linear_material: Material,
     ke: Vec<Ke>,
     fe: Vec<SMatrix<f64, 24, 1>>,
@@ -97,7 +101,8 @@ impl<'g> Assembler<'g> {
     pub fn set_linear_material(&mut self, linear_material: Material) {
         if (linear_material.lambda, linear_material.mu) != (self.linear_material.lambda, self.linear_material.mu) {
             self.k_stab = linear_cube_stiffness(self.grid.cell_size_mm, linear_material.lambda, linear_material.mu);
-            self.k_lin.clear();
+            self.k_of.clear();
+            self.k_unique.clear();
             self.linear_material = linear_material;
         }
     }
@@ -200,7 +205,8 @@ impl<'g> Assembler<'g> {
             gather_src,
             stab_scale,
             k_stab,
-            k_lin: Vec::new(),
+            k_of: Vec::new(),
+            k_unique: Vec::new(),
             linear_material,
             ke: vec![Ke::zeros(); m],
             fe: vec![SMatrix::zeros(); m],
@@ -226,12 +232,13 @@ impl<'g> Assembler<'g> {
     }
 
     fn ensure_linear_stiffness(&mut self) {
-        if !self.k_lin.is_empty() {
+        if !self.k_of.is_empty() {
             return;
         }
         let mat = self.linear_material;
         let quad = &self.quad;
-        self.k_lin = (0..self.grid.cells.len())
+        let (k_stab, stab) = (&self.k_stab, &self.stab_scale);
+        let k_cells: Vec<Ke> = (0..self.grid.cells.len())
             .into_par_iter()
             .map(|c| {
                 let mut k = Ke::zeros();
@@ -252,7 +259,24 @@ impl<'g> Assembler<'g> {
                         }
                     }
                 }
-                k
+                k + k_stab * stab[c]
+            })
+            .collect();
+        // Equal bit for bit, so every product is what it was with one matrix per cell.
+        let mut seen: std::collections::HashMap<u64, Vec<u32>> = std::collections::HashMap::new();
+        self.k_unique.clear();
+        self.k_of = k_cells
+            .into_iter()
+            .map(|k| {
+                let hash = k.iter().fold(0xcbf29ce484222325u64, |h, v| (h ^ v.to_bits()).wrapping_mul(0x100000001b3));
+                let same = seen.entry(hash).or_default();
+                if let Some(&i) = same.iter().find(|&&i| self.k_unique[i as usize] == k) {
+                    return i;
+                }
+                let i = self.k_unique.len() as u32;
+                self.k_unique.push(k);
+                same.push(i);
+                i
             })
             .collect();
     }
@@ -267,7 +291,7 @@ impl<'g> Assembler<'g> {
         let quad = &self.quad;
         let k_stab = &self.k_stab;
         let stab = &self.stab_scale;
-        let k_lin = &self.k_lin;
+        let (k_of, k_unique) = (&self.k_of, &self.k_unique);
         let per_cell = self
             .ke
             .par_iter_mut()
@@ -326,7 +350,7 @@ impl<'g> Assembler<'g> {
                             let d = r.transpose() * (x0[a] + ue[a] - xc) - (x0[a] - xc0);
                             ul.fixed_rows_mut::<3>(3 * a).copy_from(&d);
                         }
-                        let kc = k_lin[c] + k_stab * stab[c];
+                        let kc = &k_unique[k_of[c] as usize];
                         let fl = kc * ul;
                         energy += 0.5 * ul.dot(&fl);
                         for a in 0..8 {
@@ -465,7 +489,7 @@ impl Assembler<'_> {
     pub fn corotational_matvec(&mut self, x: &[f64], y: &mut [f64]) {
         self.ensure_linear_stiffness();
         let free = &self.dofs.free_of;
-        let (grid, k_lin, k_stab, stab, rot) = (self.grid, &self.k_lin, &self.k_stab, &self.stab_scale, &self.rot);
+        let (grid, k_of, k_unique, rot) = (self.grid, &self.k_of, &self.k_unique, &self.rot);
         self.fe.par_iter_mut().enumerate().for_each(|(c, fe)| {
             let cell = &grid.cells[c];
             let r = rot[c];
@@ -480,7 +504,7 @@ impl Assembler<'_> {
                 }
                 xl.fixed_rows_mut::<3>(3 * a).copy_from(&(r.transpose() * v));
             }
-            let yl = (k_lin[c] + k_stab * stab[c]) * xl;
+            let yl = k_unique[k_of[c] as usize] * xl;
             for a in 0..8 {
                 let v = r * yl.fixed_rows::<3>(3 * a);
                 fe.fixed_rows_mut::<3>(3 * a).copy_from(&v);

@@ -563,3 +563,37 @@ fn an_unreachable_target_keeps_the_largest_converged_state_of_at_least_a_tenth_o
         other => panic!("expected NotConverged for {far} mm, got {:?}", other.map(|m| m.mean_mm)),
     }
 }
+
+#[test]
+fn the_corotational_product_is_its_assembled_tangent_and_at_rest_the_small_strain_stiffness_within_1e12() {
+    // Whole cells (sharing one stiffness) and cut cells with their stabilisation.
+    let g = box_grid(Vector3::zeros(), Vector3::new(10.0, 7.0, 6.5), 2.5, 1);
+    let n = g.node_count();
+    let constrained: Vec<bool> = (0..3 * n).map(|d| d < 3).collect();
+    let lin = mat(MaterialKind::Linear).material();
+    let mut asm = Assembler::new(&g, &constrained, lin, 1e-2);
+    let nf = asm.dofs.n_free;
+    let mut r = umesh_core::rng::SplitMix64(5);
+    let x: Vec<f64> = (0..nf).map(|_| r.next_f64() - 0.5).collect();
+    let product =
+        |k: &faer::Mat<f64>| -> Vec<f64> { (0..nf).map(|i| (0..nf).map(|j| k[(i, j)] * x[j]).sum()).collect() };
+    let max_abs = |a: &[f64]| a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let close = |a: &[f64], b: &[f64], what: &str| {
+        let err = a.iter().zip(b).fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
+        assert!(err <= 1e-12 * max_abs(b), "{what}: {err:e} against {:e}", max_abs(b));
+    };
+    // At rest: the small-strain stiffness, as the linear material assembles it cell by cell.
+    let zero = vec![Vector3::zeros(); n];
+    asm.assemble(ElementModel::Hyperelastic(lin), &zero, true);
+    let k_linear = asm.matrix().to_dense();
+    asm.assemble(ElementModel::Corotational, &zero, true);
+    let mut y = vec![0.0; nf];
+    asm.corotational_matvec(&x, &mut y);
+    close(&y, &product(&k_linear), "at rest");
+    // Rotated and stretched: the product with the cells' rotations is the assembled tangent.
+    let rot = Rotation3::from_euler_angles(0.3, -0.2, 0.5);
+    let u: Vec<Vector3<f64>> = g.node_positions().iter().map(|p| rot * (1.05 * p) - p).collect();
+    asm.assemble(ElementModel::Corotational, &u, true);
+    asm.corotational_matvec(&x, &mut y);
+    close(&y, &product(&asm.matrix().to_dense()), "rotated");
+}

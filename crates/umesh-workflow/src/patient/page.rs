@@ -120,6 +120,7 @@ fn grid_section(body: El, patient: &Patient, grid_npz: &Path) -> El {
             s.dataset.grid.subdivisions,
             if s.grid_description.is_empty() { String::new() } else { format!(": {}", s.grid_description) }
         )))
+        .children((!s.surface_description.is_empty()).then(|| p(format!("Organ surface: {}.", s.surface_description))))
         .children(grid_svg(grid_npz))
         .child(
             el("p")

@@ -71,6 +71,8 @@ pub fn run_prepare(
     let start = Instant::now();
     // The cell size the hour affords, before anything is built on the grid.
     let settings = &super::grid_budget::fit_grid_to_budget(seg, settings, cancel)?;
+    // The surface step a registration frame affords, before the dataset is built on it.
+    let settings = &super::surface_budget::fit_surface_to_budget(seg, settings, cancel)?;
     // Checks first: labels, grid, fixed region, camera (all raise before anything is written).
     let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
     check_job(seg, settings, &ctx)?;
@@ -158,6 +160,7 @@ pub fn run_prepare(
     Ok(PrepareReport {
         out: out.into(),
         grid: settings.grid_description.clone(),
+        surface: settings.surface_description.clone(),
         stages: Stage::ALL
             .iter()
             .map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s)))

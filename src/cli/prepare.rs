@@ -39,6 +39,11 @@ pub struct Args {
     /// frame (0: keep the step): a larger surface is marched at a coarser step, said in the report.
     #[arg(long, default_value_t = umesh_workflow::patient::MAX_SURFACE_TRIANGLES)]
     pub max_surface_triangles: usize,
+    /// Where the network's training starts: "bundled" (the bundled phantom model's weights,
+    /// when its network and input are this job's), "none" (random weights) or a model folder of
+    /// another organ.
+    #[arg(long, default_value = "bundled")]
+    pub prior: String,
     #[command(flatten)]
     pub schedule: super::train::ScheduleArgs,
     /// Network size: "cpu" (3 steps, 8 channels) or "paper" (128 channels).
@@ -98,6 +103,7 @@ pub fn run(a: Args) -> Result<()> {
     settings.time_budget_s = super::train::budget_seconds(a.time_budget_min)?;
     settings.max_grid_nodes = a.max_grid_nodes;
     settings.max_surface_triangles = a.max_surface_triangles;
+    settings.prior = umesh_workflow::patient::Prior::parse(&a.prior);
     anyhow::ensure!(
         a.check_frames >= 2 && a.check_frames <= 1000,
         "--check-frames {}: between 2 and 1000",
@@ -145,6 +151,7 @@ pub fn run(a: Args) -> Result<()> {
     println!("patient folder {} ({:.0} s)", r.out.display(), r.seconds);
     println!("grid: {}", r.grid);
     println!("surface: {}", r.surface);
+    println!("training started from {}", r.prior);
     for (s, t, done) in &r.stages {
         println!("  {:20} {:>8.1} s{}", s.name(), t, if *done { "" } else { "  (not done)" });
     }
@@ -191,7 +198,7 @@ pub fn run(a: Args) -> Result<()> {
 /// The job's figures as `--json` prints them.
 fn report_json(r: &umesh_workflow::patient::PrepareReport) -> serde_json::Value {
     serde_json::json!({
-        "out": r.out, "seconds": r.seconds, "grid": r.grid, "surface": r.surface,
+        "out": r.out, "seconds": r.seconds, "grid": r.grid, "surface": r.surface, "prior": r.prior,
         // The whole job's time over every run of it (a rerun on a finished folder takes seconds).
         "job_seconds": r.stages.iter().map(|(_, t, _)| t).sum::<f64>(),
         "stages": r.stages.iter().map(|(s, t, d)| serde_json::json!({"stage": s, "seconds": t, "done": d})).collect::<Vec<_>>(),

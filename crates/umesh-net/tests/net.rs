@@ -311,4 +311,39 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
         assert!(e.contains("checkpoint") && e.contains(".safetensors"), "{e}");
     }
     assert!(umesh_net::inference::Predictor::load_checkpoint(&out, "last.safetensors").is_ok());
+    // A prior: a model of another grid starts the training (its weights and the scales they
+    // expect); a network of another size is refused, naming the option.
+    let c2 = umesh_core::dataset::DatasetConfig {
+        samples: 5,
+        shard_size: 5,
+        grid: umesh_core::grid::GridSettings { cell_size_mm: 16.0, ..c.grid.clone() },
+        ..c.clone()
+    };
+    let ds2 = tmp("ds-other-grid");
+    umesh_core::dataset::run_generate(
+        &seg,
+        &ds2,
+        &c2,
+        umesh_core::dataset::ShardSelection::all(),
+        &Default::default(),
+        &Default::default(),
+    )
+    .unwrap();
+    let prior = ModelInfo::read(&out).unwrap();
+    let from_prior = TrainSettings { prior: Some(out.clone()), epochs: 1, ..more.clone() };
+    let out2 = tmp("model-from-prior");
+    run_train(&ds2, &out2, &from_prior, false, &Default::default(), &|_| {}, &Default::default()).unwrap();
+    let fine_tuned = ModelInfo::read(&out2).unwrap();
+    assert_ne!(fine_tuned.grid_hash, prior.grid_hash);
+    assert_eq!(fine_tuned.normalization, prior.normalization);
+    let scratch = TrainSettings { prior: None, ..from_prior.clone() };
+    let out3 = tmp("model-from-scratch");
+    run_train(&ds2, &out3, &scratch, false, &Default::default(), &|_| {}, &Default::default()).unwrap();
+    assert_ne!(ModelInfo::read(&out3).unwrap().normalization, prior.normalization);
+    let other_size = TrainSettings { model: tiny(2, 2), ..from_prior };
+    let e =
+        run_train(&ds2, &tmp("model-bad-prior"), &other_size, false, &Default::default(), &|_| {}, &Default::default())
+            .unwrap_err()
+            .to_string();
+    assert!(e.contains("--prior") && e.contains("differs"), "{e}");
 }

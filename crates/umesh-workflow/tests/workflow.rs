@@ -207,3 +207,30 @@ fn a_surface_over_the_triangle_limit_is_marched_at_a_coarser_step_and_says_why()
     before.surface_description.clear();
     assert!(same_as_stored(&before, &kept).unwrap());
 }
+
+#[test]
+fn a_patient_starts_from_the_bundled_model_only_when_its_network_and_input_are_the_jobs() {
+    use umesh_core::dataset::DatasetConfig;
+    use umesh_core::fem::FixedRegion;
+    use umesh_workflow::patient::{PrepareSettings, Prior, resolve_prior, same_as_stored};
+    let base =
+        PrepareSettings::paper(DatasetConfig::paper(FixedRegion::Label { label: 2, distance_mm: 6.0 }), "a".into());
+    assert_eq!(base.prior, Prior::Bundled);
+    // The default network and input: the bundled model's weights.
+    let bundled = resolve_prior(&base).unwrap();
+    assert_eq!(bundled.train.prior.as_deref(), Some(umesh_workflow::input::bundled_model().as_path()));
+    assert!(bundled.prior_description.contains("bundled"), "{}", bundled.prior_description);
+    // Another network: random weights, and why.
+    let mut paper = base.clone();
+    paper.train.model = umesh_net::UNetConfig::paper();
+    let r = resolve_prior(&paper).unwrap();
+    assert!(r.train.prior.is_none() && r.prior_description.contains("not this job's"), "{}", r.prior_description);
+    // A named model of another network is refused, naming the option; none is random weights.
+    let named = PrepareSettings { prior: Prior::Model(umesh_workflow::input::bundled_model()), ..paper };
+    let e = resolve_prior(&named).unwrap_err().to_string();
+    assert!(e.contains("--prior"), "{e}");
+    let none = resolve_prior(&PrepareSettings { prior: Prior::None, ..base.clone() }).unwrap();
+    assert!(none.train.prior.is_none() && none.prior_description.contains("random"), "{}", none.prior_description);
+    // Where training starts does not make another patient: a folder from before priors resumes.
+    assert!(same_as_stored(&PrepareSettings { prior: Prior::None, ..base }, &bundled).unwrap());
+}

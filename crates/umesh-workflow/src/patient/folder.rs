@@ -44,6 +44,13 @@ pub struct PrepareSettings {
     /// The surface step the job uses and why, in words.
     #[serde(default)]
     pub surface_description: String,
+    /// Where the network's training starts (`prior`): resolved into `train.prior` when the job
+    /// starts.
+    #[serde(default)]
+    pub prior: super::prior::Prior,
+    /// The training's starting weights and why, in words.
+    #[serde(default)]
+    pub prior_description: String,
 }
 
 impl PrepareSettings {
@@ -60,6 +67,8 @@ impl PrepareSettings {
             grid_description: String::new(),
             max_surface_triangles: MAX_SURFACE_TRIANGLES,
             surface_description: String::new(),
+            prior: super::prior::Prior::Bundled,
+            prior_description: String::new(),
         }
     }
 }
@@ -232,6 +241,8 @@ pub struct PrepareReport {
     pub grid: String,
     /// The surface step the job used and why (`PrepareSettings::surface_description`).
     pub surface: String,
+    /// Where training started and why (`PrepareSettings::prior_description`).
+    pub prior: String,
     pub stages: Vec<(Stage, f64, bool)>,
     pub dataset: DatasetStats,
     pub dataset_samples_per_minute: Option<f64>,
@@ -334,7 +345,7 @@ pub fn hash_inputs(files: &[PathBuf]) -> Result<Vec<InputFile>, NetError> {
 /// Whether `settings` are the `stored` ones read back from `patient.json`: compared as stored,
 /// since JSON's float parsing is not always exact (a camera coordinate with decimals came back
 /// one ulp off, and a folder refused to resume with two identical hashes in its message).
-/// The time budget is not compared: a resumed job may be given another.
+/// The time budget is not compared: a resumed job may be given another; nor the prior.
 pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> Result<bool, NetError> {
     let text = serde_json::to_string(settings).map_err(|e| NetError::Invalid(e.to_string()))?;
     let now: PrepareSettings = serde_json::from_str(&text).map_err(|e| NetError::Invalid(e.to_string()))?;
@@ -347,6 +358,11 @@ pub fn same_as_stored(stored: &PrepareSettings, settings: &PrepareSettings) -> R
         grid_description: now.grid_description.clone(),
         max_surface_triangles: now.max_surface_triangles,
         surface_description: now.surface_description.clone(),
+        // Where training starts matters only before its first epoch (a resumed training
+        // continues from its own last weights), and its path depends on the working directory.
+        prior: now.prior.clone(),
+        prior_description: now.prior_description.clone(),
+        train: TrainSettings { prior: now.train.prior.clone(), ..stored.train.clone() },
         ..stored.clone()
     } == now)
 }

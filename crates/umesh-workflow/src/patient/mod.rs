@@ -11,6 +11,7 @@ mod folder;
 mod grid_budget;
 mod page;
 mod prepare;
+mod prior;
 mod surface_budget;
 mod verdict;
 
@@ -21,5 +22,6 @@ pub use folder::{
 };
 pub use grid_budget::fit_grid_to_budget;
 pub use prepare::{register_recording, registration_check, run_prepare};
+pub use prior::{Prior, resolve_prior};
 pub use surface_budget::fit_surface_to_budget;
 pub use verdict::{CHECK_MOTION_MIN_MM, CHECK_RIGID_SHARE_READY, CHECK_TRE_READY_MM, VAL_SHARE_READY, judge};

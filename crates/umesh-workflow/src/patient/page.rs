@@ -96,6 +96,9 @@ fn stages_section(body: El, patient: &Patient) -> El {
     stages = stages
         .child(el("tr").child(el("td").text("total")).child(el("td")).child(el("td").text(format!("{total:.1}"))));
     body = body.child(el("h2").text("Stages")).child(stages);
+    if !patient.settings.prior_description.is_empty() {
+        body = body.child(p(format!("Training started from {}.", patient.settings.prior_description)));
+    }
     if let Some(note) = patient.stages.get(&Stage::Train).and_then(|r| r.note.as_ref()) {
         body = body.child(p(format!("Training {note}.")));
     }

@@ -73,6 +73,7 @@ pub fn run_prepare(
     let settings = &super::grid_budget::fit_grid_to_budget(seg, settings, cancel)?;
     // The surface step a registration frame affords, before the dataset is built on it.
     let settings = &super::surface_budget::fit_surface_to_budget(seg, settings, cancel)?;
+    let settings = &super::prior::resolve_prior(settings)?;
     // Checks first: labels, grid, fixed region, camera (all raise before anything is written).
     let ctx = DatasetContext::prepare(seg, &settings.dataset, cancel)?;
     check_job(seg, settings, &ctx)?;
@@ -161,6 +162,7 @@ pub fn run_prepare(
         out: out.into(),
         grid: settings.grid_description.clone(),
         surface: settings.surface_description.clone(),
+        prior: settings.prior_description.clone(),
         stages: Stage::ALL
             .iter()
             .map(|s| (*s, patient.stages.get(s).map(|r| r.seconds).unwrap_or(0.0), patient.done(*s)))

@@ -1,0 +1,74 @@
+//! Where a patient's network starts: the weights of the bundled phantom model (a prior learned
+//! on another liver, with loads deeper than a patient's dataset draws) when its network and input
+//! are the job's, else random weights. Fine-tuned on the patient's own dataset, it starts where
+//! random weights get after many epochs.
+
+use super::folder::PrepareSettings;
+use std::path::PathBuf;
+use umesh_net::{ModelInfo, NetError, TrainSettings};
+
+/// The prior a job asks for.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Prior {
+    /// The bundled model when its network and input are the job's (else random weights).
+    Bundled,
+    /// Random weights (and folders from before priors).
+    #[default]
+    None,
+    /// A model folder of another organ.
+    Model(PathBuf),
+}
+
+impl Prior {
+    /// `bundled`, `none` or a model folder.
+    pub fn parse(s: &str) -> Self {
+        match s {
+            "bundled" => Self::Bundled,
+            "none" => Self::None,
+            p => Self::Model(PathBuf::from(p)),
+        }
+    }
+}
+
+/// `settings` with the training's starting weights (`train.prior`) resolved from `prior`, and
+/// `prior_description` saying which and why.
+pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetError> {
+    let mut out = settings.clone();
+    let (path, description) = match &settings.prior {
+        Prior::None => (None, "random weights (--prior none)".to_string()),
+        Prior::Bundled => {
+            let path = crate::input::bundled_model();
+            match ModelInfo::read(&path) {
+                Ok(info) if fits(&info, &settings.train) => (
+                    Some(path),
+                    "the bundled phantom model's weights, fine-tuned on this dataset (--prior none: random weights)"
+                        .to_string(),
+                ),
+                Ok(_) => (None, "random weights: the bundled model's network or input is not this job's".to_string()),
+                Err(e) => (None, format!("random weights: the bundled model is unreadable ({e})")),
+            }
+        }
+        Prior::Model(path) => {
+            let info = ModelInfo::read(path)?;
+            if !fits(&info, &settings.train) {
+                return Err(NetError::Invalid(format!(
+                    "--prior {}: its network {:?} on input {:?} is not this job's {:?} on {:?}",
+                    path.display(),
+                    info.config,
+                    info.settings.observation,
+                    settings.train.network(),
+                    settings.train.observation
+                )));
+            }
+            (Some(path.clone()), format!("the weights of {}, fine-tuned on this dataset", path.display()))
+        }
+    };
+    out.train.prior = path;
+    out.prior_description = description;
+    Ok(out)
+}
+
+fn fits(info: &ModelInfo, train: &TrainSettings) -> bool {
+    info.config == train.network() && info.settings.observation == train.observation
+}

@@ -148,6 +148,12 @@ pub struct ModelInfo {
 }
 
 impl ModelInfo {
+    /// Whether a training with `settings` can start from this model's weights (a prior): the
+    /// same network and input; the grid may be another organ's.
+    pub fn fits_as_prior(&self, settings: &TrainSettings) -> bool {
+        self.config == settings.network() && self.settings.observation == settings.observation
+    }
+
     /// Refuse a grid this model was not trained on.
     pub fn check_grid(&self, grid_hash: &str, padded_shape: [usize; 3]) -> Result<(), NetError> {
         if padded_shape != self.padded_shape {

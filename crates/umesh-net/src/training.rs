@@ -562,14 +562,13 @@ fn check_prior(prior: &Path, settings: &TrainSettings) -> Result<ModelInfo, NetE
         )));
     }
     let from = ModelInfo::read(prior)?;
-    let cfg = settings.network();
-    if from.config != cfg || from.settings.observation != settings.observation {
+    if !from.fits_as_prior(settings) {
         return Err(NetError::Invalid(format!(
             "--prior {}: its network {:?} on input {:?} differs from this one's {:?} on {:?}",
             prior.display(),
             from.config,
             from.settings.observation,
-            cfg,
+            settings.network(),
             settings.observation
         )));
     }

@@ -5,7 +5,7 @@
 
 use super::folder::PrepareSettings;
 use std::path::PathBuf;
-use umesh_net::{ModelInfo, NetError, TrainSettings};
+use umesh_net::{ModelInfo, NetError};
 
 /// The prior a job asks for.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -40,7 +40,7 @@ pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetE
         Prior::Bundled => {
             let path = crate::input::bundled_model();
             match ModelInfo::read(&path) {
-                Ok(info) if fits(&info, &settings.train) => (
+                Ok(info) if info.fits_as_prior(&settings.train) => (
                     Some(path),
                     "the bundled phantom model's weights, fine-tuned on this dataset (--prior none: random weights)"
                         .to_string(),
@@ -51,7 +51,7 @@ pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetE
         }
         Prior::Model(path) => {
             let info = ModelInfo::read(path)?;
-            if !fits(&info, &settings.train) {
+            if !info.fits_as_prior(&settings.train) {
                 return Err(NetError::Invalid(format!(
                     "--prior {}: its network {:?} on input {:?} is not this job's {:?} on {:?}",
                     path.display(),
@@ -67,8 +67,4 @@ pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetE
     out.train.prior = path;
     out.prior_description = description;
     Ok(out)
-}
-
-fn fits(info: &ModelInfo, train: &TrainSettings) -> bool {
-    info.config == train.network() && info.settings.observation == train.observation
 }

@@ -47,7 +47,7 @@ pub struct PrepareSettings {
     /// Where the network's training starts (`prior`): resolved into `train.prior` when the job
     /// starts.
     #[serde(default)]
-    pub prior: super::prior::Prior,
+    pub prior: Prior,
     /// The training's starting weights and why, in words.
     #[serde(default)]
     pub prior_description: String,
@@ -67,8 +67,32 @@ impl PrepareSettings {
             grid_description: String::new(),
             max_surface_triangles: MAX_SURFACE_TRIANGLES,
             surface_description: String::new(),
-            prior: super::prior::Prior::Bundled,
+            prior: Prior::Bundled,
             prior_description: String::new(),
+        }
+    }
+}
+
+/// Where a patient's training starts (`resolve_prior` makes it the training's weights).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Prior {
+    /// The bundled model when its network and input are the job's (else random weights).
+    Bundled,
+    /// Random weights (and folders from before priors).
+    #[default]
+    None,
+    /// A model folder of another organ.
+    Model(PathBuf),
+}
+
+impl Prior {
+    /// `bundled`, `none` or a model folder.
+    pub fn parse(s: &str) -> Self {
+        match s {
+            "bundled" => Self::Bundled,
+            "none" => Self::None,
+            p => Self::Model(PathBuf::from(p)),
         }
     }
 }

@@ -17,11 +17,11 @@ mod verdict;
 
 pub use folder::{
     CheckReport, FORMAT, FORMAT_VERSION, InputFile, MAX_GRID_NODES, MAX_SURFACE_TRIANGLES, Patient, PatientFigures,
-    PrepareReport, PrepareSettings, Stage, StageRecord, SummaryRecord, Verdict, check_model_out, ct_path, hash_inputs,
-    model_dir, read_figures, read_metrics, same_as_stored, settings_differences,
+    PrepareReport, PrepareSettings, Prior, Stage, StageRecord, SummaryRecord, Verdict, check_model_out, ct_path,
+    hash_inputs, model_dir, read_figures, read_metrics, same_as_stored, settings_differences,
 };
 pub use grid_budget::fit_grid_to_budget;
 pub use prepare::{register_recording, registration_check, run_prepare};
-pub use prior::{Prior, resolve_prior};
+pub use prior::resolve_prior;
 pub use surface_budget::fit_surface_to_budget;
 pub use verdict::{CHECK_MOTION_MIN_MM, CHECK_RIGID_SHARE_READY, CHECK_TRE_READY_MM, VAL_SHARE_READY, judge};

@@ -3,33 +3,8 @@
 //! are the job's, else random weights. Fine-tuned on the patient's own dataset, it starts where
 //! random weights get after many epochs.
 
-use super::folder::PrepareSettings;
-use std::path::PathBuf;
+use super::folder::{PrepareSettings, Prior};
 use umesh_net::{ModelInfo, NetError};
-
-/// The prior a job asks for.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Prior {
-    /// The bundled model when its network and input are the job's (else random weights).
-    Bundled,
-    /// Random weights (and folders from before priors).
-    #[default]
-    None,
-    /// A model folder of another organ.
-    Model(PathBuf),
-}
-
-impl Prior {
-    /// `bundled`, `none` or a model folder.
-    pub fn parse(s: &str) -> Self {
-        match s {
-            "bundled" => Self::Bundled,
-            "none" => Self::None,
-            p => Self::Model(PathBuf::from(p)),
-        }
-    }
-}
 
 /// `settings` with the training's starting weights (`train.prior`) resolved from `prior`, and
 /// `prior_description` saying which and why.

@@ -554,7 +554,7 @@ fn check_init_from(
 }
 
 /// The model `--prior` names, if it has this network and input (its grid may be another organ's).
-fn check_prior(prior: &Path, settings: &TrainSettings) -> Result<ModelInfo, NetError> {
+pub fn check_prior(prior: &Path, settings: &TrainSettings) -> Result<ModelInfo, NetError> {
     if settings.init_from.is_some() {
         return Err(NetError::Invalid(format!(
             "--prior {}: a training starts from one model, --init-from or --prior, not both",

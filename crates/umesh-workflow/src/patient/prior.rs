@@ -25,17 +25,8 @@ pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetE
             }
         }
         Prior::Model(path) => {
-            let info = ModelInfo::read(path)?;
-            if !info.fits_as_prior(&settings.train) {
-                return Err(NetError::Invalid(format!(
-                    "--prior {}: its network {:?} on input {:?} is not this job's {:?} on {:?}",
-                    path.display(),
-                    info.config,
-                    info.settings.observation,
-                    settings.train.network(),
-                    settings.train.observation
-                )));
-            }
+            // Checked as the training will, before the job writes anything.
+            umesh_net::training::check_prior(path, &settings.train)?;
             (Some(path.clone()), format!("the weights of {}, fine-tuned on this dataset", path.display()))
         }
     };

@@ -809,6 +809,33 @@ impl LiveApp {
     fn run(&self, args: &[&str]) {
         assert!(output(self.xdotool(args)).is_some(), "xdotool {args:?} failed");
     }
+    /// Give the window the keyboard. With no window manager, `windowfocus` fails (BadMatch) while
+    /// the window is not yet viewable and `--sync` can wait forever, so: set the focus, read it
+    /// back, retry, at most 30 s; the visible window is looked up again each time.
+    fn focus(&mut self) {
+        let t = Instant::now();
+        loop {
+            if let Some(w) = output(self.xdotool(&["search", "--onlyvisible", "--name", "^umesh$"]))
+                .and_then(|o| o.lines().next().map(str::to_string))
+            {
+                self.window = w;
+            }
+            let _ = output(self.xdotool(&["windowfocus", &self.window]));
+            let focused = output(self.xdotool(&["getwindowfocus"])).unwrap_or_default();
+            if focused.trim() == self.window {
+                return;
+            }
+            assert!(self.child.try_wait().unwrap().is_none(), "the app exited:\n{}", self.log_text());
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "window {} never took the focus (focus on {:?}):\n{}",
+                self.window,
+                focused.trim(),
+                self.log_text()
+            );
+            std::thread::sleep(Duration::from_millis(300));
+        }
+    }
     fn log_text(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
@@ -922,7 +949,7 @@ fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens
     }
     app.run(&["mouseup", "1"]);
     std::thread::sleep(Duration::from_millis(500));
-    app.run(&["windowfocus", "--sync", &app.window.clone()]);
+    app.focus();
     app.run(&["key", "s"]);
     let at = app.wait_for("max displacement", at, Duration::from_secs(180));
     save_keys(&app);
@@ -940,7 +967,7 @@ fn the_live_window_places_and_pulls_a_probe_solves_saves_the_session_and_reopens
     let log = app.log_text();
     assert!(!log.contains("panicked"), "{log}");
     std::fs::remove_file(&session).unwrap();
-    app.run(&["windowfocus", "--sync", &app.window.clone()]);
+    app.focus();
     save_keys(&app);
     app.wait_for("session saved", at, Duration::from_secs(30));
     let second = umesh::app::model::session::Session::read(&session).expect("saved again");

@@ -208,11 +208,16 @@ fn summary(kind: &str, v: &Value) -> Vec<Row> {
                     v["correction_form"].as_str().unwrap_or("")
                 ),
                 format!(
-                    "{} within 2.0 mm and 20 % of rigid ({} mm, {} % of rigid); frame {} ms median; network alone {} mm",
+                    "{} within 2.0 mm and 20 % of rigid ({} mm, {} % of rigid); frame {} ms median{}; network alone {} mm",
                     v["within_bar"].as_str().unwrap_or(""),
                     range(&col("corrected_mm"), 2),
                     range(&col("corrected_share_of_rigid").iter().map(|s| 100.0 * s).collect::<Vec<_>>(), 0),
                     range(&col("frame_ms_median"), 1),
+                    // Results saved before the 95th percentile was kept have none.
+                    match col("frame_ms_p95") {
+                        p if p.is_empty() => String::new(),
+                        p => format!(", {} ms 95th percentile", range(&p, 0)),
+                    },
                     range(&col("network_mm"), 2)
                 ),
                 "each draw within 2.0 mm and 20 % of rigid; frame within 33 ms",

@@ -93,6 +93,10 @@ pub struct Args {
     /// Conjugate-gradient iterations per update of a doubted frame at most (default 10).
     #[arg(long)]
     pub doubted_cg: Option<usize>,
+    /// A doubted frame's fit runs on the organ's cells this many times as large (1: its own
+    /// grid; at most 4). The tracking forms fit doubted frames on the organ's own grid.
+    #[arg(long)]
+    pub doubted_coarsening: Option<usize>,
     /// Network evaluations per frame.
     #[arg(long, default_value_t = RegisterSettings::default().iterations)]
     pub iterations: usize,
@@ -327,13 +331,16 @@ fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionS
         subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
         doubted_updates: a.doubted_updates.unwrap_or(base.doubted_updates),
         doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
+        doubted_coarsening: a.doubted_coarsening.unwrap_or(base.doubted_coarsening),
         ..base
     };
     // A doubted frame is corrected by the correction: asked for with it off, it would be
     // ignored without a word.
-    if correction.updates == 0 && (a.doubted_updates.is_some() || a.doubted_cg.is_some()) {
+    if correction.updates == 0
+        && (a.doubted_updates.is_some() || a.doubted_cg.is_some() || a.doubted_coarsening.is_some())
+    {
         bail!(
-            "--doubted-updates / --doubted-cg apply to the physics correction, which --correction-updates 0 turns off"
+            "--doubted-updates / --doubted-cg / --doubted-coarsening apply to the physics correction, which --correction-updates 0 turns off"
         );
     }
     correction.validate()?;

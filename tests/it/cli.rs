@@ -670,6 +670,8 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
         ("--correction-subspace", "5000"),
         ("--correction-subspace", "1000"),
         ("--correction-cg", "1000"),
+        ("--doubted-coarsening", "9"),
+        ("--doubted-coarsening", "0"),
     ] {
         let (ok, _, err) =
             umesh(&["register", "--recording", r, flag, value, "--out", tmp("tracked-bad").to_str().unwrap()]);

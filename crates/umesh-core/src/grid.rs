@@ -137,6 +137,11 @@ pub fn shape_functions(xi: [f64; 3]) -> [f64; 8] {
 /// Grids whose box holds more cells are refused before any work: their FE model could not be
 /// solved in the time a dataset has (a 2 l liver at 7 mm has 41 k; 2 mm cells on it, 640 k).
 const MAX_LATTICE_CELLS: usize = 2_000_000;
+/// The displacement at an embedded point from per-node displacements.
+pub fn interpolate_nodes(e: &Embedding, u: &[Vector3<f64>]) -> Vector3<f64> {
+    e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum()
+}
+
 /// Inside tests of the immersed boundary (box cells x samples per cell) over this are refused:
 /// hours of classification (1 mm cells with 4 subdivisions on the phantom: 6e10).
 const MAX_INSIDE_SAMPLES: u64 = 200_000_000;
@@ -197,6 +202,50 @@ impl ImmersedGrid {
         let [_, py, pz] = self.padded_shape();
         let [i, j, k] = self.node_ijk[node];
         (i * py + j) * pz + k
+    }
+
+    /// The same organ on cells `factor` times as large, on the same lattice (coarse cell
+    /// `ijk / factor`, node `I` at fine node `factor * I`): a coarse cell whose fine cells are
+    /// all whole is whole (2x2x2 Gauss), any other carries its fine cells' quadrature points
+    /// moved into it, so the organ's volume and where it lies are integrated as on this grid.
+    pub fn coarsened(&self, factor: usize) -> ImmersedGrid {
+        let f = factor.max(1);
+        let cell_dims = self.cell_dims.map(|d| d.div_ceil(f));
+        let h = self.cell_size_mm * f as f64;
+        // Per coarse cell (by lattice index): whole fine cells, inside volume, fine quadrature.
+        let mut acc: std::collections::BTreeMap<[usize; 3], (usize, f64, Vec<QuadPoint>)> = Default::default();
+        for (c, cell) in self.cells.iter().enumerate() {
+            let cc = cell.ijk.map(|v| v / f);
+            let e = acc.entry([cc[2], cc[1], cc[0]]).or_default();
+            e.0 += (cell.kind == CellKind::Inside) as usize;
+            e.1 += cell.volume_fraction * self.cell_volume_mm3();
+            for q in &self.quadrature[self.qp_offsets[c]..self.qp_offsets[c + 1]] {
+                // Fine reference point -> lattice coordinate -> coarse reference point.
+                let xi = [0, 1, 2].map(|a| {
+                    let fine = cell.ijk[a] as f64 + 0.5 * (q.xi[a] + 1.0);
+                    2.0 * (fine / f as f64 - cc[a] as f64) - 1.0
+                });
+                e.2.push(QuadPoint { cell: 0, xi, weight_mm3: q.weight_mm3 });
+            }
+        }
+        let g = 1.0 / 3f64.sqrt();
+        let (mut occupied, mut quadrature) = (Vec::with_capacity(acc.len()), Vec::new());
+        for (k, (zyx, (whole, volume_mm3, qps))) in acc.into_iter().enumerate() {
+            let ijk = [zyx[2], zyx[1], zyx[0]];
+            let is_whole = whole == f * f * f;
+            let kind = if is_whole { CellKind::Inside } else { CellKind::Boundary };
+            occupied.push((ijk, kind, if is_whole { 1.0 } else { volume_mm3 / (h * h * h) }));
+            if is_whole {
+                quadrature.extend(HEX_CORNERS.map(|c| QuadPoint {
+                    cell: k as u32,
+                    xi: c.map(|v| if v == 1 { g } else { -g }),
+                    weight_mm3: h * h * h / 8.0,
+                }));
+            } else {
+                quadrature.extend(qps.into_iter().map(|q| QuadPoint { cell: k as u32, ..q }));
+            }
+        }
+        assemble_grid(self.origin_mm, h, cell_dims, occupied, quadrature, self.pooling_steps)
     }
 
     pub fn stats(&self) -> GridStats {

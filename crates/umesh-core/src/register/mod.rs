@@ -2,6 +2,7 @@
 //! displacement of the grid's visible nodes (u_s) -> volume displacement (network or FE)
 //! -> internal structures deformed through their grid embedding -> overlay on the image.
 
+pub mod coarse;
 pub mod confidence;
 pub mod correction;
 pub mod icp;
@@ -87,6 +88,9 @@ pub struct RegistrationContext {
     /// every registration on this context.
     /// The correction's bases built so far, by (patches, free body): built once per context.
     pub(crate) correction_basis: std::sync::Mutex<Vec<((usize, bool), crate::fem::solver::fit::Subspace)>>,
+    /// The organ coarsened 2, 3, ... times for a doubted frame's fit, built once when first
+    /// asked for.
+    coarse: [std::sync::OnceLock<Result<coarse::CoarseModel, String>>; coarse::MAX_COARSENING - 1],
 }
 
 fn embed_all(grid: &ImmersedGrid, pts: &[Vector3<f64>]) -> Result<Vec<Embedding>, crate::Invalid> {
@@ -187,6 +191,7 @@ impl RegistrationContext {
             icp_target,
             gate_grid,
             correction_basis: Default::default(),
+            coarse: Default::default(),
             grid_hash,
         })
     }
@@ -213,6 +218,20 @@ impl RegistrationContext {
 
     pub fn padded_shape(&self) -> [usize; 3] {
         self.grid.padded_shape()
+    }
+
+    /// The organ on cells `factor` (2 to `coarse::MAX_COARSENING`) times as large, built at the
+    /// first call.
+    pub fn coarse_model(&self, factor: usize) -> Result<&coarse::CoarseModel, crate::Invalid> {
+        let slot = factor.checked_sub(2).and_then(|i| self.coarse.get(i)).ok_or_else(|| {
+            crate::Invalid(format!(
+                "--doubted-coarsening {factor}: the coarse grid's cells are 2 to {} times the organ's (1: its own grid)",
+                coarse::MAX_COARSENING
+            ))
+        })?;
+        slot.get_or_init(|| coarse::CoarseModel::new(&self.grid, &self.fixed, factor).map_err(|e| e.0))
+            .as_ref()
+            .map_err(|e| crate::Invalid(e.clone()))
     }
 
     /// The organ surface deformed by a dense [3, X, Y, Z] displacement field.

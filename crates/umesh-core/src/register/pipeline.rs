@@ -1,7 +1,7 @@
 //! The per-frame registration pipeline and its latency breakdown.
 
 use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
-use super::correction::{CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
+use super::correction::{CoarseFit, CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{compose_overlay, depth_preview, rasterize_silhouette, structure_layer};
 use super::{RegistrationContext, displacement_at};
@@ -481,6 +481,10 @@ pub struct Registrar<'c> {
     corrector: Option<SurfaceFit<'c>>,
     /// The previous frame's correction of its prediction, per node (`CorrectionSettings::carry`).
     carried: Vec<Vector3<f64>>,
+    /// The doubted frames' fit on the coarsened organ (`CorrectionSettings::doubted_coarsening`),
+    /// and its change carried over consecutive doubted frames, per coarse node.
+    coarse_fit: Option<CoarseFit<'c>>,
+    coarse_carried: Vec<Vector3<f64>>,
     /// No initial pose was given: a frame must bring its own until one has been aligned.
     needs_frame_pose: bool,
 }
@@ -505,6 +509,8 @@ impl<'c> Registrar<'c> {
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
             carried: Vec::new(),
+            coarse_fit: None,
+            coarse_carried: Vec::new(),
             needs_frame_pose: false,
         }
     }
@@ -522,6 +528,7 @@ impl<'c> Registrar<'c> {
         self.correction = None;
         self.prev_field.iter_mut().for_each(|v| *v = 0.0);
         self.carried.clear();
+        self.coarse_carried.clear();
     }
 
     /// Change the physics correction between frames; a carried correction starts again.
@@ -531,8 +538,12 @@ impl<'c> Registrar<'c> {
             if correction.basis() != self.settings.correction.basis() {
                 self.corrector = None;
             }
+            if correction.doubted_coarsening != self.settings.correction.doubted_coarsening {
+                self.coarse_fit = None;
+            }
             self.settings.correction = correction;
             self.carried.clear();
+            self.coarse_carried.clear();
         }
     }
 
@@ -544,6 +555,12 @@ impl<'c> Registrar<'c> {
             let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
             fit.use_subspace(self.settings.correction.basis())?;
             self.corrector = Some(fit);
+        }
+        if let Some(d) = self.settings.correction.doubted()
+            && d.doubted_coarsening > 1
+            && self.coarse_fit.is_none()
+        {
+            self.coarse_fit = Some(CoarseFit::new(self.ctx, d.doubted_coarsening)?);
         }
         Ok(())
     }
@@ -799,11 +816,19 @@ impl<'c> Registrar<'c> {
             Some(d) if c.prediction_doubted => {
                 // Carried over consecutive doubted frames (in the tracking form, over all).
                 *field = predicted;
-                corrected = corrector
-                    .correct(world, field, &d, Some(&mut self.carried))
-                    .map(|r| CorrectionReport { doubted: true, ..r });
+                corrected = match self.coarse_fit.as_mut() {
+                    Some(coarse) if d.doubted_coarsening > 1 => {
+                        coarse.correct(world, field, &d, &mut self.coarse_carried)
+                    }
+                    _ => corrector
+                        .correct(world, field, &d, Some(&mut self.carried))
+                        .map(|r| CorrectionReport { doubted: true, ..r }),
+                };
             }
-            _ if !settings.carry => self.carried.clear(),
+            _ if !settings.carry => {
+                self.carried.clear();
+                self.coarse_carried.clear();
+            }
             _ => {}
         }
         let corrected =

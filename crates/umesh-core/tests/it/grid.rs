@@ -68,6 +68,49 @@ fn cells_are_classified_and_quadrature_weights_match_fractions() {
 }
 
 #[test]
+fn a_coarsened_grid_holds_the_same_volume_and_quadrature_on_the_same_lattice_within_1e9() {
+    let g = ellipsoid_grid(Vector3::new(60.0, 40.0, 25.0), 5.0, 1);
+    for factor in [2, 3] {
+        let c = g.coarsened(factor);
+        // The same integration points, moved into larger cells: the same volume and first moment.
+        let moment = |g: &ImmersedGrid| -> Vector3<f64> {
+            g.quadrature
+                .iter()
+                .map(|q| {
+                    let cell = &g.cells[q.cell as usize];
+                    let lattice =
+                        Vector3::from(cell.ijk.map(|v| v as f64)) + Vector3::from(q.xi.map(|x| 0.5 * (x + 1.0)));
+                    (g.origin_mm + lattice * g.cell_size_mm) * q.weight_mm3
+                })
+                .sum()
+        };
+        assert!((c.volume_mm3() - g.volume_mm3()).abs() < 1e-9 * g.volume_mm3(), "factor {factor}");
+        assert!((moment(&c) - moment(&g)).norm() < 1e-9 * g.volume_mm3() * 60.0, "factor {factor}");
+        assert_eq!(c.cell_size_mm, factor as f64 * g.cell_size_mm);
+        assert!(c.node_count() * 3 < g.node_count(), "factor {factor}: {} of {} nodes", c.node_count(), g.node_count());
+        let vol = c.cell_volume_mm3();
+        for (k, cell) in c.cells.iter().enumerate() {
+            let w: f64 = c.quadrature[c.qp_offsets[k]..c.qp_offsets[k + 1]].iter().map(|q| q.weight_mm3).sum();
+            assert!((w - cell.volume_fraction * vol).abs() < 1e-9 * vol, "factor {factor}, cell {k}");
+            assert!(
+                c.quadrature[c.qp_offsets[k]..c.qp_offsets[k + 1]].iter().all(|q| q.xi.iter().all(|x| x.abs() <= 1.0))
+            );
+        }
+        // Every coarse node lies on a fine node's place; every fine node sits in the coarse grid.
+        for n in 0..c.node_count() {
+            let p = c.node_position(n);
+            let lattice = (p - g.origin_mm) / g.cell_size_mm;
+            assert!(lattice.iter().all(|v| (v - v.round()).abs() < 1e-9), "factor {factor}, node {n}");
+        }
+        for p in g.node_positions() {
+            let e = c.embed(&p).expect("embedded");
+            let q: Vector3<f64> = e.nodes.iter().zip(e.weights).map(|(&n, w)| c.node_position(n as usize) * w).sum();
+            assert!((q - p).norm() < 1e-9, "factor {factor}: {p:?} -> {q:?}");
+        }
+    }
+}
+
+#[test]
 fn embedding_weights_sum_to_one_and_reproduce_positions() {
     let g = ellipsoid_grid(Vector3::new(40.0, 30.0, 20.0), 5.0, 1);
     let mut rng = umesh_core::rng::SplitMix64(5);

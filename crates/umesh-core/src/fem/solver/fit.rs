@@ -18,7 +18,7 @@
 use super::{FeSolver, FemError, SolverSettings, norm};
 use crate::fem::MaterialParams;
 use crate::fem::assembly::{ElementModel, NONE};
-use crate::grid::{Embedding, ImmersedGrid};
+use crate::grid::{Embedding, ImmersedGrid, interpolate_nodes};
 use crate::nn::PointIndex;
 use faer::Mat;
 use nalgebra::{Matrix3, Vector3};
@@ -296,7 +296,7 @@ impl<'g> PointFit<'g> {
             .zip(targets)
             .filter_map(|((e, x), t)| {
                 t.map(|(t, m)| {
-                    let d = x + interpolate(e, u) - t;
+                    let d = x + interpolate_nodes(e, u) - t;
                     0.5 * self.k_n_per_mm * d.dot(&(m * d))
                 })
             })
@@ -313,7 +313,7 @@ impl<'g> PointFit<'g> {
     }
 
     fn deformed(&self, u: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
-        self.samples.par_iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate(e, u)).collect()
+        self.samples.par_iter().zip(&self.rest_mm).map(|(e, x)| x + interpolate_nodes(e, u)).collect()
     }
 
     /// Move `u` (the previous frame's displacement in, this frame's out) toward `points_mm`:
@@ -527,7 +527,7 @@ impl<'g> PointFit<'g> {
         // The distance left between each matched point and its sample after the update (the
         // last update's correspondences: a fresh search would cost another bucket fill).
         let t = Instant::now();
-        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate(&self.samples[s], u), points_mm, &nearest);
+        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate_nodes(&self.samples[s], u), points_mm, &nearest);
         report.search_ms += ms(t);
         Ok(report)
     }
@@ -802,7 +802,7 @@ impl<'g> PointFit<'g> {
             let g = faer::MatRef::from_column_major_slice(&g_data, m, matched.len());
             let rho = Mat::<f32>::from_fn(matched.len(), 1, |j, _| {
                 let s = matched[j];
-                let x = self.rest_mm[s] + interpolate(&self.samples[s], u);
+                let x = self.rest_mm[s] + interpolate_nodes(&self.samples[s], u);
                 (sk * normals[j].dot(&(x - acc[s] / count[s] as f64))) as f32
             });
             // The lower triangle only: the Cholesky factorisation reads no more.
@@ -856,7 +856,7 @@ impl<'g> PointFit<'g> {
             expand_into(u, &u_start, sub, &q_sum, (free, nf), par);
         }
         report.solve_ms += ms(t);
-        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate(&self.samples[s], u), points_mm, &nearest);
+        report.rms_mm = matched_rms(|s| self.rest_mm[s] + interpolate_nodes(&self.samples[s], u), points_mm, &nearest);
         self.sample_basis = Some(basis_s);
         report
     }
@@ -1149,8 +1149,4 @@ fn matched_rms(position: impl Fn(usize) -> Vector3<f64>, points_mm: &[Vector3<f6
         }
     }
     if n > 0 { (sq / n as f64).sqrt() } else { 0.0 }
-}
-
-fn interpolate(e: &Embedding, u: &[Vector3<f64>]) -> Vector3<f64> {
-    e.nodes.iter().zip(e.weights).map(|(&n, w)| u[n as usize] * w).sum()
 }

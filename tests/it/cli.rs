@@ -1356,7 +1356,10 @@ fn bench_register_presses_each_family_to_the_motion_asked_and_reuses_its_recordi
         assert!(f("frame_ms_median") > 0.0 && f("network_frame_ms_median") > 0.0, "{r}");
         // At 8 mm of motion no recording meets a bar stated at 10 mm or more.
         assert_eq!(r["meets_bar"], false, "{r}");
+        // The bundled model trained on every family: none is held out, the bar is 2 mm.
+        assert!(r["held_out"] == false && f("bar_mm") == 2.0, "{r}");
     }
+    assert_eq!(v["trained_families"].as_array().map(Vec::len), Some(4), "{v}");
     assert_eq!(v["within_bar"], "0 / 2", "{v}");
     assert_eq!(v["correction_form"], "subspace", "{v}");
     // A second run registers the same recordings again, made once (their files untouched).

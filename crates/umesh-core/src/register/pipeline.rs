@@ -799,40 +799,18 @@ impl<'c> Registrar<'c> {
         // It runs beside the correction, on the two cores; a doubted prediction is then
         // corrected again, from itself, as the FE fit.
         let (ctx, rings) = (self.ctx, &self.rings);
-        let judge = || {
-            let t = Instant::now();
-            let predicted_organ = ctx.deformed_surface(&predicted);
-            let coverage = super::confidence::frame_coverage(&predicted_organ, world);
-            let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
-            (c, ms(t))
-        };
         let (corrector, field) = (self.corrector.as_mut().expect("prepared above"), &mut self.field);
-        // After a doubted frame fitted on the coarse organ (its change still carried), the next
-        // is most likely doubted too (on the CT patient's benchmark draws, 40 of 43 such frames
-        // were): its coarse fit runs beside the confidence instead of the correction it would
-        // discard. Judged undoubted after all, the frame gets that correction then. The same
-        // figures either way.
-        if let (Some(d), Some(coarse)) = (settings.doubted(), self.coarse_fit.as_mut())
-            && d.doubted_coarsening > 1
-            && !self.coarse_carried.is_empty()
-        {
-            let (mut fitted, mut carried) = (field.clone(), self.coarse_carried.clone());
-            let ((c, conf_ms), fit) = rayon::join(judge, || coarse.correct(world, &mut fitted, &d, &mut carried));
-            let corrected = if c.prediction_doubted {
-                *field = fitted;
-                self.coarse_carried = carried;
-                fit
-            } else {
-                self.carried.clear();
-                self.coarse_carried.clear();
-                corrector.correct(world, field, &settings, None)
-            };
-            let corrected =
-                corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
-            return Ok((corrected, (c, conf_ms)));
-        }
         let carried = settings.carry.then_some(&mut self.carried);
-        let ((c, conf_ms), corrected) = rayon::join(judge, || corrector.correct(world, field, &settings, carried));
+        let ((c, conf_ms), corrected) = rayon::join(
+            || {
+                let t = Instant::now();
+                let predicted_organ = ctx.deformed_surface(&predicted);
+                let coverage = super::confidence::frame_coverage(&predicted_organ, world);
+                let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
+                (c, ms(t))
+            },
+            || corrector.correct(world, field, &settings, carried),
+        );
         let mut corrected = corrected;
         match settings.doubted() {
             Some(d) if c.prediction_doubted => {

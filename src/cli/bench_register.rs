@@ -40,7 +40,8 @@ pub struct RegisterBenchArgs {
     /// `bench register`: a patient folder from `umesh prepare` (its organ and model).
     #[arg(long, conflicts_with = "model")]
     pub patient: Option<PathBuf>,
-    /// `bench register`: the load families, comma-separated.
+    /// `bench register`: the load families, comma-separated; a family named again is drawn again
+    /// on the next seeds (`gravity,gravity,gravity`: six gravity draws).
     #[arg(long, default_value = "pressing,instrument,grasp,gravity")]
     pub loads: String,
     /// `bench register`: the mean marker motion each recording is pressed to (mm).

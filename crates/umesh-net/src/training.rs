@@ -256,7 +256,15 @@ pub fn run_train(
         epochs.push(m);
     }
     check_usable(out, best, &epochs, settings, final_out)?;
-    calibrate_confidence(out, dataset, settings, progress)?;
+    // The calibration ends the training: its views are reported as the training's last step
+    // (every batch counted), not as a count from zero, which a job's progress read as the
+    // stage starting over (a prepare's log went from 201368 of 205810 units back to 75640, an
+    // hour and a half "left").
+    let calibrating = {
+        let (p, all) = (progress.clone(), total_batches as u64);
+        Progress::new(move |view, views, msg| p.report(all, all, &format!("{msg} (view {view} of {views}), batches")))
+    };
+    calibrate_confidence(out, dataset, settings, &calibrating)?;
     staged.commit().map_err(|e| NetError::Io { path: final_out.to_path_buf(), source: e })?;
     Ok(TrainReport {
         out: final_out.into(),

@@ -219,8 +219,21 @@ fn training_end_to_end_writes_a_model_that_evaluates_and_resumes() {
     .unwrap();
     let out = tmp("model");
     let settings = TrainSettings { model: tiny(3, 2), epochs: 2, batch_size: 2, ..Default::default() };
-    let r = run_train(&ds, &out, &settings, false, &Default::default(), &|_| {}, &Default::default()).unwrap();
+    let reports = std::sync::Arc::new(std::sync::Mutex::new(Vec::<(u64, u64, String)>::new()));
+    let progress = {
+        let r = reports.clone();
+        umesh_core::Progress::new(move |done, total, msg| r.lock().unwrap().push((done, total, msg.to_string())))
+    };
+    let r = run_train(&ds, &out, &settings, false, &progress, &|_| {}, &Default::default()).unwrap();
     assert_eq!(r.epochs.len(), 2);
+    // Progress never goes back, the confidence calibration after the last epoch included (a
+    // job maps the fraction onto its own units: a step back reads as the stage starting over).
+    let reports = reports.lock().unwrap().clone();
+    assert!(reports.iter().any(|(_, _, m)| m.contains("confidence range")), "{reports:?}");
+    for w in reports.windows(2) {
+        let frac = |(d, t, _): &(u64, u64, String)| *d as f64 / (*t).max(1) as f64;
+        assert!(frac(&w[1]) >= frac(&w[0]), "progress went back: {:?} then {:?}", w[0], w[1]);
+    }
     assert_eq!(r.train_samples + r.val_samples, 10);
     assert!(r.epochs.iter().all(|e| e.train_loss.is_finite() && e.val_tre_mean_mm.is_finite()));
     for f in ["model.json", "model.safetensors", "last.safetensors", "metrics.jsonl", "grid.npz"] {

@@ -19,8 +19,9 @@ pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progr
     use std::io::IsTerminal;
     let log = !std::io::stderr().is_terminal();
     let start = std::time::Instant::now();
-    // (last line, any printed, the end said): a job shorter than LOG_EVERY prints nothing.
-    let last = std::sync::Mutex::new((start, false, false));
+    // (last line, any printed, the end said, the rate): a job shorter than LOG_EVERY prints
+    // nothing.
+    let last = std::sync::Mutex::new((start, false, false, umesh_core::Eta::new()));
     let what = message.to_string();
     let progress = umesh_core::Progress::new(move |done, total, msg| {
         if total > 0 {
@@ -33,14 +34,14 @@ pub fn progress_bar(message: &str) -> (indicatif::ProgressBar, umesh_core::Progr
         if log {
             let mut last = last.lock().unwrap_or_else(|e| e.into_inner());
             let now = std::time::Instant::now();
+            last.3.observe(done, now);
             let finished = total > 0 && done >= total;
             if (!finished && now - last.0 >= LOG_EVERY) || (finished && last.1 && !last.2) {
-                *last = (now, true, finished);
+                (last.0, last.1, last.2) = (now, true, finished);
                 let elapsed = start.elapsed().as_secs_f64();
-                let eta = if total > 0 && done > 0 && done < total {
-                    format!(", about {:.0} s left", elapsed * (total - done) as f64 / done as f64)
-                } else {
-                    String::new()
+                let eta = match last.3.seconds_left(done, total, now) {
+                    Some(left) => format!(", about {left:.0} s left"),
+                    None => String::new(),
                 };
                 let msg = if msg.is_empty() { what.as_str() } else { msg };
                 eprintln!("{msg}: {done}/{total} ({elapsed:.0} s{eta})");

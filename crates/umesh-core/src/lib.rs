@@ -30,7 +30,7 @@ pub mod volume;
 pub mod vtk;
 
 pub use error::{Cancelled, Invalid, ModelError};
-pub use progress::{Cancel, Progress};
+pub use progress::{Cancel, Eta, Progress};
 
 /// A folder replaced whole or not at all: a command writes into `path()`, a staging folder
 /// beside the target, and `commit` swaps it in; dropped without a commit (a failure), the

@@ -85,13 +85,11 @@ impl WorkItem {
     pub fn rate(&self) -> (f32, Option<f64>, Option<f64>) {
         let p = self.progress.lock().map(|p| p.clone()).unwrap_or_default();
         let frac = if p.total > 0 { p.done as f32 / p.total as f32 } else { 0.0 };
-        let Some(t0) = self.started else { return (frac, None, None) };
-        let secs = t0.elapsed().as_secs_f64();
-        if p.done == 0 || secs <= 0.0 {
+        if self.started.is_none() {
             return (frac, None, None);
         }
-        let rate = p.done as f64 / secs;
-        (frac, Some(rate), (p.total > p.done).then(|| (p.total - p.done) as f64 / rate))
+        let now = Instant::now();
+        (frac, p.eta.rate_per_s(p.done, now), p.eta.seconds_left(p.done, p.total, now))
     }
 }
 
@@ -301,6 +299,9 @@ fn start(item: &mut WorkItem) {
     let record = serde_json::json!({ "settings": item.settings, "command": item.command });
     item.status = WorkStatus::Running;
     item.started = Some(Instant::now());
+    if let Ok(mut p) = item.progress.lock() {
+        *p = JobProgress::default();
+    }
     item.task = Some(AsyncComputeTaskPool::get().spawn(async move {
         let sink = progress_sink(p2, log.clone());
         // A patient folder records its own settings (patient.json) and refuses foreign files.
@@ -343,7 +344,7 @@ fn progress_sink(progress: Arc<Mutex<JobProgress>>, log: Arc<Mutex<Vec<String>>>
     let last_msg = Mutex::new(String::new());
     Progress::new(move |done, total, msg| {
         if let Ok(mut p) = progress.lock() {
-            *p = JobProgress { done, total, message: msg.to_string() };
+            p.update(done, total, msg);
         }
         if let Ok(mut m) = last_msg.lock()
             && *m != msg

@@ -40,6 +40,18 @@ pub struct JobProgress {
     pub done: u64,
     pub total: u64,
     pub message: String,
+    /// The rate since the job's first report (a resumed job's earlier work left out).
+    pub eta: umesh_core::Eta,
+}
+
+impl JobProgress {
+    pub fn update(&mut self, done: u64, total: u64, message: &str) {
+        self.eta.observe(done, Instant::now());
+        (self.done, self.total) = (done, total);
+        if self.message != message {
+            self.message = message.to_string();
+        }
+    }
 }
 
 pub struct Job {
@@ -72,7 +84,7 @@ impl Jobs {
         let task = AsyncComputeTaskPool::get().spawn(async move {
             let sink = Progress::new(move |done, total, msg| {
                 if let Ok(mut p) = p2.lock() {
-                    *p = JobProgress { done, total, message: msg.to_string() };
+                    p.update(done, total, msg);
                 }
             });
             // Leave a core to the UI and the (software) renderer: the solvers' rayon loops run

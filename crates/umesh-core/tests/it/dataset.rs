@@ -1,5 +1,5 @@
 //! Training data: visibility, probe sampling, force distribution, deterministic shards,
-//! merge, resume, corruption detection.
+//! merge, resume (and a resumed job's time left), corruption detection.
 
 use nalgebra::Vector3;
 use std::path::{Path, PathBuf};
@@ -11,7 +11,7 @@ use umesh_core::rng::SplitMix64;
 use umesh_core::segmentation::{Segmentation, bundled_phantom};
 use umesh_core::surface::{SurfaceSettings, extract_surface};
 use umesh_core::visible::{Camera, VisibilitySettings, sample_points, visible_surface};
-use umesh_core::{Cancel, Progress};
+use umesh_core::{Cancel, Eta, Progress};
 
 fn phantom() -> Segmentation {
     let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../assets/phantom.nii.gz")).unwrap();
@@ -965,4 +965,21 @@ fn a_sample_is_solved_with_the_material_drawn_for_it_and_the_manifest_records_it
     let (kind, n, accepted, lo, hi) = st.materials[0];
     assert_eq!((kind, n, lo, hi), (MaterialKind::NeoHookean, 4, 0.45, 0.45));
     assert_eq!(accepted, st.accepted);
+}
+
+#[test]
+fn a_resumed_jobs_time_left_counts_only_the_work_done_in_this_run() {
+    // A job resumed at 500 of 1000 units that then does 10 units a second: 45 s left at 550,
+    // to 1e-9 s; counting the 500 earlier units as this run's would say 4.1 s.
+    let t0 = std::time::Instant::now();
+    let at = |s: f64| t0 + std::time::Duration::from_secs_f64(s);
+    let mut eta = Eta::new();
+    eta.observe(500, at(0.0));
+    assert_eq!(eta.seconds_left(500, 1000, at(0.0)), None, "no rate before this run has done a unit");
+    eta.observe(550, at(5.0));
+    let rate = eta.rate_per_s(550, at(5.0)).unwrap();
+    assert!((rate - 10.0).abs() < 1e-9, "rate {rate} units/s, expected 10");
+    let left = eta.seconds_left(550, 1000, at(5.0)).unwrap();
+    assert!((left - 45.0).abs() < 1e-9, "{left} s left at 550 of 1000, expected 45");
+    assert_eq!(eta.seconds_left(1000, 1000, at(50.0)), None, "a finished job has nothing left");
 }

@@ -90,6 +90,10 @@ pub struct Args {
     /// other frame; default 4). Needs a model with a confidence reference and the correction on.
     #[arg(long)]
     pub doubted_updates: Option<usize>,
+    /// Updates of a doubted frame that follows a doubted frame (its fit starts from the one
+    /// carried): 1 to --doubted-updates (default 2). The tracking forms use --doubted-updates.
+    #[arg(long)]
+    pub doubted_carried_updates: Option<usize>,
     /// Conjugate-gradient iterations per update of a doubted frame at most (default 10).
     #[arg(long)]
     pub doubted_cg: Option<usize>,
@@ -330,6 +334,9 @@ fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionS
         cg_iterations: a.correction_cg.unwrap_or(base.cg_iterations),
         subspace_patches: a.correction_subspace.unwrap_or(base.subspace_patches),
         doubted_updates: a.doubted_updates.unwrap_or(base.doubted_updates),
+        doubted_carried_updates: a
+            .doubted_carried_updates
+            .unwrap_or_else(|| base.doubted_carried_updates.min(a.doubted_updates.unwrap_or(usize::MAX)).max(1)),
         doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
         doubted_coarsening: a.doubted_coarsening.unwrap_or(base.doubted_coarsening),
         ..base
@@ -337,10 +344,13 @@ fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionS
     // A doubted frame is corrected by the correction: asked for with it off, it would be
     // ignored without a word.
     if correction.updates == 0
-        && (a.doubted_updates.is_some() || a.doubted_cg.is_some() || a.doubted_coarsening.is_some())
+        && (a.doubted_updates.is_some()
+            || a.doubted_carried_updates.is_some()
+            || a.doubted_cg.is_some()
+            || a.doubted_coarsening.is_some())
     {
         bail!(
-            "--doubted-updates / --doubted-cg / --doubted-coarsening apply to the physics correction, which --correction-updates 0 turns off"
+            "--doubted-updates / --doubted-carried-updates / --doubted-cg / --doubted-coarsening apply to the physics correction, which --correction-updates 0 turns off"
         );
     }
     correction.validate()?;

@@ -667,6 +667,8 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
     // (1000 patches did not finish in 5 minutes; 100 updates of 1000 iterations neither.)
     for (flag, value) in [
         ("--doubted-updates", "500"),
+        ("--doubted-carried-updates", "5"),
+        ("--doubted-carried-updates", "0"),
         ("--correction-subspace", "5000"),
         ("--correction-subspace", "1000"),
         ("--correction-cg", "1000"),

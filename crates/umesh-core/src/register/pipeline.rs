@@ -482,7 +482,7 @@ pub struct Registrar<'c> {
     /// The previous frame's correction of its prediction, per node (`CorrectionSettings::carry`).
     carried: Vec<Vector3<f64>>,
     /// The doubted frames' fit on the coarsened organ (`CorrectionSettings::doubted_coarsening`),
-    /// and its change carried over consecutive doubted frames, per coarse node.
+    /// and its fit carried over consecutive doubted frames, per coarse node.
     coarse_fit: Option<CoarseFit<'c>>,
     coarse_carried: Vec<Vector3<f64>>,
     /// No initial pose was given: a frame must bring its own until one has been aligned.
@@ -818,6 +818,8 @@ impl<'c> Registrar<'c> {
                 *field = predicted;
                 corrected = match self.coarse_fit.as_mut() {
                     Some(coarse) if d.doubted_coarsening > 1 => {
+                        // After a doubted frame the fit starts from that frame's: fewer updates.
+                        let d = if self.coarse_carried.is_empty() { d } else { d.after_doubted() };
                         coarse.correct(world, field, &d, &mut self.coarse_carried)
                     }
                     _ => corrector

@@ -878,14 +878,22 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     assert!(tre < alone - 0.4, "carried {tre:.2} mm, each frame alone {alone:.2}");
     // A prediction the confidence rule doubts (a reference of right views whose points lay
     // within 0.3 mm of their predictions: every deformed frame of no deformation is beyond it)
-    // is corrected as the FE fit, from rest, carried, 4 updates, on cells twice as large:
-    // nearer the converged fit than the two updates of the default correction (measured: 1.25
-    // mm against 7.39, the converged fit 1.94; tolerance: half the gap).
+    // is corrected as the FE fit, from rest, on cells twice as large, 4 updates at the first
+    // doubted frame and 2 from the fit before at the next ones: nearer the converged fit than
+    // the two updates of the default correction (measured on the last frame: 2.70 mm against
+    // 7.39, the converged fit 1.94; 4 updates at every frame gave 1.25 on this recording, whose
+    // organ moves about 4 mm a frame; tolerance: half the gap).
     let mut doubting = DoubtingRigid::within_0_3_mm();
     let plain = run(&mut RigidModel, CorrectionSettings::default());
     let doubted = run(&mut doubting, CorrectionSettings::default());
     let c = doubted.correction.expect("the correction ran");
-    assert!(doubted.confidence.prediction_doubted && c.doubted && c.fit.updates == 4, "{c:?} {:?}", doubted.confidence);
+    // The last frame follows doubted frames: its fit starts from the one before, with fewer updates.
+    let after = CorrectionSettings::default().doubted_carried_updates;
+    assert!(
+        doubted.confidence.prediction_doubted && c.doubted && c.fit.updates == after,
+        "{c:?} {:?}",
+        doubted.confidence
+    );
     let (d_tre, p_tre, fe_tre) =
         (doubted.tre_mean_mm.unwrap(), plain.tre_mean_mm.unwrap(), fe_last.tre_mean_mm.unwrap());
     assert!(

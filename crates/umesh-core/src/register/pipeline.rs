@@ -797,26 +797,33 @@ impl<'c> Registrar<'c> {
         // eleven phantom recordings the corrected frames' residual hid all five frames above
         // 2 mm; the prediction's flagged four, the fifth at 2.00 mm, and no other frame).
         // It runs beside the correction, on the two cores; a doubted prediction is then
-        // corrected again, from itself, as the FE fit.
+        // corrected again, from itself, as the FE fit. After a doubted frame the next is
+        // likely doubted too (runs of 6-13 frames on the CT patient's held-out family): the
+        // confidence is judged first and the correction that would be thrown away is skipped.
         let (ctx, rings) = (self.ctx, &self.rings);
         let (corrector, field) = (self.corrector.as_mut().expect("prepared above"), &mut self.field);
         let carried = settings.carry.then_some(&mut self.carried);
-        let ((c, conf_ms), corrected) = rayon::join(
-            || {
-                let t = Instant::now();
-                let predicted_organ = ctx.deformed_surface(&predicted);
-                let coverage = super::confidence::frame_coverage(&predicted_organ, world);
-                let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
-                (c, ms(t))
-            },
-            || corrector.correct(world, field, &settings, carried),
-        );
-        let mut corrected = corrected;
+        let judge = || {
+            let t = Instant::now();
+            let predicted_organ = ctx.deformed_surface(&predicted);
+            let coverage = super::confidence::frame_coverage(&predicted_organ, world);
+            let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
+            (c, ms(t))
+        };
+        let in_doubted_run = !self.coarse_carried.is_empty();
+        let ((c, conf_ms), mut corrected) = if in_doubted_run {
+            let (c, conf_ms) = judge();
+            let doubted = c.prediction_doubted;
+            ((c, conf_ms), (!doubted).then(|| corrector.correct(world, field, &settings, carried)))
+        } else {
+            let (judged, corrected) = rayon::join(judge, || corrector.correct(world, field, &settings, carried));
+            (judged, Some(corrected))
+        };
         match settings.doubted() {
             Some(d) if c.prediction_doubted => {
                 // Carried over consecutive doubted frames (in the tracking form, over all).
                 *field = predicted;
-                corrected = match self.coarse_fit.as_mut() {
+                corrected = Some(match self.coarse_fit.as_mut() {
                     Some(coarse) if d.doubted_coarsening > 1 => {
                         // After a doubted frame the fit starts from that frame's: fewer updates.
                         let d = if self.coarse_carried.is_empty() { d } else { d.after_doubted() };
@@ -825,7 +832,7 @@ impl<'c> Registrar<'c> {
                     _ => corrector
                         .correct(world, field, &d, Some(&mut self.carried))
                         .map(|r| CorrectionReport { doubted: true, ..r }),
-                };
+                });
             }
             _ if !settings.carry => {
                 self.carried.clear();
@@ -833,8 +840,10 @@ impl<'c> Registrar<'c> {
             }
             _ => {}
         }
-        let corrected =
-            corrected.map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
+        // Skipped only when the frame turned out doubted, and then the fit above ran.
+        let corrected = corrected
+            .unwrap_or_else(|| Err(crate::Invalid("no correction ran".into())))
+            .map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
         Ok((corrected, (c, conf_ms)))
     }
 

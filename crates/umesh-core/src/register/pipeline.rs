@@ -826,7 +826,7 @@ impl<'c> Registrar<'c> {
                 corrected = Some(match self.coarse_fit.as_mut() {
                     Some(coarse) if d.doubted_coarsening > 1 => {
                         // After a doubted frame the fit starts from that frame's: fewer updates.
-                        let d = if self.coarse_carried.is_empty() { d } else { d.after_doubted() };
+                        let d = if in_doubted_run { d.after_doubted() } else { d };
                         coarse.correct(world, field, &d, &mut self.coarse_carried)
                     }
                     _ => corrector

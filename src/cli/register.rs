@@ -94,6 +94,11 @@ pub struct Args {
     /// carried): 1 to --doubted-updates (default 2). The tracking forms use --doubted-updates.
     #[arg(long)]
     pub doubted_carried_updates: Option<usize>,
+    /// Such a frame stops taking updates once one moved the organ's coarse nodes by at most
+    /// this (mm RMS; default 2; 0: always --doubted-carried-updates): an organ moving slowly
+    /// gets one update a frame, one moving fast the second it needs.
+    #[arg(long)]
+    pub doubted_carried_stop_mm: Option<f64>,
     /// Conjugate-gradient iterations per update of a doubted frame at most (default 10).
     #[arg(long)]
     pub doubted_cg: Option<usize>,
@@ -337,6 +342,7 @@ fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionS
         doubted_carried_updates: a
             .doubted_carried_updates
             .unwrap_or_else(|| base.doubted_carried_updates.min(a.doubted_updates.unwrap_or(usize::MAX)).max(1)),
+        doubted_carried_stop_mm: a.doubted_carried_stop_mm.unwrap_or(base.doubted_carried_stop_mm),
         doubted_cg_iterations: a.doubted_cg.unwrap_or(base.doubted_cg_iterations),
         doubted_coarsening: a.doubted_coarsening.unwrap_or(base.doubted_coarsening),
         ..base
@@ -346,11 +352,12 @@ fn correction_settings(a: &Args, base: CorrectionSettings) -> Result<CorrectionS
     if correction.updates == 0
         && (a.doubted_updates.is_some()
             || a.doubted_carried_updates.is_some()
+            || a.doubted_carried_stop_mm.is_some()
             || a.doubted_cg.is_some()
             || a.doubted_coarsening.is_some())
     {
         bail!(
-            "--doubted-updates / --doubted-carried-updates / --doubted-cg / --doubted-coarsening apply to the physics correction, which --correction-updates 0 turns off"
+            "--doubted-updates / --doubted-carried-updates / --doubted-carried-stop-mm / --doubted-cg / --doubted-coarsening apply to the physics correction, which --correction-updates 0 turns off"
         );
     }
     correction.validate()?;

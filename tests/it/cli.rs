@@ -669,6 +669,8 @@ fn a_tracked_pose_is_kept_on_a_sequence_that_starts_deformed_and_sparse_clouds_a
         ("--doubted-updates", "500"),
         ("--doubted-carried-updates", "5"),
         ("--doubted-carried-updates", "0"),
+        ("--doubted-carried-stop-mm", "NaN"),
+        ("--doubted-carried-stop-mm", "60"),
         ("--correction-subspace", "5000"),
         ("--correction-subspace", "1000"),
         ("--correction-cg", "1000"),

@@ -48,6 +48,15 @@ pub struct CorrectionSettings {
     /// 1.78 mm against 0.87).
     #[serde(default = "default_doubted_carried_updates")]
     pub doubted_carried_updates: usize,
+    /// A doubted frame that follows a doubted frame stops taking updates once one moved the
+    /// coarse nodes by at most this (mm, RMS; 0: always `doubted_carried_updates`). A first
+    /// update leaves about half its move for the next (on the CT patient's 14 benchmark draws
+    /// the first moved 0.74-1.38 mm, the second 0.19-0.66), and what one update leaves the next
+    /// frame starts from; an organ moving fast (about 4 mm a frame, first updates of 2-6 mm)
+    /// gets the second update it needs. On those draws one update instead of two cost 0.05-0.2
+    /// mm at the last frame and halved the fit's time.
+    #[serde(default = "default_doubted_carried_stop_mm")]
+    pub doubted_carried_stop_mm: f64,
     /// Conjugate-gradient iterations per update of a doubted frame at most.
     #[serde(default = "default_doubted_cg")]
     pub doubted_cg_iterations: usize,
@@ -73,6 +82,10 @@ fn default_doubted_carried_updates() -> usize {
     CorrectionSettings::default().doubted_carried_updates
 }
 
+fn default_doubted_carried_stop_mm() -> f64 {
+    CorrectionSettings::default().doubted_carried_stop_mm
+}
+
 fn default_doubted_cg() -> usize {
     CorrectionSettings::default().doubted_cg_iterations
 }
@@ -87,6 +100,7 @@ impl Default for CorrectionSettings {
             from_rest: false,
             doubted_updates: 4,
             doubted_carried_updates: 2,
+            doubted_carried_stop_mm: 2.0,
             doubted_cg_iterations: 10,
             doubted_coarsening: 2,
         }
@@ -96,6 +110,10 @@ impl Default for CorrectionSettings {
 /// The most conjugate-gradient iterations a frame's correction may ask for (updates x
 /// iterations; the defaults ask for 20, a doubted frame for 40).
 pub const MAX_CG_PER_FRAME: usize = 200;
+
+/// The largest `doubted_carried_stop_mm`: an update that moved the organ's nodes by 50 mm RMS is
+/// no small step.
+pub const MAX_CARRIED_STOP_MM: f64 = 50.0;
 
 /// The most surface patches of the correction's subspace (3 basis vectors each; 64 by default).
 pub const MAX_SUBSPACE_PATCHES: usize = 128;
@@ -140,6 +158,14 @@ impl CorrectionSettings {
             return Err(crate::Invalid(format!(
                 "--doubted-carried-updates {}: a doubted frame after a doubted frame gets 1 to --doubted-updates ({}) updates",
                 self.doubted_carried_updates, self.doubted_updates
+            )));
+        }
+        if !(self.doubted_carried_stop_mm.is_finite()
+            && (0.0..=MAX_CARRIED_STOP_MM).contains(&self.doubted_carried_stop_mm))
+        {
+            return Err(crate::Invalid(format!(
+                "--doubted-carried-stop-mm {}: the motion (mm RMS) below which a doubted frame after a doubted frame stops taking updates: 0 (take them all) to {MAX_CARRIED_STOP_MM}",
+                self.doubted_carried_stop_mm
             )));
         }
         if !(1..=super::coarse::MAX_COARSENING).contains(&self.doubted_coarsening) {
@@ -374,7 +400,8 @@ impl<'c> CoarseFit<'c> {
     /// holds this frame's fit. The energy is measured from rest, so the start decides only how
     /// much work is left: the fit before is a frame's motion away, while a prediction the rule
     /// doubts may jump (on the CT patient, a pressing draw restarted from prediction plus the
-    /// change carried reached 2.93 mm in 2 updates against 1.29 in 4).
+    /// change carried reached 2.93 mm in 2 updates against 1.29 in 4). From the fit before,
+    /// the updates stop once one moves little (`doubted_carried_stop_mm`).
     pub fn correct(
         &mut self,
         points_world_mm: &[Vector3<f64>],
@@ -393,8 +420,12 @@ impl<'c> CoarseFit<'c> {
             })
             .collect();
         let predicted = self.model.restrict(&predicted_fine);
-        let mut u = if carried.len() == predicted.len() { carried.clone() } else { predicted.clone() };
-        let work = CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work();
+        let from_carried = carried.len() == predicted.len();
+        let mut u = if from_carried { carried.clone() } else { predicted.clone() };
+        let mut work = CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work();
+        if from_carried && settings.doubted_carried_stop_mm > 0.0 {
+            work.stop_mm = Some(settings.doubted_carried_stop_mm);
+        }
         let fit = self.fit.fit_with(points_world_mm, &mut u, work).map_err(|e| e.to_string())?;
         let change: Vec<Vector3<f64>> = u.iter().zip(&predicted).map(|(a, b)| a - b).collect();
         *carried = u;

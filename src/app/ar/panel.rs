@@ -323,7 +323,7 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
     let mut changed = ui
         .checkbox(&mut ar.correction, "physics correction")
         .on_hover_text(
-            "After the network, two FE fit updates pull the prediction onto the observed points (about 8 ms a frame on the phantom); a frame whose prediction the confidence check doubts is corrected as the FE fit instead, on cells twice as large (from rest: 4 updates at the first doubted frame, 2 at each next one, which starts from the fit before; about 40-85 ms a frame on the CT patient)",
+            "After the network, two FE fit updates pull the prediction onto the observed points (about 8 ms a frame on the phantom); a frame whose prediction the confidence check doubts is corrected as the FE fit instead, on cells twice as large (from rest: 4 updates at the first doubted frame, about 55 ms on the CT patient; each next one starts from the fit before and takes one update, two when the organ moved fast, about 30 ms)",
         )
         .changed();
     ui.add_enabled_ui(ar.correction, |ui| {
@@ -342,7 +342,7 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
         changed |= ui
             .checkbox(&mut ar.keep_frame_time, "keep the frame time")
             .on_hover_text(
-                "Do not correct a frame whose prediction the confidence check doubts as the FE fit (about 40-85 ms a frame on the CT patient, more on a larger liver): every frame within the correction's time, the doubted ones less accurate",
+                "Do not correct a frame whose prediction the confidence check doubts as the FE fit (about 55 ms for the first of a run on the CT patient and 30 ms for each next, more on a larger liver): every frame within the correction's time, the doubted ones less accurate",
             )
             .changed();
     });

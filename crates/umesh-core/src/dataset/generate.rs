@@ -146,7 +146,9 @@ pub fn run_generate_checked(
     }
     let ctx = DatasetContext::prepare(seg, config, cancel)?;
     // Each reference solve single-threaded like the samples, so every machine finds the same factor.
-    progress.report(0, config.samples as u64, "calibrating the load");
+    if fresh {
+        progress.report(0, config.samples as u64, "calibrating the load");
+    }
     let mut softening: Option<f64> = None;
     let mut checked = None;
     if let Some(check) = preflight
@@ -170,6 +172,13 @@ pub fn run_generate_checked(
     manifest.write(out)?;
 
     let total: usize = todo.iter().map(|&s| config.shard_range(s).len()).sum();
+    // Counted over the whole dataset, the samples kept from an earlier run included: a resumed
+    // stage's "samples N of M" and its share of a job's progress then agree with a fresh one's
+    // (counting only this run's, a resumed prepare's progress jumped at the stage's end).
+    let kept = config.samples.saturating_sub(total) as u64;
+    if !fresh {
+        progress.report(kept, config.samples as u64, "calibrating the load");
+    }
 
     let queue: Vec<usize> = todo.iter().flat_map(|&s| config.shard_range(s)).collect();
     let next = std::sync::atomic::AtomicUsize::new(0);
@@ -230,7 +239,7 @@ pub fn run_generate_checked(
                         shards_written.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                     let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-                    progress.report(d as u64, total as u64, "samples");
+                    progress.report(kept + d as u64, config.samples as u64, "samples");
                 }
             });
         }

@@ -164,9 +164,19 @@ fn shards_merge_into_exactly_the_single_run_dataset_and_resume_completes_it() {
     let resumed = tmp("resumed");
     run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
     std::fs::remove_file(resumed.join(shard_file_name(1))).unwrap();
-    let r2 = run_generate(&seg, &resumed, &config, ShardSelection::all(), &Progress::none(), &Cancel::new()).unwrap();
+    let reports = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let seen = reports.clone();
+    let progress = Progress::new(move |done, total, msg| seen.lock().unwrap().push((done, total, msg.to_string())));
+    let r2 = run_generate(&seg, &resumed, &config, ShardSelection::all(), &progress, &Cancel::new()).unwrap();
     assert_eq!(r2.samples_computed, 2, "{r2:?}");
     assert_eq!(r2.samples_reused, 3);
+    // The resumed run counts over the whole dataset: it starts at the 3 samples kept and
+    // reaches 5 of 5 (a job's progress and time left are read from these; two workers may
+    // report out of order, so no order is asserted after the first).
+    let reports = reports.lock().unwrap().clone();
+    assert_eq!(reports.first().map(|r| (r.0, r.1)), Some((3, 5)), "{reports:?}");
+    assert!(reports.iter().all(|r| (3..=5).contains(&r.0) && r.1 == 5), "{reports:?}");
+    assert!(reports.iter().any(|r| r.0 == 5), "{reports:?}");
     for shard in 0..config.shard_count() {
         let name = shard_file_name(shard);
         assert_eq!(file_bytes(&single, &name), file_bytes(&resumed, &name), "{name} differs after resume");

@@ -324,6 +324,9 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
     device.seed(0);
     let mut out = serde_json::Map::new();
     out.insert("padded_shape".into(), serde_json::json!([x, y, z]));
+    // Registration reads the prediction at the grid's nodes alone (`Predictor::read_only_at`).
+    let nodes: Vec<usize> = (0..grid.node_count()).map(|n| grid.dense_index(n)).collect();
+    out.insert("nodes".into(), serde_json::json!(nodes.len()));
     // The shipped input (the encoded camera view) for the cpu preset; the paper's 3 channels
     // for the paper preset (the shapes of the JAX comparison).
     let shipped =
@@ -341,8 +344,9 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
         // What registration runs per frame (direct kernels for the shipped widths, matrix
         // products for the wide layers); burn's pass is timed beside it.
         let fast = umesh_net::fast::FastUNet::from_model(&model).ok();
+        let needed = umesh_net::fast::Needed::new([x, y, z], cfg.steps, &nodes);
         let c = cfg.in_channels;
-        let (mut times, mut burn_times) = (Vec::new(), Vec::new());
+        let (mut times, mut burn_times, mut node_times) = (Vec::new(), Vec::new(), Vec::new());
         let mut rng = umesh_core::rng::SplitMix64(1);
         let mut y_fast = Vec::new();
         for i in 0..reps + 1 {
@@ -354,6 +358,13 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
             }
             let mut ms = t.elapsed().as_secs_f64() * 1e3;
             std::hint::black_box(&y_fast);
+            // The same pass computing only what reaches the nodes, as registration runs it.
+            let t = Instant::now();
+            if let Some(f) = &fast {
+                f.forward_at(&values, [x, y, z], needed.as_ref(), &mut y_fast);
+            }
+            let mut nodes_ms = t.elapsed().as_secs_f64() * 1e3;
+            std::hint::black_box(&y_fast);
             // Beside it, the same network and input through burn (the training path).
             let input = Tensor::<5>::from_data(TensorData::new(values, [1, c, x, y, z]), &device);
             let t = Instant::now();
@@ -362,15 +373,18 @@ fn bench_net(repeat: usize) -> Result<serde_json::Value> {
             std::hint::black_box(v);
             if fast.is_none() {
                 ms = burn_ms;
+                nodes_ms = burn_ms;
             }
             if i > 0 {
                 times.push(ms); // the first call warms caches and allocators
                 burn_times.push(burn_ms);
+                node_times.push(nodes_ms);
             }
         }
         for (key, t) in [
             (format!("inference_ms_median_{name}"), &mut times),
             (format!("inference_ms_median_{name}_burn"), &mut burn_times),
+            (format!("inference_ms_median_{name}_nodes"), &mut node_times),
         ] {
             t.sort_by(f64::total_cmp);
             out.insert(key.clone(), serde_json::json!(t[t.len() / 2]));

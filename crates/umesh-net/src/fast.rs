@@ -135,6 +135,14 @@ impl FastUNet {
 
     /// Input [C, X, Y, Z] (network units) -> output [C_out, X, Y, Z], channel-first as burn's.
     pub fn forward(&self, input: &[f32], dims: [usize; 3], out: &mut Vec<f32>) {
+        self.forward_at(input, dims, None, out);
+    }
+
+    /// As `forward`, computing the outputs only where `needed` asks (`Needed::new`, for these
+    /// dims): the decoder's convolutions skip the voxels whose values reach none of them, and
+    /// every other output is 0. The outputs asked for are the same bits as `forward`'s.
+    pub fn forward_at(&self, input: &[f32], dims: [usize; 3], needed: Option<&Needed>, out: &mut Vec<f32>) {
+        let needed = needed.filter(|m| m.dims == dims && m.levels.len() == self.dec.len());
         let n = dims[0] * dims[1] * dims[2];
         let c = self.in_channels;
         let mut x = Map { dims, c, v: vec![0.0; n * c] };
@@ -145,17 +153,21 @@ impl FastUNet {
         }
         let mut skips = Vec::with_capacity(self.down.len());
         for (a, b) in &self.down {
-            let f = conv(&conv(&x, a, true), b, true);
+            let f = conv(&conv(&x, a, true, None), b, true, None);
             x = pool(&f);
             skips.push(f);
         }
-        x = conv(&conv(&x, &self.bottom.0, true), &self.bottom.1, true);
-        for (u, (a, b)) in self.up.iter().zip(&self.dec) {
+        x = conv(&conv(&x, &self.bottom.0, true, None), &self.bottom.1, true, None);
+        // The decoder runs from the deepest level; `Needed` holds the finest first.
+        let levels = self.dec.len();
+        for (d, (u, (a, b))) in self.up.iter().zip(&self.dec).enumerate() {
             let up = transpose(&x, u);
             let skip = skips.pop().unwrap_or_else(|| Map { dims: up.dims, c: 0, v: Vec::new() });
-            x = conv(&conv(&concat(&up, &skip), a, true), b, true);
+            let masks = needed.map(|m| &m.levels[levels - 1 - d]);
+            let h = conv(&concat(&up, &skip), a, true, masks.map(|m| m.0.as_slice()));
+            x = conv(&h, b, true, masks.map(|m| m.1.as_slice()));
         }
-        let y = conv(&x, &self.head, false);
+        let y = conv(&x, &self.head, false, needed.and_then(|m| m.levels.first()).map(|m| m.1.as_slice()));
         let co = self.out_channels;
         out.clear();
         out.resize(n * co, 0.0);
@@ -165,6 +177,69 @@ impl FastUNet {
             }
         }
     }
+}
+
+/// The voxels of each decoder level whose values reach the outputs a caller reads (the organ's
+/// grid nodes, about a third of the padded box): a level's last convolution is needed at
+/// those, the one before at them dilated by a voxel, and the upsampling into them reads the
+/// next coarser level's voxels under its dilation by two. The encoder feeds the pooling of
+/// every voxel and stays whole.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Needed {
+    dims: [usize; 3],
+    /// Per decoder level, finest first: (the first convolution's voxels, the second's).
+    levels: Vec<(Vec<bool>, Vec<bool>)>,
+}
+
+impl Needed {
+    /// For outputs read at `voxels` (dense indices into `dims`, X-major as the field's channels)
+    /// of a network with `steps` pooling steps; None when an index is outside `dims` or `dims`
+    /// does not halve `steps` times.
+    pub fn new(dims: [usize; 3], steps: usize, voxels: &[usize]) -> Option<Self> {
+        let n = dims.iter().product::<usize>();
+        if dims.iter().any(|&d| d == 0 || d % (1 << steps) != 0) || voxels.iter().any(|&v| v >= n) {
+            return None;
+        }
+        let mut need = vec![false; n];
+        voxels.iter().for_each(|&v| need[v] = true);
+        let mut level_dims = dims;
+        let mut levels = Vec::with_capacity(steps);
+        for _ in 0..steps {
+            let first = dilate(&need, level_dims);
+            let inputs = dilate(&first, level_dims);
+            levels.push((first, std::mem::take(&mut need)));
+            let coarse = level_dims.map(|d| d / 2);
+            need = vec![false; coarse.iter().product()];
+            let [_, b, c] = level_dims;
+            for (p, _) in inputs.iter().enumerate().filter(|(_, x)| **x) {
+                let (i, j, k) = (p / (b * c), (p / c) % b, p % c);
+                need[((i / 2) * coarse[1] + j / 2) * coarse[2] + k / 2] = true;
+            }
+            level_dims = coarse;
+        }
+        Some(Self { dims, levels })
+    }
+
+    /// The share of the finest level's voxels its last convolution computes.
+    pub fn fraction(&self) -> f64 {
+        self.levels.first().map_or(1.0, |(_, b)| b.iter().filter(|x| **x).count() as f64 / b.len().max(1) as f64)
+    }
+}
+
+/// The voxels within one (3x3x3) of `mask`'s.
+fn dilate(mask: &[bool], [a, b, c]: [usize; 3]) -> Vec<bool> {
+    let mut out = vec![false; mask.len()];
+    for (p, _) in mask.iter().enumerate().filter(|(_, x)| **x) {
+        let (i, j, k) = (p / (b * c), (p / c) % b, p % c);
+        for x in i.saturating_sub(1)..(i + 2).min(a) {
+            for y in j.saturating_sub(1)..(j + 2).min(b) {
+                for z in k.saturating_sub(1)..(k + 2).min(c) {
+                    out[(x * b + y) * c + z] = true;
+                }
+            }
+        }
+    }
+    out
 }
 
 fn pool(x: &Map) -> Map {
@@ -236,8 +311,10 @@ fn wide(cin: usize, cout: usize) -> bool {
     !matches!(cout, 3 | 8 | 16 | 32 | 64) || cin * cout >= 64 * 64
 }
 
-/// A padded convolution (3x3x3, or 1x1x1 for the head), with ReLU when `relu`.
-fn conv(x: &Map, k: &Conv, relu: bool) -> Map {
+/// A padded convolution (3x3x3, or 1x1x1 for the head), with ReLU when `relu`; where `mask`
+/// is given (by voxel) the direct kernels compute only its voxels and leave the rest 0 (the
+/// matrix products compute all).
+fn conv(x: &Map, k: &Conv, relu: bool, mask: Option<&[bool]>) -> Map {
     if wide(k.cin, k.cout) {
         return conv_gemm(x, k, relu);
     }
@@ -251,11 +328,11 @@ fn conv(x: &Map, k: &Conv, relu: bool) -> Map {
         // they are safe Rust otherwise.
         #[cfg(target_arch = "x86_64")]
         #[allow(unsafe_code)]
-        Isa::Avx512 => unsafe { slab_avx512(x, k, relu, i, out) },
+        Isa::Avx512 => unsafe { slab_avx512(x, k, relu, mask, i, out) },
         #[cfg(target_arch = "x86_64")]
         #[allow(unsafe_code)]
-        Isa::Avx2 => unsafe { slab_avx2(x, k, relu, i, out) },
-        Isa::Plain => slab_body::<false>(x, k, relu, i, out),
+        Isa::Avx2 => unsafe { slab_avx2(x, k, relu, mask, i, out) },
+        Isa::Plain => slab_body::<false>(x, k, relu, mask, i, out),
     });
     Map { dims: x.dims, c: cout, v }
 }
@@ -287,8 +364,8 @@ impl Isa {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn slab_avx2(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
-    slab_body::<true>(x, k, relu, i, out);
+fn slab_avx2(x: &Map, k: &Conv, relu: bool, mask: Option<&[bool]>, i: usize, out: &mut [f32]) {
+    slab_body::<true>(x, k, relu, mask, i, out);
 }
 
 /// The same kernels compiled for AVX-512 (16-lane registers for the 16- to 64-channel layers):
@@ -296,23 +373,23 @@ fn slab_avx2(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
 /// `umesh bench net` on an AMD EPYC with AVX-512.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
-fn slab_avx512(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
-    slab_body::<true>(x, k, relu, i, out);
+fn slab_avx512(x: &Map, k: &Conv, relu: bool, mask: Option<&[bool]>, i: usize, out: &mut [f32]) {
+    slab_body::<true>(x, k, relu, mask, i, out);
 }
 
 /// One x-slab of the output. `FMA`: fused multiply-adds (only where the CPU has them; a
 /// software fma would be far slower than a multiply and an add).
 #[inline(always)]
-fn slab_body<const FMA: bool>(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
+fn slab_body<const FMA: bool>(x: &Map, k: &Conv, relu: bool, mask: Option<&[bool]>, i: usize, out: &mut [f32]) {
     // Voxels per block measured best on 2 cores (AVX2): more for fewer channels, until the
     // accumulators no longer fit in the registers.
     match k.cout {
-        3 => slab_fixed::<3, 4, FMA>(x, k, relu, i, out),
-        8 => slab_fixed::<8, 4, FMA>(x, k, relu, i, out),
-        16 => slab_fixed::<16, 2, FMA>(x, k, relu, i, out),
-        32 => slab_fixed::<32, 1, FMA>(x, k, relu, i, out),
-        64 => slab_fixed::<64, 1, FMA>(x, k, relu, i, out),
-        _ => slab_any::<FMA>(x, k, relu, i, out),
+        3 => slab_fixed::<3, 4, FMA>(x, k, relu, mask, i, out),
+        8 => slab_fixed::<8, 4, FMA>(x, k, relu, mask, i, out),
+        16 => slab_fixed::<16, 2, FMA>(x, k, relu, mask, i, out),
+        32 => slab_fixed::<32, 1, FMA>(x, k, relu, mask, i, out),
+        64 => slab_fixed::<64, 1, FMA>(x, k, relu, mask, i, out),
+        _ => slab_any::<FMA>(x, k, relu, mask, i, out),
     }
 }
 
@@ -338,6 +415,7 @@ fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(
     x: &Map,
     k: &Conv,
     relu: bool,
+    mask: Option<&[bool]>,
     i: usize,
     out: &mut [f32],
 ) {
@@ -354,6 +432,12 @@ fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(
             // B voxels at once where all of them see the same window along z.
             let block = l + B <= c && window(l + B - 1, c, kernel) == (z0, z1);
             let m_count = if block { B } else { 1 };
+            if let Some(mask) = mask
+                && !mask[(i * b + j) * c + l..][..m_count].iter().any(|m| *m)
+            {
+                l += m_count;
+                continue;
+            }
             let mut acc = [bias; B];
             for dx in x0..x1 {
                 for dy in y0..y1 {
@@ -383,6 +467,10 @@ fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(
                 }
             }
             for (m, am) in acc.iter().enumerate().take(m_count) {
+                // A block's voxels outside the mask stay 0, as the skipped blocks' do.
+                if mask.is_some_and(|mask| !mask[(i * b + j) * c + l + m]) {
+                    continue;
+                }
                 let dst = &mut out[(j * c + l + m) * C..(j * c + l + m + 1) * C];
                 for o in 0..C {
                     dst[o] = if relu { am[o].max(0.0) } else { am[o] };
@@ -394,7 +482,7 @@ fn slab_fixed<const C: usize, const B: usize, const FMA: bool>(
 }
 
 #[inline(always)]
-fn slab_any<const FMA: bool>(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut [f32]) {
+fn slab_any<const FMA: bool>(x: &Map, k: &Conv, relu: bool, mask: Option<&[bool]>, i: usize, out: &mut [f32]) {
     let [a, b, c] = x.dims;
     let (cin, cout) = (k.cin, k.cout);
     let kernel = if k.taps == 1 { 1 } else { 3 };
@@ -402,6 +490,9 @@ fn slab_any<const FMA: bool>(x: &Map, k: &Conv, relu: bool, i: usize, out: &mut 
     for j in 0..b {
         let (y0, y1) = window(j, b, kernel);
         for l in 0..c {
+            if mask.is_some_and(|m| !m[(i * b + j) * c + l]) {
+                continue;
+            }
             let (z0, z1) = window(l, c, kernel);
             let acc = &mut out[(j * c + l) * cout..(j * c + l + 1) * cout];
             acc.copy_from_slice(&k.b);

@@ -18,6 +18,8 @@ pub struct Predictor {
     fast: Option<crate::fast::FastUNet>,
     /// Run burn's forward pass instead of the fast one (to compare them).
     pub use_burn: bool,
+    /// The outputs a caller reads (`read_only_at`), with what the fast pass needs for them.
+    read_at: Option<(Vec<usize>, Option<crate::fast::Needed>)>,
     input: Vec<f32>,
     output: Vec<f32>,
     /// `confidence.json` of the model folder, when it has one.
@@ -61,7 +63,29 @@ impl Predictor {
 
     pub fn from_model(info: ModelInfo, model: UNet, device: Device) -> Self {
         let fast = crate::fast::FastUNet::from_model(&model).ok();
-        Self { info, model, device, fast, use_burn: false, input: Vec::new(), output: Vec::new(), confidence: None }
+        Self {
+            info,
+            model,
+            device,
+            fast,
+            use_burn: false,
+            read_at: None,
+            input: Vec::new(),
+            output: Vec::new(),
+            confidence: None,
+        }
+    }
+
+    /// Compute the outputs only at these dense indices of each channel (of the model's padded
+    /// shape; the rest are 0): a registration reads the field at the grid's nodes alone, and
+    /// the decoder's last level, the widest work, then runs on about half its voxels. Indices
+    /// outside the shape leave every output computed.
+    pub fn read_only_at(&mut self, voxels: &[usize]) {
+        if self.read_at.as_ref().is_some_and(|(v, _)| v == voxels) {
+            return;
+        }
+        let needed = crate::fast::Needed::new(self.info.padded_shape, self.info.config.steps, voxels);
+        self.read_at = Some((voxels.to_vec(), needed));
     }
 
     pub fn config(&self) -> &UNetConfig {
@@ -85,7 +109,8 @@ impl Predictor {
         self.input.extend(u_s.iter().map(|v| v / s));
         let o = self.info.normalization.output_scale_mm;
         if let (Some(f), false) = (&self.fast, self.use_burn) {
-            f.forward(&self.input, shape, &mut self.output);
+            let needed = self.read_at.as_ref().and_then(|(_, m)| m.as_ref());
+            f.forward_at(&self.input, shape, needed, &mut self.output);
             self.output.iter_mut().for_each(|v| *v *= o);
         } else {
             let x = Tensor::<5>::from_data(
@@ -124,6 +149,9 @@ impl umesh_core::register::pipeline::DisplacementModel for Predictor {
     }
     fn confidence_reference(&self) -> Option<umesh_core::register::confidence::ConfidenceReference> {
         self.confidence.clone()
+    }
+    fn read_only_at(&mut self, voxels: &[usize]) {
+        Predictor::read_only_at(self, voxels);
     }
 }
 

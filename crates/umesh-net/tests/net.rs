@@ -96,6 +96,54 @@ fn the_fast_forward_pass_matches_burns_within_1e_4_of_the_largest_output() {
 }
 
 #[test]
+fn outputs_read_only_at_the_organ_voxels_are_the_same_bits_as_the_whole_pass_and_0_elsewhere() {
+    let device = Device::flex();
+    for (cfg, shape, seed) in [
+        (UNetConfig { in_channels: 4, ..UNetConfig::cpu() }, [16, 8, 24], 3),
+        (tiny(2, 3), [8, 16, 8], 5),
+        // Wide layers compute every voxel (the head, 3 channels, still only those asked for).
+        (UNetConfig { steps: 2, channels: 40, in_channels: 3, out_channels: 3 }, [8, 12, 4], 13),
+    ] {
+        device.seed(seed);
+        let info = info_for(cfg.clone(), shape);
+        let mut p = Predictor::from_model(info, cfg.init(&device), device.clone());
+        let n = shape.iter().product::<usize>();
+        let mut rng = umesh_core::rng::SplitMix64(seed);
+        let input: Vec<f32> = (0..cfg.in_channels * n)
+            .map(|_| if rng.next_f64() < 0.3 { (rng.next_f64() * 4.0 - 2.0) as f32 } else { 0.0 })
+            .collect();
+        // An organ's nodes: an ellipsoid in the middle of the box, as a padded grid holds one.
+        let [a, b, c] = shape;
+        let voxels: Vec<usize> = (0..n)
+            .filter(|&v| {
+                let (i, j, k) = (v / (b * c), (v / c) % b, v % c);
+                let r = |x: usize, d: usize| (x as f64 + 0.5 - d as f64 / 2.0) / (0.4 * d as f64);
+                r(i, a).powi(2) + r(j, b).powi(2) + r(k, c).powi(2) <= 1.0
+            })
+            .collect();
+        assert!(voxels.len() > n / 10 && voxels.len() < n / 2, "{} of {n}", voxels.len());
+        let whole = p.predict(&input, shape).unwrap().to_vec();
+        p.read_only_at(&voxels);
+        let part = p.predict(&input, shape).unwrap().to_vec();
+        let mut asked = vec![false; n];
+        voxels.iter().for_each(|&v| asked[v] = true);
+        for ch in 0..3 {
+            for v in 0..n {
+                let (w, q) = (whole[ch * n + v], part[ch * n + v]);
+                if asked[v] {
+                    assert_eq!(w.to_bits(), q.to_bits(), "{cfg:?}: channel {ch}, voxel {v}: {w} against {q}");
+                } else {
+                    assert_eq!(q, 0.0, "{cfg:?}: channel {ch}, voxel {v} not asked for");
+                }
+            }
+        }
+        // An index outside the box: every output computed again.
+        p.read_only_at(&[n]);
+        assert_eq!(p.predict(&input, shape).unwrap(), whole.as_slice(), "{cfg:?}");
+    }
+}
+
+#[test]
 fn a_tiny_network_overfits_a_handful_of_samples() {
     let device = Device::flex();
     device.seed(1);

@@ -58,6 +58,9 @@ pub trait DisplacementModel {
     fn takes_correction(&self) -> bool {
         true
     }
+    /// The caller reads each channel of `predict`'s output only at these dense indices (the
+    /// grid's nodes): a model may skip the work for the rest and leave them 0.
+    fn read_only_at(&mut self, _voxels: &[usize]) {}
 }
 
 /// The FE registration alone: the rest grid's co-rotational model pulled onto the frame's
@@ -473,6 +476,8 @@ pub struct Registrar<'c> {
     prev_field: Vec<f32>,
     u_s: Vec<f32>,
     field: Vec<f32>,
+    /// Where the field is read: the grid nodes' dense indices (`DisplacementModel::read_only_at`).
+    node_voxels: Vec<usize>,
     /// Built on the first frame of a model that takes observations.
     observer: Option<crate::observation::Observer>,
     /// The organ surface's vertex rings, for the confidence residual.
@@ -505,6 +510,7 @@ impl<'c> Registrar<'c> {
             prev_field: vec![0.0; 3 * x * y * z],
             u_s: Vec::new(),
             field: Vec::new(),
+            node_voxels: (0..ctx.grid.node_count()).map(|n| ctx.grid.dense_index(n)).collect(),
             observer: None,
             rings: super::confidence::VertexRings::new(&ctx.surface),
             corrector: None,
@@ -773,6 +779,7 @@ impl<'c> Registrar<'c> {
     /// The model's prediction from `self.u_s` into `self.field`; its time (ms).
     fn run_model(&mut self, frame: &Frame, model: &mut dyn DisplacementModel) -> Result<f64, FrameError> {
         let t = Instant::now();
+        model.read_only_at(&self.node_voxels);
         model.predict(&self.u_s, &mut self.field).map_err(|source| FrameError::Model {
             frame: frame.index,
             model: model.name(),

@@ -9,7 +9,8 @@ use std::time::Duration;
 use umesh_core::register::RegistrationContext;
 use umesh_core::register::correction::{CorrectionChoice, CorrectionForm, CorrectionSettings};
 use umesh_core::register::pipeline::{
-    FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, choose_pose, run_register,
+    FeDisplacementModel, GroundTruth, PosePolicy, RegisterReport, RegisterSettings, Registrar, choose_pose,
+    run_registrar,
 };
 use umesh_core::rgbd::recording::{Recording, read_trajectory_log};
 use umesh_core::rgbd::stream::{FrameSource, Peeked, RecordingSource, TcpSource};
@@ -224,11 +225,27 @@ pub fn run(a: Args) -> Result<()> {
     let budget = (a.frame_budget_ms > 0.0).then_some(a.frame_budget_ms);
     let (form, form_reason) = correction_form(&a.correction_form, &model_dir, budget)?;
     let correction = correction_settings(&a, form.settings())?;
+    let mut settings = RegisterSettings {
+        iterations: a.iterations,
+        pose_bound_mm: a.pose_bound_mm,
+        min_coverage: a.min_coverage,
+        overlay: !a.no_overlay,
+        correction,
+        ..Default::default()
+    };
+    settings.segment = segment_settings(&a, &settings);
+    settings.validate()?;
+    // The correction's FE models (and subspace) before the source opens: a live stream would
+    // drop the frames that arrive while they are built (half a second to seconds).
     umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
+    let mut registrar = Registrar::new(&ctx, settings.clone(), Matrix4::identity());
+    registrar.prepare_correction()?;
     let imported = import_if_realsense(&a)?;
     let recording = imported.0.as_deref().or(a.recording.as_deref());
     let Opened { mut source, pose: rec_pose, truth, tracked } = open_source(&a, recording)?;
     let (pose_policy, pose_reason) = choose_pose(requested, tracked);
+    settings.pose = pose_policy;
+    registrar.settings.pose = pose_policy;
     let pose = match (&a.initial_pose, rec_pose) {
         (Some(p), _) => Some(*read_trajectory_log(p)?.first().with_context(|| format!("{}: no pose", p.display()))?),
         (None, Some(p)) => Some(p),
@@ -238,28 +255,16 @@ pub fn run(a: Args) -> Result<()> {
             "no initial camera pose: give --initial-pose FILE.log (Open3D trajectory format), or --pose tracked with a stream whose frames carry world_from_camera"
         ),
     };
-    let mut settings = RegisterSettings {
-        iterations: a.iterations,
-        pose: pose_policy,
-        pose_bound_mm: a.pose_bound_mm,
-        min_coverage: a.min_coverage,
-        overlay: !a.no_overlay,
-        correction,
-        ..Default::default()
-    };
-    settings.segment = segment_settings(&a, &settings);
-    settings.validate()?;
     // Written beside --out and swapped in at the end: a failed run leaves the old folder as it was.
     let staged = umesh_core::StagedDir::new(&a.out, umesh_core::OutputKind::Registration, REGISTRATION_FILES)
         .with_context(|| format!("--out {}", a.out.display()))?;
     let dir = staged.path().to_path_buf();
     let mut report = register_with(
         &mut *source,
-        &ctx,
+        registrar,
         &mut net,
         pose,
         truth.as_ref(),
-        &settings,
         &dir.join("overlay"),
         "registering (U-Net)",
     )?;
@@ -275,11 +280,10 @@ pub fn run(a: Args) -> Result<()> {
         }
         Some(register_with(
             &mut *src,
-            &ctx,
+            Registrar::new(&ctx, settings.clone(), Matrix4::identity()),
             &mut fe,
             pose,
             truth.as_ref(),
-            &settings,
             &dir.join("overlay_fe"),
             "registering (FE)",
         )?)
@@ -517,13 +521,13 @@ fn latency_medians(r: &RegisterReport) -> serde_json::Value {
     })
 }
 
+/// Register `source`'s frames with `registrar` (its models built, the source's pose policy set).
 fn register_with(
     source: &mut dyn FrameSource,
-    ctx: &RegistrationContext,
+    registrar: Registrar<'_>,
     model: &mut dyn umesh_core::register::pipeline::DisplacementModel,
     pose: Option<Matrix4<f64>>,
     truth: Option<&GroundTruth>,
-    settings: &RegisterSettings,
     overlay_dir: &Path,
     message: &str,
 ) -> Result<RegisterReport> {
@@ -536,7 +540,7 @@ fn register_with(
         }
         Ok(())
     };
-    let r = run_register(source, ctx, model, pose, truth, settings, &mut write, &progress, &super::output::cancel());
+    let r = run_registrar(registrar, source, model, pose, truth, &mut write, &progress, &super::output::cancel());
     pb.finish_and_clear();
     Ok(r?)
 }

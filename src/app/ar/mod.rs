@@ -187,17 +187,19 @@ fn worker(
         // frames arriving while it is built would be dropped.
         umesh_core::register::correction::prepare_correction(&ctx, form.settings().basis())?;
     }
+    let settings = RegisterSettings { overlay: true, ..Default::default() };
+    let mut reg = Registrar::new(&ctx, settings.clone(), Matrix4::identity());
+    // Its FE models before the source opens rather than in the first frame (half a second on a
+    // 5000-node liver, seconds on a busy machine): a live source's frames would be dropped.
+    reg.set_correction(form.settings());
+    reg.prepare_correction()?;
     let (mut src, base_pose, truth, label, fps, tracked) = open_source(&source, &ctx, &log)?;
+    reg.reset(base_pose);
     let frames = match &src {
         Src::Recording(r, _) => Some(r.len()),
         Src::Live(_) => None,
     };
     let _ = tx.send(ArEvent::Opened { label, frames, fps, truth: truth.is_some() });
-    let settings = RegisterSettings { overlay: true, ..Default::default() };
-    let mut reg = Registrar::new(&ctx, settings.clone(), base_pose);
-    // Its FE model now rather than in the first frame (half a second on a 5000-node liver).
-    reg.set_correction(form.settings());
-    reg.prepare_correction()?;
     let (pose, why) = choose_pose(None, tracked);
     reg.settings.pose = pose;
     let _ = tx.send(ArEvent::Pose(pose, why));

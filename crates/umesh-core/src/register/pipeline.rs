@@ -1172,17 +1172,43 @@ pub fn run_register(
     progress: &Progress,
     cancel: &Cancel,
 ) -> Result<RegisterReport, crate::rgbd::RgbdError> {
-    let initial = initial_world_from_camera.into();
     if let Some(t) = truth {
         t.check_fits(ctx)?;
     }
-    let mut reg = Registrar::new(ctx, settings.clone(), initial.unwrap_or_else(Matrix4::identity));
+    let mut reg = Registrar::new(ctx, settings.clone(), Matrix4::identity());
+    if model.takes_correction() {
+        reg.prepare_correction()?;
+    }
+    run_registrar(reg, source, model, initial_world_from_camera, truth, on_frame, progress, cancel)
+}
+
+/// `run_register` with a registrar built beforehand (`Registrar::new`, `prepare_correction`):
+/// a caller builds its FE models before a live source opens, so that no frame arriving
+/// meanwhile is dropped. The registrar starts again from `initial_world_from_camera`
+/// (`Registrar::reset`), keeping the models.
+#[allow(clippy::too_many_arguments)]
+pub fn run_registrar(
+    mut reg: Registrar<'_>,
+    source: &mut dyn FrameSource,
+    model: &mut dyn DisplacementModel,
+    initial_world_from_camera: impl Into<Option<Matrix4<f64>>>,
+    truth: Option<&GroundTruth>,
+    on_frame: &mut dyn FnMut(&FrameOutput) -> Result<(), crate::Invalid>,
+    progress: &Progress,
+    cancel: &Cancel,
+) -> Result<RegisterReport, crate::rgbd::RgbdError> {
+    let initial = initial_world_from_camera.into();
+    if let Some(t) = truth {
+        t.check_fits(reg.ctx)?;
+    }
+    reg.reset(initial.unwrap_or_else(Matrix4::identity));
     if initial.is_none() {
         reg.require_frame_pose();
     }
     if model.takes_correction() {
         reg.prepare_correction()?;
     }
+    let settings = reg.settings.clone();
     let mut frames = Vec::new();
     let mut log = Vec::new();
     let mut skipped = 0;

@@ -235,9 +235,8 @@ pub fn run(a: Args) -> Result<()> {
     };
     settings.segment = segment_settings(&a, &settings);
     settings.validate()?;
-    // The correction's FE models (and subspace) before the source opens: a live stream would
+    // The correction's FE models and subspace before the source opens: a live stream would
     // drop the frames that arrive while they are built (half a second to seconds).
-    umesh_core::register::correction::prepare_correction(&ctx, correction.basis())?;
     let mut registrar = Registrar::new(&ctx, settings.clone(), Matrix4::identity());
     registrar.prepare_correction()?;
     let imported = import_if_realsense(&a)?;

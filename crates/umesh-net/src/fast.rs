@@ -219,11 +219,6 @@ impl Needed {
         }
         Some(Self { dims, levels })
     }
-
-    /// The share of the finest level's voxels its last convolution computes.
-    pub fn fraction(&self) -> f64 {
-        self.levels.first().map_or(1.0, |(_, b)| b.iter().filter(|x| **x).count() as f64 / b.len().max(1) as f64)
-    }
 }
 
 /// The voxels within one (3x3x3) of `mask`'s.

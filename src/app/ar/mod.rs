@@ -182,15 +182,11 @@ fn worker(
         Ok(Some(c)) => c.choose(Some(umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS)).0,
         _ => CorrectionForm::Subspace,
     };
-    if !matches!(source, ArSource::Recording(_)) {
-        // The correction's subspace before a live source opens (as `umesh register` does): the
-        // frames arriving while it is built would be dropped.
-        umesh_core::register::correction::prepare_correction(&ctx, form.settings().basis())?;
-    }
     let settings = RegisterSettings { overlay: true, ..Default::default() };
     let mut reg = Registrar::new(&ctx, settings.clone(), Matrix4::identity());
-    // Its FE models before the source opens rather than in the first frame (half a second on a
-    // 5000-node liver, seconds on a busy machine): a live source's frames would be dropped.
+    // Its FE models and subspace before the source opens rather than in the first frame (half a
+    // second on a 5000-node liver, seconds on a busy machine): a live source's frames would be
+    // dropped.
     reg.set_correction(form.settings());
     reg.prepare_correction()?;
     let (mut src, base_pose, truth, label, fps, tracked) = open_source(&source, &ctx, &log)?;

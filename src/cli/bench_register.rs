@@ -57,8 +57,8 @@ pub struct RegisterBenchArgs {
     /// configuration (default: the system's temporary directory).
     #[arg(long)]
     pub recordings: Option<PathBuf>,
-    /// `bench register`: the correction form (subspace, tracking, fast-tracking; default: the
-    /// model's choice, else subspace).
+    /// `bench register`: the correction form (subspace, coarse-tracking, tracking,
+    /// fast-tracking; default: the model's choice, else subspace).
     #[arg(long)]
     pub correction_form: Option<String>,
 }

@@ -71,14 +71,16 @@ pub struct Args {
     /// frame, 256 patches took 35 s on the phantom). The tracking form solves by CG.
     #[arg(long)]
     pub correction_subspace: Option<usize>,
-    /// The correction's form: auto (the more accurate of subspace and tracking within
-    /// --frame-budget-ms on the model's registration check, `correction.json`, see `umesh
-    /// choose-correction`; subspace when it has none), subspace (each prediction corrected in
-    /// a basis of smooth surface loads), tracking (carried from frame to frame, its elastic
-    /// energy from rest, by conjugate gradients, 2 updates of 10 iterations: the FE fit, best
-    /// where the network is weak, 5-10 times the frame) or fast-tracking (the tracking form in
-    /// a basis of free-body surface-load responses, about the subspace form's frame; not yet
-    /// as accurate as either on the CT patient's benchmark; docs/REGISTRATION.md).
+    /// The correction's form: auto (the most accurate form within --frame-budget-ms on the
+    /// model's registration check, `correction.json`, see `umesh choose-correction`; subspace
+    /// when it has none), subspace (each prediction corrected in a basis of smooth surface
+    /// loads), coarse-tracking (the FE fit carried from frame to frame on the organ's cells
+    /// twice as large, moved by the network's prediction, one update a frame: about the
+    /// subspace form's frame), tracking (carried from frame to frame, its elastic energy from
+    /// rest, by conjugate gradients over the organ's own grid, 2 updates of 10 iterations:
+    /// 5-10 times the frame) or fast-tracking (the tracking form in a basis of free-body
+    /// surface-load responses; not yet as accurate as the others on the CT patient's
+    /// benchmark; docs/REGISTRATION.md).
     #[arg(long, default_value = "auto")]
     pub correction_form: String,
     /// With --correction-form auto: the frame time the form is chosen within (ms), from the
@@ -495,7 +497,8 @@ pub fn parse_form(name: &str) -> Result<CorrectionForm> {
         "subspace" => CorrectionForm::Subspace,
         "tracking" => CorrectionForm::Tracking,
         "fast-tracking" => CorrectionForm::FastTracking,
-        other => bail!("{other:?}: auto, subspace, tracking or fast-tracking"),
+        "coarse-tracking" => CorrectionForm::CoarseTracking,
+        other => bail!("{other:?}: auto, subspace, coarse-tracking, tracking or fast-tracking"),
     })
 }
 

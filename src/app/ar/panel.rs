@@ -332,6 +332,10 @@ fn display_ui(ui: &mut egui::Ui, ar: &mut Ar, s: &ArSession) {
             for (form, hover) in [
                 (CorrectionForm::Subspace, "Each prediction corrected in a basis of smooth surface loads: the fastest; good where the network is good"),
                 (
+                    CorrectionForm::CoarseTracking,
+                    "The FE fit carried from frame to frame on cells twice as large, moved by the network's prediction, one update a frame: about the subspace form's frame; the network's error where the surface does not show it stays out",
+                ),
+                (
                     CorrectionForm::Tracking,
                     "The correction carried from frame to frame, its elastic energy from rest, by conjugate gradients over the whole grid (the FE fit): the most accurate where the network is weak, 5-10 times the frame",
                 ),

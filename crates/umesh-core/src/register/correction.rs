@@ -68,6 +68,11 @@ pub struct CorrectionSettings {
     /// 0.41-1.26 on its own grid).
     #[serde(default = "default_doubted_coarsening")]
     pub doubted_coarsening: usize,
+    /// Every frame corrected as the FE fit from rest on the organ coarsened
+    /// `doubted_coarsening` times (`CoarseFit::track`), carried from frame to frame and moved
+    /// by the network's prediction: `updates` updates a frame, `doubted_updates` at the first.
+    #[serde(default)]
+    pub coarse_tracking: bool,
 }
 
 fn default_doubted_coarsening() -> usize {
@@ -103,6 +108,7 @@ impl Default for CorrectionSettings {
             doubted_carried_stop_mm: 2.0,
             doubted_cg_iterations: 10,
             doubted_coarsening: 2,
+            coarse_tracking: false,
         }
     }
 }
@@ -135,6 +141,24 @@ impl CorrectionSettings {
     /// rest (linear in the rest stiffness), two updates of one m x m solve each.
     pub fn fast_tracking() -> Self {
         Self { updates: 2, carry: true, from_rest: true, ..Self::default() }
+    }
+
+    /// The tracking correction on the organ's cells twice as large (`CoarseFit::track`): one
+    /// update of 10 CG iterations a frame, started from the fit before moved as the network's
+    /// prediction moved, 4 at the first frame. On the 2.15 l SOFA liver's eight benchmark draws
+    /// one update from the fit before alone fell behind the organ (the last frame 3.07 mm on
+    /// the grasp draw that moved most), two took 0.33-0.94 mm at twice the fit's time; moved
+    /// with the prediction, one took 0.35-1.02 mm.
+    pub fn coarse_tracking() -> Self {
+        Self {
+            updates: 1,
+            cg_iterations: 10,
+            subspace_patches: 0,
+            carry: false,
+            from_rest: true,
+            coarse_tracking: true,
+            ..Self::default()
+        }
     }
 
     pub fn validate(&self) -> Result<(), crate::Invalid> {
@@ -175,6 +199,13 @@ impl CorrectionSettings {
                 super::coarse::MAX_COARSENING
             )));
         }
+        if self.coarse_tracking && self.updates > 0 && self.doubted_coarsening < 2 {
+            return Err(crate::Invalid(format!(
+                "--doubted-coarsening {}: the coarse tracking form fits cells 2 to {} times the organ's (on the organ's own cells it is the tracking form)",
+                self.doubted_coarsening,
+                super::coarse::MAX_COARSENING
+            )));
+        }
         if self.subspace_patches > MAX_SUBSPACE_PATCHES {
             return Err(crate::Invalid(format!(
                 "--correction-subspace: {} subspace patches; at most {MAX_SUBSPACE_PATCHES} (its basis is built before the first frame: 256 patches took 35 s on the phantom, 1000 did not finish in 5 minutes)",
@@ -189,7 +220,7 @@ impl CorrectionSettings {
     /// (the rest stiffness alone); the correction from the prediction adds to it responses of a
     /// body held by the springs.
     pub fn basis(&self) -> (usize, bool) {
-        if self.updates == 0 { (0, false) } else { (self.subspace_patches, self.from_rest) }
+        if self.updates == 0 || self.coarse_tracking { (0, false) } else { (self.subspace_patches, self.from_rest) }
     }
 
     /// The correction of a frame whose prediction the confidence rule doubts: the FE fit from
@@ -375,13 +406,32 @@ impl<'c> SurfaceFit<'c> {
     }
 }
 
-/// The FE fit of a doubted frame on the context's organ coarsened (`coarse::CoarseModel`). The
-/// prediction keeps its detail: only the change the fit makes is carried to the organ's grid,
-/// interpolated.
+/// The FE fit of a doubted frame on the context's organ coarsened (`coarse::CoarseModel`), or
+/// of every frame in the coarse tracking form. The prediction keeps its detail: only the change
+/// the fit makes is carried to the organ's grid, interpolated.
 pub struct CoarseFit<'c> {
     ctx: &'c RegistrationContext,
     model: &'c super::coarse::CoarseModel,
     fit: PointFit<'c>,
+}
+
+/// What a coarse fit carries from frame to frame: its displacement of the coarse nodes and the
+/// prediction it corrected there (empty: a sequence starts, or a run of doubted frames ended).
+#[derive(Clone, Debug, Default)]
+pub struct CoarseCarried {
+    fit: Vec<Vector3<f64>>,
+    predicted: Vec<Vector3<f64>>,
+}
+
+impl CoarseCarried {
+    pub fn is_empty(&self) -> bool {
+        self.fit.is_empty()
+    }
+
+    pub fn clear(&mut self) {
+        self.fit.clear();
+        self.predicted.clear();
+    }
 }
 
 impl<'c> CoarseFit<'c> {
@@ -407,9 +457,75 @@ impl<'c> CoarseFit<'c> {
         points_world_mm: &[Vector3<f64>],
         field: &mut [f32],
         settings: &CorrectionSettings,
-        carried: &mut Vec<Vector3<f64>>,
+        carried: &mut CoarseCarried,
     ) -> Result<CorrectionReport, crate::Invalid> {
         let t = Instant::now();
+        let predicted = self.predicted(field);
+        let from_carried = carried.fit.len() == predicted.len();
+        let start = if from_carried { carried.fit.clone() } else { predicted.clone() };
+        let mut work = CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work();
+        if from_carried && settings.doubted_carried_stop_mm > 0.0 {
+            work.stop_mm = Some(settings.doubted_carried_stop_mm);
+        }
+        let mut r = self.fit_from(points_world_mm, field, predicted, start, work, carried)?;
+        r.ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok(r)
+    }
+
+    /// The coarse tracking form's correction of every frame (`CorrectionSettings::
+    /// coarse_tracking`), the fit from rest carried from frame to frame. With `trusted` (the
+    /// confidence rule did not doubt this prediction) it starts from the fit before moved as
+    /// the prediction moved at the coarse nodes since the last trusted one, `updates` updates:
+    /// the network's motion is the start, the elastic energy from rest the fit, and the
+    /// prediction's own error where the surface does not show it stays out. A doubted
+    /// prediction may jump (on the CT patient's pressing draw, following it diverged to 6.5 mm
+    /// within three frames): it starts from the fit before alone, as a doubted frame after a
+    /// doubted frame (`after_doubted`, with the stop), and so does the frame after it. The
+    /// first frame starts from the prediction as a first doubted frame (`doubted_updates` of
+    /// `doubted_cg_iterations`; with `doubted_updates` 0, as the others).
+    pub fn track(
+        &mut self,
+        points_world_mm: &[Vector3<f64>],
+        field: &mut [f32],
+        settings: &CorrectionSettings,
+        carried: &mut CoarseCarried,
+        trusted: bool,
+    ) -> Result<CorrectionReport, crate::Invalid> {
+        let t = Instant::now();
+        let predicted = self.predicted(field);
+        let n = predicted.len();
+        let doubted_work = CorrectionSettings {
+            cg_iterations: settings.doubted_cg_iterations,
+            subspace_patches: 0,
+            from_rest: true,
+            ..*settings
+        };
+        let (start, work) = if carried.fit.len() == n && carried.predicted.len() == n && trusted {
+            let moved = carried.fit.iter().zip(&predicted).zip(&carried.predicted).map(|((u, p), q)| u + p - q);
+            (moved.collect(), CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work())
+        } else if carried.fit.len() == n {
+            let mut work =
+                CorrectionSettings { updates: settings.doubted_updates.max(1), ..doubted_work }.after_doubted().work();
+            if settings.doubted_carried_stop_mm > 0.0 {
+                work.stop_mm = Some(settings.doubted_carried_stop_mm);
+            }
+            (carried.fit.clone(), work)
+        } else if settings.doubted_updates > 0 {
+            (predicted.clone(), CorrectionSettings { updates: settings.doubted_updates, ..doubted_work }.work())
+        } else {
+            (predicted.clone(), CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work())
+        };
+        let mut r = self.fit_from(points_world_mm, field, predicted, start, work, carried)?;
+        if !trusted {
+            carried.predicted.clear();
+        }
+        r.ms = t.elapsed().as_secs_f64() * 1e3;
+        r.doubted = !trusted;
+        Ok(r)
+    }
+
+    /// The field's prediction at the coarse nodes.
+    fn predicted(&self, field: &[f32]) -> Vec<Vector3<f64>> {
         let fine = &self.ctx.grid;
         let [x, y, z] = fine.padded_shape();
         let cells = x * y * z;
@@ -419,16 +535,27 @@ impl<'c> CoarseFit<'c> {
                 Vector3::new(field[d] as f64, field[cells + d] as f64, field[2 * cells + d] as f64)
             })
             .collect();
-        let predicted = self.model.restrict(&predicted_fine);
-        let from_carried = carried.len() == predicted.len();
-        let mut u = if from_carried { carried.clone() } else { predicted.clone() };
-        let mut work = CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work();
-        if from_carried && settings.doubted_carried_stop_mm > 0.0 {
-            work.stop_mm = Some(settings.doubted_carried_stop_mm);
-        }
+        self.model.restrict(&predicted_fine)
+    }
+
+    /// Fit from `start`; the change from `predicted` added to the field interpolated; the fit
+    /// and the prediction kept in `carried`.
+    fn fit_from(
+        &mut self,
+        points_world_mm: &[Vector3<f64>],
+        field: &mut [f32],
+        predicted: Vec<Vector3<f64>>,
+        mut u: Vec<Vector3<f64>>,
+        work: FitWork,
+        carried: &mut CoarseCarried,
+    ) -> Result<CorrectionReport, crate::Invalid> {
+        let fine = &self.ctx.grid;
+        let [x, y, z] = fine.padded_shape();
+        let cells = x * y * z;
         let fit = self.fit.fit_with(points_world_mm, &mut u, work).map_err(|e| e.to_string())?;
         let change: Vec<Vector3<f64>> = u.iter().zip(&predicted).map(|(a, b)| a - b).collect();
-        *carried = u;
+        carried.fit = u;
+        carried.predicted = predicted;
         let (mut sq, mut max) = (0.0f64, 0.0f64);
         for (n, e) in self.model.fine_in_coarse.iter().enumerate() {
             if self.ctx.fixed[n] {
@@ -446,7 +573,7 @@ impl<'c> CoarseFit<'c> {
             moved_rms_mm: (sq / fine.node_count().max(1) as f64).sqrt(),
             moved_max_mm: max.sqrt(),
             fit,
-            ms: t.elapsed().as_secs_f64() * 1e3,
+            ms: 0.0,
             doubted: true,
         })
     }
@@ -455,7 +582,8 @@ impl<'c> CoarseFit<'c> {
 /// The correction's forms: the subspace update from each prediction (`CorrectionSettings::
 /// default`), the tracking form by CG (`tracking`, 5-10 times the frame; the FE fit itself,
 /// best where the network is weak) and, asked for by name, the tracking form in a subspace
-/// (`fast_tracking`, about the subspace form's frame; not yet as accurate as either).
+/// (`fast_tracking`, about the subspace form's frame; not yet as accurate as either), and the
+/// tracking form on cells twice as large (`coarse_tracking`, about the subspace form's frame).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CorrectionForm {
@@ -463,6 +591,7 @@ pub enum CorrectionForm {
     Subspace,
     Tracking,
     FastTracking,
+    CoarseTracking,
 }
 
 impl CorrectionForm {
@@ -471,6 +600,7 @@ impl CorrectionForm {
             Self::Subspace => CorrectionSettings::default(),
             Self::Tracking => CorrectionSettings::tracking(),
             Self::FastTracking => CorrectionSettings::fast_tracking(),
+            Self::CoarseTracking => CorrectionSettings::coarse_tracking(),
         }
     }
 
@@ -479,6 +609,7 @@ impl CorrectionForm {
             Self::Subspace => "subspace",
             Self::Tracking => "tracking",
             Self::FastTracking => "fast-tracking",
+            Self::CoarseTracking => "coarse-tracking",
         }
     }
 }
@@ -513,6 +644,9 @@ pub struct CorrectionChoice {
     pub form: CorrectionForm,
     pub subspace: FormFigures,
     pub tracking: FormFigures,
+    /// Measured by checks that know the form (a choice written before does not have it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_tracking: Option<FormFigures>,
     /// The recording the forms were measured on.
     pub recording: String,
 }
@@ -522,12 +656,23 @@ impl CorrectionChoice {
     const FORMAT: &'static str = "umesh-correction-choice";
 
     pub fn decide(subspace: FormFigures, tracking: FormFigures, recording: &std::path::Path) -> Self {
+        Self::decide_among(subspace, None, tracking, recording)
+    }
+
+    /// As `decide`, with the coarse tracking form's figures when it was measured.
+    pub fn decide_among(
+        subspace: FormFigures,
+        coarse_tracking: Option<FormFigures>,
+        tracking: FormFigures,
+        recording: &std::path::Path,
+    ) -> Self {
         let mut c = Self {
             format: Self::FORMAT.into(),
             format_version: 1,
             form: CorrectionForm::Subspace,
             subspace,
             tracking,
+            coarse_tracking,
             recording: recording.display().to_string(),
         };
         c.form = c.choose(Some(DEFAULT_FRAME_BUDGET_MS)).0;
@@ -537,7 +682,10 @@ impl CorrectionChoice {
     /// The measured forms, cheapest first (fast-tracking is asked for by name only: on the CT
     /// patient's benchmark it met the bar on 3 of 8 draws where the subspace form met it on 7).
     fn forms(&self) -> Vec<(CorrectionForm, FormFigures)> {
-        vec![(CorrectionForm::Subspace, self.subspace), (CorrectionForm::Tracking, self.tracking)]
+        let mut forms = vec![(CorrectionForm::Subspace, self.subspace)];
+        forms.extend(self.coarse_tracking.map(|f| (CorrectionForm::CoarseTracking, f)));
+        forms.push((CorrectionForm::Tracking, self.tracking));
+        forms
     }
 
     /// The form for a frame budget (None: accuracy alone) and why, in one sentence: starting
@@ -608,7 +756,7 @@ impl CorrectionChoice {
                 .iter()
                 .all(|(v, max)| v.is_finite() && *v >= 0.0 && v <= max)
         };
-        if !(ok(&c.subspace) && ok(&c.tracking)) {
+        if !(ok(&c.subspace) && ok(&c.tracking) && c.coarse_tracking.as_ref().is_none_or(ok)) {
             return Err(crate::Invalid(format!(
                 "{}: a figure is negative or not finite, or beyond what a registration gives (a TRE over 1000 mm, a frame over an hour)",
                 path.display()

@@ -1,7 +1,7 @@
 //! The per-frame registration pipeline and its latency breakdown.
 
 use super::confidence::{Confidence, ConfidenceReference, frame_confidence};
-use super::correction::{CoarseFit, CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
+use super::correction::{CoarseCarried, CoarseFit, CorrectionReport, CorrectionSettings, FormFigures, SurfaceFit};
 use super::icp::{IcpReport, IcpSettings, icp_point_to_plane};
 use super::overlay::{compose_overlay, depth_preview, rasterize_silhouette, structure_layer};
 use super::{RegistrationContext, displacement_at};
@@ -487,9 +487,10 @@ pub struct Registrar<'c> {
     /// The previous frame's correction of its prediction, per node (`CorrectionSettings::carry`).
     carried: Vec<Vector3<f64>>,
     /// The doubted frames' fit on the coarsened organ (`CorrectionSettings::doubted_coarsening`),
-    /// and its fit carried over consecutive doubted frames, per coarse node.
+    /// and its fit carried over consecutive doubted frames (in the coarse tracking form, over
+    /// all), per coarse node.
     coarse_fit: Option<CoarseFit<'c>>,
-    coarse_carried: Vec<Vector3<f64>>,
+    coarse_carried: CoarseCarried,
     /// No initial pose was given: a frame must bring its own until one has been aligned.
     needs_frame_pose: bool,
 }
@@ -516,7 +517,7 @@ impl<'c> Registrar<'c> {
             corrector: None,
             carried: Vec::new(),
             coarse_fit: None,
-            coarse_carried: Vec::new(),
+            coarse_carried: CoarseCarried::default(),
             needs_frame_pose: false,
         }
     }
@@ -557,16 +558,25 @@ impl<'c> Registrar<'c> {
     /// a 5000-node liver, and its subspace unless the context holds it): before the first
     /// frame, which would otherwise take that time. Nothing when the correction is off.
     pub fn prepare_correction(&mut self) -> Result<(), crate::Invalid> {
-        if self.corrector.is_none() && self.settings.correction.updates > 0 {
+        let c = self.settings.correction;
+        if c.updates == 0 {
+            return Ok(());
+        }
+        // The coarse tracking form corrects every frame on the coarse grid: no fine model.
+        if self.corrector.is_none() && !c.coarse_tracking {
             let mut fit = SurfaceFit::new(self.ctx, self.ctx.material, PointFitSettings::default())?;
-            fit.use_subspace(self.settings.correction.basis())?;
+            fit.use_subspace(c.basis())?;
             self.corrector = Some(fit);
         }
-        if let Some(d) = self.settings.correction.doubted()
-            && d.doubted_coarsening > 1
+        let coarsening = if c.coarse_tracking {
+            Some(c.doubted_coarsening)
+        } else {
+            c.doubted().map(|d| d.doubted_coarsening).filter(|&f| f > 1)
+        };
+        if let Some(factor) = coarsening
             && self.coarse_fit.is_none()
         {
-            self.coarse_fit = Some(CoarseFit::new(self.ctx, d.doubted_coarsening)?);
+            self.coarse_fit = Some(CoarseFit::new(self.ctx, factor)?);
         }
         Ok(())
     }
@@ -808,8 +818,6 @@ impl<'c> Registrar<'c> {
         // likely doubted too (runs of 6-13 frames on the CT patient's held-out family): the
         // confidence is judged first and the correction that would be thrown away is skipped.
         let (ctx, rings) = (self.ctx, &self.rings);
-        let (corrector, field) = (self.corrector.as_mut().expect("prepared above"), &mut self.field);
-        let carried = settings.carry.then_some(&mut self.carried);
         let judge = || {
             let t = Instant::now();
             let predicted_organ = ctx.deformed_surface(&predicted);
@@ -817,6 +825,24 @@ impl<'c> Registrar<'c> {
             let c = frame_confidence(world, &predicted_organ, &ctx.surface, rings, coverage, reference);
             (c, ms(t))
         };
+        let failed = |e: crate::Invalid| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index));
+        if settings.coarse_tracking {
+            // Every frame is the coarse fit, which follows the prediction's motion. The judgement
+            // runs beside it; a doubted prediction may have jumped, and its frame is fitted again
+            // from the fit before alone (the second fit costs only the doubted frames).
+            let (coarse, field) = (self.coarse_fit.as_mut().expect("prepared above"), &mut self.field);
+            let carried = &mut self.coarse_carried;
+            let before = carried.clone();
+            let (judged, mut corrected) = rayon::join(judge, || coarse.track(world, field, &settings, carried, true));
+            if judged.0.prediction_doubted && settings.doubted_updates > 0 {
+                field.clone_from(&predicted);
+                *carried = before;
+                corrected = coarse.track(world, field, &settings, carried, false);
+            }
+            return Ok((corrected.map_err(failed)?, judged));
+        }
+        let (corrector, field) = (self.corrector.as_mut().expect("prepared above"), &mut self.field);
+        let carried = settings.carry.then_some(&mut self.carried);
         let in_doubted_run = !self.coarse_carried.is_empty();
         let ((c, conf_ms), mut corrected) = if in_doubted_run {
             let (c, conf_ms) = judge();
@@ -848,9 +874,7 @@ impl<'c> Registrar<'c> {
             _ => {}
         }
         // Skipped only when the frame turned out doubted, and then the fit above ran.
-        let corrected = corrected
-            .unwrap_or_else(|| Err(crate::Invalid("no correction ran".into())))
-            .map_err(|e| crate::Invalid(format!("frame {}: physics correction: {e}", frame.index)))?;
+        let corrected = corrected.unwrap_or_else(|| Err(crate::Invalid("no correction ran".into()))).map_err(failed)?;
         Ok((corrected, (c, conf_ms)))
     }
 

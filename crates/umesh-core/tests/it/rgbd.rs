@@ -787,7 +787,8 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
     run_rgbd_synth(&seg, &config, &s, &d, &Progress::none(), &Cancel::new()).unwrap();
     let truth = GroundTruth::read(&d.join("ground_truth.json")).unwrap();
     let ctx = RegistrationContext::new(DatasetContext::prepare(&seg, &config, &Cancel::new()).unwrap(), &seg).unwrap();
-    let run = |model: &mut dyn umesh_core::register::pipeline::DisplacementModel, correction: CorrectionSettings| {
+    let run_all = |model: &mut dyn umesh_core::register::pipeline::DisplacementModel,
+                   correction: CorrectionSettings| {
         let rec = Recording::open(&d, None).unwrap();
         let pose = rec.trajectory.as_ref().unwrap()[0];
         let settings = RegisterSettings { overlay: false, correction, ..Default::default() };
@@ -813,7 +814,10 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
             last.marker_displacement_mean_mm.unwrap(),
             last.correction
         );
-        last
+        r.frames
+    };
+    let run = |model: &mut dyn umesh_core::register::pipeline::DisplacementModel, correction: CorrectionSettings| {
+        run_all(model, correction).pop().expect("4 frames")
     };
     let rigid = run(&mut RigidModel, CorrectionSettings::off());
     let motion = rigid.marker_displacement_mean_mm.unwrap();
@@ -925,6 +929,32 @@ fn the_converged_fe_fit_and_the_physics_correction_recover_most_of_a_10_mm_defor
         o_tre < p_tre - 0.5 * (p_tre - fe_tre),
         "doubted on the organ's grid {o_tre:.2} mm, default correction {p_tre:.2}, converged FE fit {fe_tre:.2}"
     );
+    // The coarse tracking form: every frame the coarse fit, carried. Trusted (a model without
+    // a confidence reference doubts nothing): the first frame from the prediction with 4
+    // updates, each next one from the fit before moved as the prediction moved (here not at
+    // all), with one; nearer the converged fit than the default correction (measured: 5.18 mm,
+    // as the doubted frames' fit with one update; tolerance: a third of the gap).
+    let coarse = CorrectionSettings::coarse_tracking();
+    let frames = run_all(&mut RigidModel, coarse);
+    let reports: Vec<_> = frames.iter().map(|f| f.correction.expect("the correction ran")).collect();
+    let updates: Vec<usize> = reports.iter().map(|c| c.fit.updates).collect();
+    assert_eq!(updates, [coarse.doubted_updates, 1, 1, 1]);
+    assert!(reports.iter().all(|c| !c.doubted) && reports[3].moved_rms_mm > 0.5, "{reports:?}");
+    let t_tre = frames.last().unwrap().tre_mean_mm.unwrap();
+    eprintln!("coarse tracking: {t_tre:.2} mm, default correction {p_tre:.2}, converged FE fit {fe_tre:.2}");
+    assert!(
+        t_tre < p_tre - (p_tre - fe_tre) / 3.0,
+        "coarse tracking {t_tre:.2} mm, default correction {p_tre:.2}, converged FE fit {fe_tre:.2}"
+    );
+    // Doubted (every deformed frame): a doubted prediction is not followed; the frame is fitted
+    // from the fit before alone, as a doubted frame after a doubted frame, so it lands where the
+    // doubted frames' fit of the default form does (measured: 2.71 mm, both; tolerance 0.3 mm).
+    let tracked = run(&mut doubting, coarse);
+    let ct = tracked.correction.expect("the correction ran");
+    let td_tre = tracked.tre_mean_mm.unwrap();
+    eprintln!("coarse tracking, doubted: {td_tre:.2} mm, the default form's doubted fit {d_tre:.2}");
+    assert!(ct.doubted && tracked.confidence.prediction_doubted && ct.fit.updates <= 2, "{ct:?}");
+    assert!((td_tre - d_tre).abs() < 0.3, "coarse tracking, doubted {td_tre:.2} mm against {d_tre:.2}");
 }
 
 /// A prediction of no deformation with a confidence reference: its deformed frames are doubted.
@@ -982,6 +1012,21 @@ fn the_correction_choice_keeps_the_frame_budget_and_takes_a_costlier_form_only_a
     let slow = CorrectionChoice::decide(fig(2.0, 40.0), cg(1.0), rec);
     assert_eq!(slow.form, CorrectionForm::Subspace);
     assert!(slow.describe().contains("no form met the 33 ms"), "{}", slow.describe());
+    // The coarse tracking form, when the check measured it, is weighed between the two: taken
+    // within the budget when more accurate than the subspace form, passed over when less
+    // accurate or beyond the budget; the CG tracking form still replaces it without a budget
+    // (150 ms is over twice its frame, and 0.5 mm a quarter less than its 1.0).
+    let among = |coarse: FormFigures| CorrectionChoice::decide_among(sub(2.0), Some(coarse), cg(0.5), rec);
+    let c3 = among(fig(1.0, 30.0));
+    assert_eq!(c3.form, CorrectionForm::CoarseTracking);
+    assert!(c3.describe().contains("coarse-tracking 1.00 mm at 30 ms"), "{}", c3.describe());
+    assert_eq!(form(&c3, None), CorrectionForm::Tracking);
+    assert_eq!(among(fig(2.1, 30.0)).form, CorrectionForm::Subspace);
+    assert_eq!(among(fig(1.0, 40.0)).form, CorrectionForm::Subspace);
+    let dir3 = tmp("choice3");
+    c3.write(&dir3).unwrap();
+    assert_eq!(CorrectionChoice::read(&dir3).unwrap(), Some(c3.clone()));
+    assert_eq!(c3.form.settings(), umesh_core::register::correction::CorrectionSettings::coarse_tracking());
     // Written and read back the same; a folder without one has none.
     let dir = tmp("choice");
     assert_eq!(CorrectionChoice::read(&dir).unwrap(), None);

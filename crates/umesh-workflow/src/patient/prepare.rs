@@ -479,7 +479,7 @@ pub fn registration_check(
     let ctx = RegistrationContext::new(dctx, seg).map_err(|e| NetError::Invalid(e.into()))?;
     // Each form as it runs at surgery, the overlay drawn: its frame time is what the choice
     // for a frame budget reads.
-    let forms = [CorrectionForm::Subspace, CorrectionForm::Tracking];
+    let forms = [CorrectionForm::Subspace, CorrectionForm::CoarseTracking, CorrectionForm::Tracking];
     let n = forms.len() as u64;
     let mut runs = Vec::new();
     for (k, form) in forms.iter().enumerate() {
@@ -492,9 +492,9 @@ pub fn registration_check(
         runs.push(register_recording(recording, &ctx, &mut net, &settings, &inner, cancel)?);
     }
     let figures: Vec<Option<FormFigures>> = runs.iter().map(|r| r.form_figures()).collect();
-    let choice = match (figures[0], figures[1]) {
+    let choice = match (figures[0], figures[2]) {
         (Some(s), Some(t)) => {
-            let c = CorrectionChoice::decide(s, t, recording);
+            let c = CorrectionChoice::decide_among(s, figures[1], t, recording);
             c.write(model).map_err(|e| NetError::Invalid(e.0))?;
             Some(c)
         }

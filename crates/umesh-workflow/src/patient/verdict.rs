@@ -88,7 +88,8 @@ pub fn judge(
     if let Some(c) = &check.correction {
         let budget = umesh_core::register::correction::DEFAULT_FRAME_BUDGET_MS;
         let (form, why) = c.choose(Some(budget));
-        if [c.subspace, c.tracking].iter().all(|f| f.frame_ms_median > budget) {
+        if [Some(c.subspace), c.coarse_tracking, Some(c.tracking)].iter().flatten().all(|f| f.frame_ms_median > budget)
+        {
             v.notes.push(format!(
                 "No correction form met the default frame budget on this machine; {} is used. {why}",
                 form.name()

@@ -1010,10 +1010,11 @@ fn prepare_runs_every_stage_resumes_and_refuses_a_folder_of_another_patient() {
     assert!((0.75..=1.25).contains(&ratio), "achieved / target {ratio}");
     assert!(v["val_tre_mean_mm"].as_f64().unwrap().is_finite());
     assert!(v["check"]["summary"]["frames"].as_u64().unwrap() >= 2, "{v}");
-    // The check registered its recording with both correction forms and kept the choice in
-    // the model folder.
+    // The check registered its recording with the three correction forms and kept the choice
+    // in the model folder.
     let form = v["check"]["correction"]["form"].as_str().unwrap_or_default().to_string();
-    assert!(form == "subspace" || form == "tracking", "{v}");
+    assert!(["subspace", "coarse-tracking", "tracking"].contains(&form.as_str()), "{v}");
+    assert!(v["check"]["correction"]["coarse_tracking"]["frame_ms_median"].as_f64().is_some(), "{v}");
     let kept: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("model/correction.json")).unwrap()).unwrap();
     assert_eq!(kept["form"], form.as_str());

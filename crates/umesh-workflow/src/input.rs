@@ -161,12 +161,23 @@ impl InputSpec {
     }
 }
 
-/// The bundled model folder: `assets/model` under the working directory, else beside the
-/// sources this binary was built from.
+/// The bundled model folder: `assets/model` under the working directory, else under a folder
+/// holding the binary (`target/release/umesh` in a checkout), else beside the sources this
+/// binary was built from (a path fixed at build time: a build directory shared between two
+/// checkouts may name the other one, or none that still exists).
 pub fn bundled_model() -> PathBuf {
     let local = PathBuf::from("assets/model");
     if local.join("model.json").is_file() {
         return local;
+    }
+    let exe = std::env::current_exe().ok();
+    if let Some(found) = exe
+        .iter()
+        .flat_map(|e| e.ancestors().skip(1).take(4))
+        .map(|d| d.join("assets/model"))
+        .find(|m| m.join("model.json").is_file())
+    {
+        return found;
     }
     let crate_dir = Path::new(env!("CARGO_MANIFEST_DIR"));
     crate_dir.parent().and_then(Path::parent).unwrap_or(crate_dir).join("assets/model")

@@ -21,7 +21,12 @@ pub fn resolve_prior(settings: &PrepareSettings) -> Result<PrepareSettings, NetE
                         .to_string(),
                 ),
                 Ok(_) => (None, "random weights: the bundled model's network or input is not this job's".to_string()),
-                Err(e) => (None, format!("random weights: the bundled model is unreadable ({e})")),
+                Err(e) => (
+                    None,
+                    format!(
+                        "random weights: the bundled model is unreadable ({e}); run umesh from its folder, or give --prior with a copy of its assets/model"
+                    ),
+                ),
             }
         }
         Prior::Model(path) => {

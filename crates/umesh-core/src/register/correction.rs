@@ -434,6 +434,11 @@ impl CoarseCarried {
         self.fit.clear();
         self.predicted.clear();
     }
+
+    /// The frame before was doubted: a fit is carried, the prediction it followed is not.
+    pub fn after_doubted(&self) -> bool {
+        !self.fit.is_empty() && self.predicted.is_empty()
+    }
 }
 
 impl<'c> CoarseFit<'c> {

@@ -829,12 +829,19 @@ impl<'c> Registrar<'c> {
         if settings.coarse_tracking {
             // Every frame is the coarse fit, which follows the prediction's motion. The judgement
             // runs beside it; a doubted prediction may have jumped, and its frame is fitted again
-            // from the fit before alone (the second fit costs only the doubted frames).
+            // from the fit before alone. After a doubted frame the next is likely doubted too:
+            // judged first, fitted once.
             let (coarse, field) = (self.coarse_fit.as_mut().expect("prepared above"), &mut self.field);
             let carried = &mut self.coarse_carried;
+            let doubts = settings.doubted_updates > 0;
+            if doubts && carried.after_doubted() {
+                let (c, conf_ms) = judge();
+                let corrected = coarse.track(world, field, &settings, carried, !c.prediction_doubted);
+                return Ok((corrected.map_err(failed)?, (c, conf_ms)));
+            }
             let before = carried.clone();
             let (judged, mut corrected) = rayon::join(judge, || coarse.track(world, field, &settings, carried, true));
-            if judged.0.prediction_doubted && settings.doubted_updates > 0 {
+            if judged.0.prediction_doubted && doubts {
                 field.clone_from(&predicted);
                 *carried = before;
                 corrected = coarse.track(world, field, &settings, carried, false);

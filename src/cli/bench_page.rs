@@ -103,7 +103,10 @@ fn range(values: &[f64], decimals: usize) -> String {
 /// and model by name).
 fn organ_and_model(organ: &str, model: &str) -> String {
     let model_path = Path::new(model);
-    if model_path.file_name().is_some_and(|n| n == "model")
+    // The bundled organ's model is never a patient's (its relative path `assets/model` sits
+    // beside `assets/phantom.nii.gz`).
+    if !organ.ends_with("(bundled)")
+        && model_path.file_name().is_some_and(|n| n == "model")
         && let Some(patient) =
             model_path.parent().filter(|p| p.join("patient.json").exists() || organ.starts_with(&*p.to_string_lossy()))
     {

@@ -439,6 +439,11 @@ impl CoarseCarried {
     pub fn after_doubted(&self) -> bool {
         !self.fit.is_empty() && self.predicted.is_empty()
     }
+
+    /// The frame just fitted turned out doubted: the next frame does not follow its prediction.
+    pub fn forget_prediction(&mut self) {
+        self.predicted.clear();
+    }
 }
 
 impl<'c> CoarseFit<'c> {
@@ -498,37 +503,33 @@ impl<'c> CoarseFit<'c> {
         carried: &mut CoarseCarried,
         trusted: bool,
     ) -> Result<CorrectionReport, crate::Invalid> {
-        let t = Instant::now();
-        let predicted = self.predicted(field);
-        let n = predicted.len();
-        let doubted_work = CorrectionSettings {
-            cg_iterations: settings.doubted_cg_iterations,
-            subspace_patches: 0,
-            from_rest: true,
-            ..*settings
-        };
-        let (start, work) = if carried.fit.len() == n && carried.predicted.len() == n && trusted {
-            let moved = carried.fit.iter().zip(&predicted).zip(&carried.predicted).map(|((u, p), q)| u + p - q);
-            (moved.collect(), CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work())
-        } else if carried.fit.len() == n {
-            let mut work =
-                CorrectionSettings { updates: settings.doubted_updates.max(1), ..doubted_work }.after_doubted().work();
-            if settings.doubted_carried_stop_mm > 0.0 {
-                work.stop_mm = Some(settings.doubted_carried_stop_mm);
+        let n = self.model.grid.node_count();
+        let following = trusted && carried.fit.len() == n && carried.predicted.len() == n;
+        let r = match settings.doubted() {
+            // Not following: what a doubted frame's coarse fit does (from the fit before with
+            // the stop, or at the first frame from the prediction).
+            Some(d) if !following => {
+                let d = if carried.fit.len() == n { d.after_doubted() } else { d };
+                self.correct(points_world_mm, field, &d, carried)
             }
-            (carried.fit.clone(), work)
-        } else if settings.doubted_updates > 0 {
-            (predicted.clone(), CorrectionSettings { updates: settings.doubted_updates, ..doubted_work }.work())
-        } else {
-            (predicted.clone(), CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work())
-        };
-        let mut r = self.fit_from(points_world_mm, field, predicted, start, work, carried)?;
+            _ => {
+                let t = Instant::now();
+                let predicted = self.predicted(field);
+                let work = CorrectionSettings { subspace_patches: 0, from_rest: true, ..*settings }.work();
+                let start = if following {
+                    carried.fit.iter().zip(&predicted).zip(&carried.predicted).map(|((u, p), q)| u + p - q).collect()
+                } else {
+                    predicted.clone()
+                };
+                let mut r = self.fit_from(points_world_mm, field, predicted, start, work, carried)?;
+                r.ms = t.elapsed().as_secs_f64() * 1e3;
+                Ok(r)
+            }
+        }?;
         if !trusted {
-            carried.predicted.clear();
+            carried.forget_prediction();
         }
-        r.ms = t.elapsed().as_secs_f64() * 1e3;
-        r.doubted = !trusted;
-        Ok(r)
+        Ok(CorrectionReport { doubted: !trusted, ..r })
     }
 
     /// The field's prediction at the coarse nodes.

@@ -842,9 +842,15 @@ impl<'c> Registrar<'c> {
             let before = carried.clone();
             let (judged, mut corrected) = rayon::join(judge, || coarse.track(world, field, &settings, carried, true));
             if judged.0.prediction_doubted && doubts {
-                field.clone_from(&predicted);
-                *carried = before;
-                corrected = coarse.track(world, field, &settings, carried, false);
+                if before.is_empty() {
+                    // The first frame was fitted from the prediction as a doubted one is.
+                    carried.forget_prediction();
+                    corrected = corrected.map(|r| CorrectionReport { doubted: true, ..r });
+                } else {
+                    field.clone_from(&predicted);
+                    *carried = before;
+                    corrected = coarse.track(world, field, &settings, carried, false);
+                }
             }
             return Ok((corrected.map_err(failed)?, judged));
         }

@@ -435,9 +435,9 @@ impl CoarseCarried {
         self.predicted.clear();
     }
 
-    /// The frame before was doubted: a fit is carried, the prediction it followed is not.
-    pub fn after_doubted(&self) -> bool {
-        !self.fit.is_empty() && self.predicted.is_empty()
+    /// A fit and the prediction it followed are carried: a trusted frame follows them.
+    pub fn follows(&self) -> bool {
+        !self.fit.is_empty() && self.predicted.len() == self.fit.len()
     }
 
     /// The frame just fitted turned out doubted: the next frame does not follow its prediction.

@@ -829,27 +829,25 @@ impl<'c> Registrar<'c> {
         if settings.coarse_tracking {
             // Every frame is the coarse fit, which follows the prediction's motion. The judgement
             // runs beside it; a doubted prediction may have jumped, and its frame is fitted again
-            // from the fit before alone. After a doubted frame the next is likely doubted too:
-            // judged first, fitted once.
+            // from the fit before alone. At the first frame and after a doubted frame the fit
+            // follows no prediction, whatever the judgement: it is the doubted frame's fit
+            // already, and the judgement decides only whether the next frame follows this one.
             let (coarse, field) = (self.coarse_fit.as_mut().expect("prepared above"), &mut self.field);
             let carried = &mut self.coarse_carried;
             let doubts = settings.doubted_updates > 0;
-            if doubts && carried.after_doubted() {
-                let (c, conf_ms) = judge();
-                let corrected = coarse.track(world, field, &settings, carried, !c.prediction_doubted);
-                return Ok((corrected.map_err(failed)?, (c, conf_ms)));
-            }
-            let before = carried.clone();
+            let before = (doubts && carried.follows()).then(|| carried.clone());
             let (judged, mut corrected) = rayon::join(judge, || coarse.track(world, field, &settings, carried, true));
             if judged.0.prediction_doubted && doubts {
-                if before.is_empty() {
-                    // The first frame was fitted from the prediction as a doubted one is.
-                    carried.forget_prediction();
-                    corrected = corrected.map(|r| CorrectionReport { doubted: true, ..r });
-                } else {
-                    field.clone_from(&predicted);
-                    *carried = before;
-                    corrected = coarse.track(world, field, &settings, carried, false);
+                match before {
+                    Some(before) => {
+                        field.clone_from(&predicted);
+                        *carried = before;
+                        corrected = coarse.track(world, field, &settings, carried, false);
+                    }
+                    None => {
+                        carried.forget_prediction();
+                        corrected = corrected.map(|r| CorrectionReport { doubted: true, ..r });
+                    }
                 }
             }
             return Ok((corrected.map_err(failed)?, judged));

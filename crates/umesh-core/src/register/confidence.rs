@@ -4,6 +4,7 @@
 
 use crate::mesh::TriMesh;
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 /// At most this many observed points are measured per frame (every n-th point).
 const MAX_POINTS: usize = 1000;
@@ -221,6 +222,7 @@ pub fn coverage_radius_mm(points: &[Vector3<f64>]) -> f64 {
     let grid = crate::nn::PointIndex::new(points, COVERAGE_RADIUS_MM);
     let step = points.len().div_ceil(500);
     let mut d: Vec<f64> = (0..points.len())
+        .into_par_iter()
         .step_by(step)
         .map(|i| {
             grid.nearest_except(&points[i], COVERAGE_RADIUS_MAX_MM, i)
@@ -250,7 +252,7 @@ pub fn surface_coverage(surface: &TriMesh, points: &[Vector3<f64>], radius_mm: f
     let b = crate::nn::PointIndex::new(points, radius_mm);
     let step = n.div_ceil(2000);
     let probes: Vec<&Vector3<f64>> = surface.positions.iter().step_by(step).collect();
-    let hit = probes.iter().filter(|v| b.nearest(v, radius_mm).is_some()).count();
+    let hit = probes.par_iter().filter(|v| b.nearest(v, radius_mm).is_some()).count();
     hit as f64 / probes.len() as f64
 }
 

@@ -16,6 +16,7 @@ use crate::segmentation::Segmentation;
 use crate::surface::{SurfaceSettings, extract_surface};
 use icp::IcpTarget;
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 /// An internal structure (tumour, vessel) to overlay.
 #[derive(Debug)]
@@ -212,7 +213,7 @@ impl RegistrationContext {
         let radius = confidence::coverage_radius_mm(&sub);
         let reach = radius + confidence::DEFORMATION_ALLOWANCE_MM;
         let on_surface: Vec<Vector3<f64>> =
-            sub.iter().filter_map(|p| self.gate_grid.nearest(p, reach).map(|(_, q)| q)).collect();
+            sub.par_iter().filter_map(|p| self.gate_grid.nearest(p, reach).map(|(_, q)| q)).collect();
         self.surface_coverage(&on_surface, radius)
     }
 

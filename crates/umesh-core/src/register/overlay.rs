@@ -2,7 +2,7 @@
 //! and shaded, blended over the camera image, and the organ's outline.
 
 use crate::mesh::TriMesh;
-use crate::rgbd::{ColorImage, DepthImage, Intrinsics, transform_point};
+use crate::rgbd::{ColorImage, DepthImage, Intrinsics, blend_pixel, transform_point};
 use nalgebra::{Matrix4, Vector3};
 
 /// Rasterise `mesh` (world) seen by a camera; calls `shade(pixel, depth, normal_camera)` for
@@ -169,20 +169,28 @@ pub fn structure_layer(
 }
 
 /// The structures' layer blended over `base`, then the outline of the organ's silhouette
-/// `inside` (both `width` pixels a row, as `base`).
+/// `inside` (both `width` pixels a row, as `base`). Row by row in parallel: each pixel reads
+/// only its own layer entry and its neighbours in `inside`.
 pub fn compose_overlay(base: &mut ColorImage, layer: &[Option<[u8; 3]>], inside: &[bool], width: usize, alpha: f32) {
-    for (i, c) in layer.iter().enumerate() {
-        if let Some(c) = c {
-            base.blend(i % width, i / width, *c, alpha);
-        }
+    use rayon::prelude::*;
+    if width == 0 {
+        return;
     }
-    let height = inside.len() / width.max(1);
-    for v in 1..height.saturating_sub(1) {
-        for u in 1..width.saturating_sub(1) {
-            let i = v * width + u;
-            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - width] || !inside[i + width]) {
-                base.blend(u, v, [255, 255, 255], 0.9);
+    let height = inside.len() / width;
+    base.rgb.par_chunks_mut(3 * width).enumerate().for_each(|(v, row)| {
+        for (u, px) in row.chunks_exact_mut(3).enumerate() {
+            if let Some(Some(c)) = layer.get(v * width + u) {
+                blend_pixel(px, *c, alpha);
             }
         }
-    }
+        if v == 0 || v + 1 >= height {
+            return;
+        }
+        for u in 1..width - 1 {
+            let i = v * width + u;
+            if inside[i] && (!inside[i - 1] || !inside[i + 1] || !inside[i - width] || !inside[i + width]) {
+                blend_pixel(&mut row[3 * u..3 * u + 3], [255, 255, 255], 0.9);
+            }
+        }
+    });
 }

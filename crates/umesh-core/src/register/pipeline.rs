@@ -31,7 +31,7 @@ pub enum FrameError {
 }
 
 /// Volume displacement from surface displacement: the network, or the FE model.
-pub trait DisplacementModel {
+pub trait DisplacementModel: Send {
     fn name(&self) -> String;
     /// u_s [3, X, Y, Z] (mm), or the encoded observation when `observation` is Some ->
     /// u_v [3, X, Y, Z] (mm), written into `out`.
@@ -582,7 +582,23 @@ impl<'c> Registrar<'c> {
     }
 
     /// Register one frame. Errors (no organ pixel, ...) mean: skip this frame.
+    ///
+    /// The frame runs on a thread of rayon's pool: its parallel parts (the network's layers,
+    /// the fit beside its judgement, the overlay) then start on the thread that asks for them,
+    /// the other joining in, rather than each handed from a caller outside the pool to threads
+    /// that may have gone to sleep.
     pub fn process(
+        &mut self,
+        frame: &Frame,
+        model: &mut dyn DisplacementModel,
+        truth: Option<&[[f64; 3]]>,
+        rest: Option<&[[f64; 3]]>,
+        true_pose: Option<&Matrix4<f64>>,
+    ) -> Result<FrameOutput, FrameError> {
+        rayon::scope(|_| self.process_here(frame, model, truth, rest, true_pose))
+    }
+
+    fn process_here(
         &mut self,
         frame: &Frame,
         model: &mut dyn DisplacementModel,

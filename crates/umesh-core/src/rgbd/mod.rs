@@ -189,10 +189,14 @@ impl ColorImage {
 
     pub fn blend(&mut self, u: usize, v: usize, rgb: [u8; 3], alpha: f32) {
         let i = 3 * (v * self.width + u);
-        for c in 0..3 {
-            let d = &mut self.rgb[i + c];
-            *d = (*d as f32 * (1.0 - alpha) + rgb[c] as f32 * alpha).round().clamp(0.0, 255.0) as u8;
-        }
+        blend_pixel(&mut self.rgb[i..i + 3], rgb, alpha);
+    }
+}
+
+/// `rgb` blended at `alpha` over one pixel's three bytes.
+pub fn blend_pixel(px: &mut [u8], rgb: [u8; 3], alpha: f32) {
+    for (d, s) in px.iter_mut().zip(rgb) {
+        *d = (*d as f32 * (1.0 - alpha) + s as f32 * alpha).round().clamp(0.0, 255.0) as u8;
     }
 }
 

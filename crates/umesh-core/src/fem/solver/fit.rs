@@ -930,6 +930,17 @@ impl<'g> PointFit<'g> {
             turn(&mut z, false);
             z
         };
+        // The matched springs gathered once: the loop below runs every iteration, and walking
+        // all the samples (most unmatched) for them cost a third of an iteration's time.
+        let springs: Vec<([u32; 24], [f64; 8], Matrix3<f64>)> = self
+            .samples
+            .iter()
+            .zip(metrics)
+            .filter_map(|(e, m)| {
+                let dofs = std::array::from_fn(|i| free[3 * e.nodes[i / 3] as usize + i % 3]);
+                m.map(|m| (dofs, e.weights, m))
+            })
+            .collect();
         let mut r = b.to_vec();
         let mut z = precondition(self, &r);
         let mut p = z.clone();
@@ -937,24 +948,23 @@ impl<'g> PointFit<'g> {
         let mut ap = vec![0.0; n];
         for k in 1..=max_iter {
             self.solver.asm.corotational_matvec(&p, &mut ap);
-            for (e, m) in self.samples.iter().zip(metrics) {
-                let Some(m) = m else { continue };
+            for (dofs, weights, m) in &springs {
                 // The matched spring: ap += k W^T M (W p).
                 let mut wp = Vector3::<f64>::zeros();
                 for a in 0..8 {
                     for c in 0..3 {
-                        let f = free[3 * e.nodes[a] as usize + c];
+                        let f = dofs[3 * a + c];
                         if f != NONE {
-                            wp[c] += e.weights[a] * p[f as usize];
+                            wp[c] += weights[a] * p[f as usize];
                         }
                     }
                 }
                 let wp = m * wp;
                 for a in 0..8 {
                     for c in 0..3 {
-                        let f = free[3 * e.nodes[a] as usize + c];
+                        let f = dofs[3 * a + c];
                         if f != NONE {
-                            ap[f as usize] += self.k_n_per_mm * e.weights[a] * wp[c];
+                            ap[f as usize] += self.k_n_per_mm * weights[a] * wp[c];
                         }
                     }
                 }

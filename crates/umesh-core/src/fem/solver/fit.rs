@@ -937,8 +937,8 @@ impl<'g> PointFit<'g> {
             .iter()
             .zip(metrics)
             .filter_map(|(e, m)| {
-                let dofs = std::array::from_fn(|i| free[3 * e.nodes[i / 3] as usize + i % 3]);
-                m.map(|m| (dofs, e.weights, m))
+                let m = (*m)?;
+                Some((std::array::from_fn(|i| free[3 * e.nodes[i / 3] as usize + i % 3]), e.weights, m))
             })
             .collect();
         let mut r = b.to_vec();
